@@ -1,0 +1,178 @@
+"""Backward linear scans behind :mod:`rl_pg.functional`.
+
+Two implementations of one recurrence, both on ``[N, T]`` tensors (time last)::
+
+    end[t]  = done[t] or terminated[t] or t == T - 1
+    carry   = (next_value[t] if not terminated[t] else 0) if end[t] else G[t + 1]
+    G[t]    = reward[t] + gamma[t] * carry
+
+* a numba kernel, one sequential pass per row, used for CPU tensors that need no
+  gradient: a collector batch is reduced at memory speed (see
+  ``benchmarks/returns.py``);
+* a log-depth (Hillis-Steele) scan in plain torch, used on other devices and when an
+  input requires a gradient, so that autograd and CUDA keep working.
+
+``whole_episode=True`` then copies each episode's first ``G`` to all of its steps.
+Callers validate their inputs; these functions trust them.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+# Rows handled together by one thread: their recurrences are independent, so the
+# CPU overlaps them instead of waiting on one multiply-add chain at a time.
+_ROWS_PER_BLOCK = 16
+_NUMBA_DTYPES = (torch.float32, torch.float64)
+
+
+def _gamma_at(gamma, i, t):
+    """Discount of step ``t`` of row ``i``: ``gamma`` is a number or an ``[N, T]`` array."""
+
+
+@numba.extending.overload(_gamma_at, inline="always")
+def _gamma_at_impl(gamma, i, t):
+    # Specialised on the type so that a scalar discount costs no memory traffic.
+    if isinstance(gamma, numba.types.Number):
+        return lambda gamma, i, t: gamma
+    return lambda gamma, i, t: gamma[i, t]
+
+
+@numba.njit(inline="always")
+def _bootstrap(terminated, next_value, i, t):
+    if next_value is None:
+        return 0.0
+    if terminated is not None and terminated[i, t]:
+        return 0.0
+    return next_value[i, t]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _scan_numba(reward, done, terminated, next_value, gamma, whole_episode, out):
+    n_rows, n_steps = reward.shape
+    n_blocks = (n_rows + _ROWS_PER_BLOCK - 1) // _ROWS_PER_BLOCK
+    # ``x - x`` is 0 for finite x and NaN otherwise: summing it flags a non-finite
+    # result without a second pass over memory.
+    finite_check = 0.0
+    for block in numba.prange(n_blocks):
+        lo = block * _ROWS_PER_BLOCK
+        hi = min(lo + _ROWS_PER_BLOCK, n_rows)
+        carry = np.zeros(_ROWS_PER_BLOCK, dtype=out.dtype)
+        lane_check = np.zeros(_ROWS_PER_BLOCK, dtype=out.dtype)
+        last = n_steps - 1
+        for j in range(hi - lo):
+            i = lo + j
+            boot = _bootstrap(terminated, next_value, i, last)
+            carry[j] = reward[i, last] + _gamma_at(gamma, i, last) * boot
+            out[i, last] = carry[j]
+        # Selects rather than branches inside this loop: it is the hot path.
+        for t in range(n_steps - 2, -1, -1):
+            for j in range(hi - lo):
+                i = lo + j
+                ended = done[i, t] or (terminated is not None and terminated[i, t])
+                if next_value is None:
+                    following = carry[j] * (1 - ended)
+                else:
+                    following = _bootstrap(terminated, next_value, i, t) if ended else carry[j]
+                carry[j] = reward[i, t] + _gamma_at(gamma, i, t) * following
+                out[i, t] = carry[j]
+                lane_check[j] += carry[j] - carry[j]
+        finite_check += lane_check.sum()
+        if whole_episode:
+            for j in range(hi - lo):
+                i = lo + j
+                first = out[i, 0]
+                for t in range(1, n_steps):
+                    if done[i, t - 1] or (terminated is not None and terminated[i, t - 1]):
+                        first = out[i, t]
+                    else:
+                        out[i, t] = first
+    return finite_check
+
+
+def _as_numpy(tensor: torch.Tensor | None) -> np.ndarray | None:
+    if tensor is None:
+        return None
+    if tensor.dtype == torch.bool:
+        return tensor.contiguous().numpy().view(np.uint8)
+    return tensor.contiguous().numpy()
+
+
+def _scan_torch(reward, done, terminated, next_value, gamma, whole_episode):
+    end = done if terminated is None else done | terminated
+    end = end.clone()
+    end[:, -1] = True
+    bootstrap = end if terminated is None else end & ~terminated
+    if next_value is not None:
+        # ``where`` rather than a product: next values at terminated steps may be NaN
+        # (TorchRL's compact observations) and must not leak into the result.
+        reward = reward + torch.where(bootstrap, gamma * next_value, 0.0)
+    decay = torch.where(end, 0.0, gamma).to(reward.dtype)
+    value = reward
+    n_steps = reward.shape[-1]
+    shift = 1
+    while shift < n_steps:
+        # Out of place so that autograd can trace the scan.
+        value = torch.cat(
+            [value[:, :-shift] + decay[:, :-shift] * value[:, shift:], value[:, -shift:]],
+            dim=-1,
+        )
+        decay = torch.cat(
+            [decay[:, :-shift] * decay[:, shift:], decay.new_zeros(decay.shape[0], shift)],
+            dim=-1,
+        )
+        shift *= 2
+    if whole_episode:
+        start = torch.zeros_like(end)
+        start[:, 1:] = end[:, :-1]
+        start[:, 0] = True
+        steps = torch.arange(n_steps, device=reward.device).expand_as(start)
+        first = torch.where(start, steps, 0).cummax(-1).values
+        value = value.gather(-1, first)
+    return value
+
+
+def backward_scan(
+    reward: torch.Tensor,
+    done: torch.Tensor,
+    terminated: torch.Tensor | None,
+    next_value: torch.Tensor | None,
+    gamma: torch.Tensor | float,
+    *,
+    whole_episode: bool,
+) -> tuple[torch.Tensor, bool]:
+    """Solves the recurrence of this module on ``[N, T]`` inputs (see the module doc).
+
+    ``gamma`` is a float or a tensor broadcastable to ``reward``. Returns the result
+    and whether all of it is finite.
+    """
+    needs_grad = torch.is_grad_enabled() and any(
+        isinstance(x, torch.Tensor) and x.requires_grad for x in (reward, next_value, gamma)
+    )
+    if reward.device.type != "cpu" or needs_grad or reward.dtype not in _NUMBA_DTYPES:
+        if not isinstance(gamma, torch.Tensor):
+            gamma = torch.tensor(gamma, dtype=reward.dtype, device=reward.device)
+        gamma = gamma.to(reward.dtype).expand_as(reward)
+        out = _scan_torch(reward, done, terminated, next_value, gamma, whole_episode)
+        return out, bool(torch.isfinite(out).all())
+
+    if isinstance(gamma, torch.Tensor):
+        gamma = gamma.to(reward.dtype).expand_as(reward).numpy()
+    else:
+        # In the rewards' precision, so that float32 batches are not promoted per step.
+        gamma = _as_numpy(reward[:0]).dtype.type(gamma)
+    if next_value is not None:
+        next_value = next_value.to(reward.dtype)
+    out = torch.empty_like(reward, memory_format=torch.contiguous_format)
+    finite_check = _scan_numba(
+        _as_numpy(reward),
+        _as_numpy(done),
+        _as_numpy(terminated),
+        _as_numpy(next_value),
+        gamma,
+        whole_episode,
+        out.numpy(),
+    )
+    return out, bool(np.isfinite(finite_check))

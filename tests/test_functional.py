@@ -1,0 +1,232 @@
+"""The return kernels against a plain Python loop, and their input checks."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rl_pg.functional import discounted_return, reward_to_go
+
+
+def reference_returns(reward, done, terminated, next_value, gamma, whole_episode):
+    """Forward sums over explicitly segmented episodes, on ``[N, T]`` float64 lists.
+
+    Deliberately not the kernels' backward recurrence: each return is the sum
+    ``sum_k (prod_{j<k} gamma_j) r_k`` over its episode, plus the discounted bootstrap.
+    """
+    out = []
+    for r, d, term, nv, g in zip(reward, done, terminated, next_value, gamma, strict=True):
+        n_steps = len(r)
+        ends = [t for t in range(n_steps) if d[t] or term[t]]
+        if not ends or ends[-1] != n_steps - 1:
+            ends.append(n_steps - 1)
+        row = [0.0] * n_steps
+        start = 0
+        for end in ends:
+            boot = 0.0 if term[end] or nv is None else nv[end]
+            for t in range(start, end + 1):
+                total, discount = 0.0, 1.0
+                for k in range(t, end + 1):
+                    total += discount * r[k]
+                    discount *= g[k]
+                row[t] = total + discount * boot
+            if whole_episode:
+                row[start : end + 1] = [row[start]] * (end + 1 - start)
+            start = end + 1
+        out.append(row)
+    return out
+
+
+@st.composite
+def return_problems(draw):
+    """Random batches: layouts, episode boundaries, truncations, cut rows and discounts."""
+    batch = draw(st.lists(st.integers(1, 3), min_size=0, max_size=2))
+    n_steps = draw(st.integers(1, 24))
+    feature_dim = draw(st.booleans())  # TorchRL's trailing singleton
+    dtype = draw(st.sampled_from([torch.float32, torch.float64]))
+    generator = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    p_done = draw(st.sampled_from([0.0, 0.05, 0.3, 1.0]))
+    canonical = (*batch, n_steps)
+    reward = torch.randn(canonical, generator=generator, dtype=torch.float64)
+    done = torch.rand(canonical, generator=generator) < p_done
+    terminated = done & (torch.rand(canonical, generator=generator) < 0.5)
+    with_terminated = draw(st.booleans())
+    if not with_terminated:
+        terminated = done.clone()
+    next_value = None
+    if draw(st.booleans()):
+        next_value = torch.randn(canonical, generator=generator, dtype=torch.float64)
+        # Values at terminated steps are never read, so NaN there must be harmless.
+        next_value = next_value.masked_fill(terminated, float("nan"))
+    gamma_kind = draw(st.sampled_from(["0", "0.5", "0.99", "1", "per_step", "per_row"]))
+    if gamma_kind == "per_step":
+        gamma = torch.rand(canonical, generator=generator, dtype=torch.float64)
+    elif gamma_kind == "per_row":
+        gamma = torch.rand((*batch, 1), generator=generator, dtype=torch.float64)
+    else:
+        gamma = float(gamma_kind)
+    gamma_full = torch.broadcast_to(torch.as_tensor(gamma, dtype=torch.float64), canonical)
+
+    def rows(x):
+        return None if x is None else x.reshape(-1, n_steps).tolist()
+
+    expected = {
+        whole: torch.tensor(
+            reference_returns(
+                rows(reward),
+                rows(done),
+                rows(terminated),
+                rows(next_value) or [None] * max(1, math.prod(batch)),
+                rows(gamma_full),
+                whole,
+            ),
+            dtype=torch.float64,
+        ).reshape(canonical)
+        for whole in (False, True)
+    }
+
+    # Lay the tensors out as the caller would: time at a random position, optional
+    # trailing feature dimension.
+    time_pos = draw(st.integers(0, len(batch)))
+
+    def layout(x):
+        if x is None or (isinstance(x, float)):
+            return x
+        x = x.movedim(-1, time_pos)
+        return x.unsqueeze(-1) if feature_dim else x
+
+    ndim = len(canonical) + feature_dim
+    time_dim = time_pos - ndim if draw(st.booleans()) else time_pos
+    if isinstance(gamma, torch.Tensor):
+        gamma = layout(gamma_full).to(dtype)
+    kwargs = {
+        "time_dim": time_dim,
+        "terminated": layout(terminated) if with_terminated else None,
+        "next_value": None if next_value is None else layout(next_value).to(dtype),
+    }
+    args = (layout(reward).to(dtype), layout(done), gamma)
+    return args, kwargs, {k: layout(v) for k, v in expected.items()}, dtype
+
+
+def _tolerance(dtype):
+    return (
+        {"rtol": 1e-4, "atol": 1e-4} if dtype == torch.float32 else {"rtol": 1e-10, "atol": 1e-10}
+    )
+
+
+class TestRewardToGo:
+    @settings(max_examples=300, deadline=None)
+    @given(return_problems())
+    def test_matches_plain_loop(self, problem):
+        args, kwargs, expected, dtype = problem
+        out = reward_to_go(*args, **kwargs)
+        assert out.dtype == dtype and out.shape == args[0].shape
+        torch.testing.assert_close(out.double(), expected[False], **_tolerance(dtype))
+
+    @settings(max_examples=100, deadline=None)
+    @given(return_problems())
+    def test_autograd_path_matches_plain_loop(self, problem):
+        args, kwargs, expected, dtype = problem
+        reward = args[0].clone().requires_grad_(True)
+        out = reward_to_go(reward, *args[1:], **kwargs)
+        torch.testing.assert_close(out.double().detach(), expected[False], **_tolerance(dtype))
+
+    def test_gradient_flows_into_next_value(self):
+        reward = torch.zeros(1, 3, 1)
+        done = torch.zeros(1, 3, 1, dtype=torch.bool)
+        next_value = torch.ones(1, 3, 1, requires_grad=True)
+        reward_to_go(reward, done, 0.5, next_value=next_value).sum().backward()
+        # Only the cut last step bootstraps: G = (0.125, 0.25, 0.5) * V.
+        assert next_value.grad.squeeze().tolist() == [0.0, 0.0, 0.875]
+
+    def test_half_precision_runs_on_the_fallback(self):
+        reward = torch.ones(2, 4, 1, dtype=torch.bfloat16)
+        done = torch.zeros(2, 4, 1, dtype=torch.bool)
+        out = reward_to_go(reward, done, 1.0)
+        assert out.dtype == torch.bfloat16
+        assert out[0, :, 0].tolist() == [4.0, 3.0, 2.0, 1.0]
+
+    def test_integer_done_is_accepted(self):
+        reward = torch.ones(3, 1)
+        done = torch.tensor([[0], [1], [0]])
+        assert reward_to_go(reward, done, 1.0).squeeze(-1).tolist() == [2.0, 1.0, 1.0]
+
+
+class TestDiscountedReturn:
+    @settings(max_examples=300, deadline=None)
+    @given(return_problems())
+    def test_matches_plain_loop(self, problem):
+        args, kwargs, expected, dtype = problem
+        out = discounted_return(*args, **kwargs)
+        torch.testing.assert_close(out.double(), expected[True], **_tolerance(dtype))
+
+    @settings(max_examples=100, deadline=None)
+    @given(return_problems())
+    def test_autograd_path_matches_plain_loop(self, problem):
+        args, kwargs, expected, dtype = problem
+        reward = args[0].clone().requires_grad_(True)
+        out = discounted_return(reward, *args[1:], **kwargs)
+        torch.testing.assert_close(out.double().detach(), expected[True], **_tolerance(dtype))
+
+
+@pytest.mark.parametrize("fn", [reward_to_go, discounted_return])
+class TestBadInput:
+    def test_empty_batch(self, fn):
+        with pytest.raises(ValueError, match="empty batch"):
+            fn(torch.zeros(0, 5, 1), torch.zeros(0, 5, 1, dtype=torch.bool), 0.9)
+
+    def test_done_shape_mismatch(self, fn):
+        with pytest.raises(ValueError, match=r"done must have the shape of reward \(4, 5, 1\)"):
+            fn(torch.zeros(4, 5, 1), torch.zeros(4, 5, dtype=torch.bool), 0.9)
+
+    def test_next_value_shape_mismatch(self, fn):
+        with pytest.raises(ValueError, match="next_value must have the shape"):
+            fn(
+                torch.zeros(4, 5, 1),
+                torch.zeros(4, 5, 1, dtype=torch.bool),
+                0.9,
+                next_value=torch.zeros(4, 6, 1),
+            )
+
+    @pytest.mark.parametrize("gamma", [-0.1, 1.5, float("nan"), "0.9", True])
+    def test_gamma_outside_unit_interval(self, fn, gamma):
+        with pytest.raises(ValueError, match=r"gamma must be a number in \[0, 1\]"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), gamma)
+
+    def test_gamma_tensor_outside_unit_interval(self, fn):
+        with pytest.raises(ValueError, match=r"gamma must lie in \[0, 1\]"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), torch.tensor(1.01))
+
+    def test_gamma_tensor_that_does_not_broadcast(self, fn):
+        with pytest.raises(ValueError, match="does not broadcast"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), torch.ones(4))
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite_reward(self, fn, bad):
+        reward = torch.zeros(2, 3, 1)
+        reward[1, 2, 0] = bad
+        with pytest.raises(ValueError, match=r"reward holds 1 non-finite value\(s\) .*\(1, 2, 0\)"):
+            fn(reward, torch.zeros(2, 3, 1, dtype=torch.bool), 0.9)
+
+    def test_non_finite_next_value_where_it_bootstraps(self, fn):
+        next_value = torch.zeros(2, 3, 1)
+        next_value[0, 2, 0] = float("nan")
+        with pytest.raises(ValueError, match="next_value holds non-finite"):
+            fn(
+                torch.zeros(2, 3, 1),
+                torch.zeros(2, 3, 1, dtype=torch.bool),
+                0.9,
+                next_value=next_value,
+            )
+
+    def test_time_dim_out_of_range(self, fn):
+        with pytest.raises(ValueError, match="time_dim=-2 is out of range"):
+            fn(torch.zeros(5), torch.zeros(5, dtype=torch.bool), 0.9)
+
+    def test_integer_reward(self, fn):
+        with pytest.raises(TypeError, match="reward must be a floating-point tensor"):
+            fn(torch.zeros(2, 3, 1, dtype=torch.long), torch.zeros(2, 3, 1, dtype=torch.bool), 0.9)
