@@ -1,0 +1,233 @@
+"""Monte-Carlo return estimators as TorchRL value estimators.
+
+:class:`RewardToGo` and :class:`DiscountedReturn` plug in wherever TorchRL expects a
+:class:`~torchrl.objectives.value.ValueEstimatorBase` (``loss.make_value_estimator``,
+a standalone call on collector output, ...). Both are registered with TorchRL under
+the names ``"reward_to_go"`` and ``"discounted_return"``.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, dispatch
+from torchrl.objectives.utils import hold_out_net, register_value_estimator
+from torchrl.objectives.value import ValueEstimatorBase
+
+from rl_pg.functional import discounted_return, reward_to_go
+
+__all__ = ["DiscountedReturn", "RewardToGo"]
+
+
+class _MonteCarloReturn(ValueEstimatorBase):
+    """What the two estimators share: only the return function differs."""
+
+    _returns = staticmethod(reward_to_go)
+
+    def __init__(
+        self,
+        *,
+        gamma: float | torch.Tensor,
+        value_network: TensorDictModule | None = None,
+        time_dim: int | None = None,
+        differentiable: bool = False,
+        device: torch.device | None = None,
+        deactivate_vmap: bool = False,
+    ) -> None:
+        super().__init__(
+            value_network=value_network,
+            differentiable=differentiable,
+            device=device,
+            deactivate_vmap=deactivate_vmap,
+        )
+        if isinstance(gamma, torch.Tensor):
+            if gamma.numel() != 1:
+                raise ValueError(
+                    f"gamma must be a number or a one-element tensor, got shape "
+                    f"{tuple(gamma.shape)}. For per-step discounts call rl_pg.functional."
+                )
+            gamma = gamma.item()
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0 <= gamma <= 1:
+            raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+        # float64 so that .item() gives back the number the user wrote.
+        self.register_buffer(
+            "gamma", torch.tensor(float(gamma), dtype=torch.float64, device=self._device)
+        )
+        self.time_dim = time_dim
+
+    @property
+    def in_keys(self):
+        keys = [("next", self.tensor_keys.reward), ("next", self.tensor_keys.done)]
+        keys.append(("next", self.tensor_keys.terminated))
+        if self.value_network is not None:
+            network_keys = list(self.value_network.in_keys)
+            keys += network_keys + [("next", key) for key in network_keys]
+        return keys
+
+    @dispatch
+    def forward(
+        self,
+        tensordict: TensorDictBase,
+        *,
+        params: TensorDictBase | None = None,
+        target_params: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """Writes the return (``value_target``) and the ``advantage`` into ``tensordict``.
+
+        Args:
+            tensordict (TensorDictBase): collector output ``[*B, T]`` (time last unless
+                ``time_dim`` says otherwise) or a flat ``[N]`` batch of episodes laid back
+                to back, with ``("next", "reward")``, ``("next", "done")`` and, optionally,
+                ``("next", "terminated")``; plus the value network's inputs at the root
+                and under ``"next"`` when there is a value network.
+
+        Keyword Args:
+            params (TensorDictBase, optional): parameters for a functional value network.
+                Defaults to ``None``.
+            target_params (TensorDictBase, optional): parameters used for the bootstrap
+                values. Defaults to ``params``.
+
+        Returns:
+            ``tensordict``, updated in place.
+        """
+        if tensordict.batch_dims < 1:
+            raise ValueError(
+                f"{type(self).__name__} needs a tensordict with a time dimension, got "
+                f"batch_size={tuple(tensordict.batch_size)}. Give the data a batch size such "
+                f"as [T] or [B, T]."
+            )
+        value = next_value = None
+        if self.value_network is not None:
+            if params is not None:
+                params = params.detach()
+                if target_params is None:
+                    target_params = params.clone(False)
+            held = params is None and target_params is None
+            with hold_out_net(self.value_network) if held else nullcontext():
+                value, next_value, _ = self._call_value_nets(
+                    data=tensordict,
+                    params=params,
+                    next_params=target_params,
+                    single_call=False,
+                    value_key=self.tensor_keys.value,
+                    detach_next=True,
+                    vmap_randomness=self.vmap_randomness,
+                )
+        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            value_target = self.value_estimate(tensordict, next_value=next_value)
+            advantage = value_target if value is None else value_target - value
+        tensordict.set(self.tensor_keys.value_target, value_target)
+        tensordict.set(self.tensor_keys.advantage, advantage)
+        return tensordict
+
+    def value_estimate(
+        self,
+        tensordict: TensorDictBase,
+        target_params: TensorDictBase | None = None,
+        next_value: torch.Tensor | None = None,
+        time_dim: int | None = None,
+        **kwargs,
+    ) -> torch.Tensor:
+        """The return of every step, bootstrapped from ``next_value`` where episodes are cut."""
+        reward = self._read(tensordict, ("next", self.tensor_keys.reward))
+        done = self._read(tensordict, ("next", self.tensor_keys.done))
+        terminated = tensordict.get(("next", self.tensor_keys.terminated), None)
+        time_dim = self._get_time_dim(time_dim, tensordict)
+        if done.shape != reward.shape:
+            done = self._expand(done, reward, "done")
+        if terminated is not None and terminated.shape != reward.shape:
+            terminated = self._expand(terminated, reward, "terminated")
+        return type(self)._returns(
+            reward,
+            done,
+            self.gamma.item(),
+            time_dim=time_dim,
+            terminated=terminated,
+            next_value=next_value,
+        )
+
+    @staticmethod
+    def _read(tensordict: TensorDictBase, key) -> torch.Tensor:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"The input tensordict has no entry {key!r}. Collect it with the environment "
+                f"or rename the estimator's keys with set_keys(...)."
+            )
+        return value
+
+    @staticmethod
+    def _expand(mask: torch.Tensor, reward: torch.Tensor, name: str) -> torch.Tensor:
+        try:
+            return mask.expand_as(reward)
+        except RuntimeError as err:
+            raise ValueError(
+                f"{name} of shape {tuple(mask.shape)} does not match reward of shape "
+                f"{tuple(reward.shape)}."
+            ) from err
+
+
+@register_value_estimator("reward_to_go", default_kwargs={"gamma": 0.99})
+class RewardToGo(_MonteCarloReturn):
+    """Reward-to-go :math:`G_t = \\sum_{k \\ge t} \\gamma^{k-t} r_k` as a TorchRL value estimator.
+
+    Writes ``value_target`` (:math:`G_t`) and ``advantage`` (:math:`G_t - V(s_t)` with a
+    value network, :math:`G_t` without). Episodes that are truncated or cut by the batch
+    bootstrap from the value network when there is one (see :func:`rl_pg.functional.reward_to_go`).
+
+    Keyword Args:
+        gamma (float): discount in ``[0, 1]``.
+        value_network (TensorDictModule, optional): state-value network, used as baseline
+            and for bootstrapping. Defaults to ``None``.
+        time_dim (int, optional): the tensordict's time dimension. Defaults to ``None``:
+            the dimension named ``"time"``, else the last one.
+        differentiable (bool, optional): keep the graph through the value network.
+            Defaults to ``False``.
+        device (torch.device, optional): device of the ``gamma`` buffer. Defaults to
+            ``torch.get_default_device()``.
+        deactivate_vmap (bool, optional): call the value network without ``vmap``.
+            Defaults to ``False``.
+
+    Raises:
+        ValueError: for ``gamma`` outside ``[0, 1]``, data without a time dimension, and
+            the bad inputs listed in :func:`rl_pg.functional.reward_to_go`.
+        KeyError: when a key it reads is missing (the message names it).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from rl_pg import RewardToGo
+        >>> data = TensorDict(
+        ...     {"next": {"reward": torch.ones(1, 4, 1),
+        ...               "done": torch.tensor([[0, 1, 0, 1]], dtype=torch.bool).unsqueeze(-1)}},
+        ...     batch_size=[1, 4],
+        ... )
+        >>> RewardToGo(gamma=0.5)(data)["value_target"].squeeze(-1)
+        tensor([[1.5000, 1.0000, 1.5000, 1.0000]])
+    """
+
+
+@register_value_estimator("discounted_return", default_kwargs={"gamma": 0.99})
+class DiscountedReturn(_MonteCarloReturn):
+    """Whole-episode return :math:`R(\\tau) = \\sum_k \\gamma^k r_k` at every step.
+
+    The "no causality" estimator: every step of an episode gets the same target. With a
+    value network the ``advantage`` is :math:`R(\\tau) - V(s_t)`. Takes the keyword
+    arguments of :class:`RewardToGo`.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from rl_pg import DiscountedReturn
+        >>> data = TensorDict(
+        ...     {"next": {"reward": torch.tensor([1.0, 2.0, 3.0, 4.0]).unsqueeze(-1),
+        ...               "done": torch.tensor([0, 1, 0, 1], dtype=torch.bool).unsqueeze(-1)}},
+        ...     batch_size=[4],
+        ... )
+        >>> DiscountedReturn(gamma=0.5)(data)["advantage"].squeeze(-1)
+        tensor([2., 2., 5., 5.])
+    """
+
+    _returns = staticmethod(discounted_return)

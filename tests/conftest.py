@@ -1,0 +1,89 @@
+"""Shared actors, critics and TensorDict batches for the tests."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Unbounded
+from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
+
+N_OBS = 3
+N_ACT = 4
+
+
+def make_categorical_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticActor:
+    return ProbabilisticActor(
+        TensorDictModule(nn.Linear(n_obs, n_act), ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+    )
+
+
+def make_one_hot_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticActor:
+    return ProbabilisticActor(
+        TensorDictModule(nn.Linear(n_obs, n_act), ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=OneHotCategorical,
+        return_log_prob=True,
+    )
+
+
+def make_gaussian_actor(
+    n_obs: int = N_OBS, n_act: int = N_ACT, distribution_class=TanhNormal
+) -> ProbabilisticActor:
+    net = nn.Sequential(nn.Linear(n_obs, 2 * n_act), NormalParamExtractor())
+    return ProbabilisticActor(
+        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=distribution_class,
+        return_log_prob=True,
+        spec=Unbounded(n_act),
+    )
+
+
+def make_critic(n_obs: int = N_OBS) -> ValueOperator:
+    return ValueOperator(nn.Linear(n_obs, 1), in_keys=["observation"])
+
+
+def make_batch(
+    action: torch.Tensor, *, n_obs: int = N_OBS, p_done: float = 0.2, seed: int = 0
+) -> TensorDict:
+    """A ``[B, T]`` collector-like batch for the given actions."""
+    generator = torch.Generator().manual_seed(seed)
+    shape = action.shape[:2]
+    done = torch.rand(*shape, 1, generator=generator) < p_done
+    return TensorDict(
+        {
+            "observation": torch.randn(*shape, n_obs, generator=generator),
+            "action": action,
+            "next": {
+                "observation": torch.randn(*shape, n_obs, generator=generator),
+                "reward": torch.randn(*shape, 1, generator=generator),
+                "done": done,
+                "terminated": done.clone(),
+            },
+        },
+        batch_size=shape,
+    )
+
+
+@pytest.fixture
+def categorical_actor():
+    torch.manual_seed(0)
+    return make_categorical_actor()
+
+
+@pytest.fixture
+def critic():
+    torch.manual_seed(1)
+    return make_critic()
+
+
+@pytest.fixture
+def categorical_batch():
+    generator = torch.Generator().manual_seed(2)
+    return make_batch(torch.randint(N_ACT, (3, 7), generator=generator))

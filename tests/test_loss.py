@@ -1,0 +1,286 @@
+"""rl_pg.ReinforceLoss: outputs, keys, reductions, gradients, actors, baselines, errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import (
+    N_ACT,
+    make_batch,
+    make_categorical_actor,
+    make_critic,
+    make_gaussian_actor,
+    make_one_hot_actor,
+)
+from torchrl.objectives.value import GAE
+
+from rl_pg import DiscountedReturn, ReinforceLoss, RewardToGo
+from rl_pg.functional import reward_to_go
+
+
+def _surrogate(actor, batch, weights):
+    """-mean(weights * log pi(stored action)), computed by hand."""
+    dist = actor.get_dist(batch)
+    log_prob = dist.log_prob(batch["action"])
+    if log_prob.shape != weights.shape[:-1]:
+        log_prob = log_prob.sum(-1)
+    return -(log_prob.unsqueeze(-1) * weights).mean()
+
+
+class TestReinforceLoss:
+    def test_output_keys_without_critic(self, categorical_actor, categorical_batch):
+        out = ReinforceLoss(categorical_actor)(categorical_batch)
+        assert set(out.keys()) == {"loss_actor", "advantage_mean", "advantage_std"}
+        assert out.batch_size == torch.Size([])
+
+    def test_output_keys_with_critic(self, categorical_actor, critic, categorical_batch):
+        out = ReinforceLoss(categorical_actor, critic)(categorical_batch)
+        assert set(out.keys()) == {
+            "loss_actor",
+            "loss_value",
+            "advantage_mean",
+            "advantage_std",
+            "explained_variance",
+        }
+
+    def test_output_keys_with_entropy_and_scalar_baseline(
+        self, categorical_actor, categorical_batch
+    ):
+        loss = ReinforceLoss(categorical_actor, baseline="ema", entropy_coeff=0.1)
+        out = loss(categorical_batch)
+        assert {"loss_entropy", "entropy", "baseline"} <= set(out.keys())
+        assert loss.out_keys == ["loss_actor", "loss_entropy"]
+
+    def test_diagnostics_are_detached(self, categorical_actor, critic, categorical_batch):
+        out = ReinforceLoss(categorical_actor, critic, entropy_coeff=0.1)(categorical_batch)
+        for key, value in out.items():
+            assert value.requires_grad == key.startswith("loss_"), key
+
+    def test_actor_loss_is_the_reward_to_go_surrogate(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor)
+        out = loss(categorical_batch.clone())
+        returns = reward_to_go(
+            categorical_batch["next", "reward"], categorical_batch["next", "done"], 0.99
+        )
+        expected = _surrogate(categorical_actor, categorical_batch, returns)
+        torch.testing.assert_close(out["loss_actor"], expected)
+
+    def test_default_estimators(self, categorical_actor, critic):
+        without = ReinforceLoss(categorical_actor)
+        assert isinstance(without.value_estimator, RewardToGo)
+        assert without.value_estimator.gamma.item() == 0.99
+        assert isinstance(ReinforceLoss(categorical_actor, critic).value_estimator, GAE)
+
+    @pytest.mark.parametrize(
+        ("value_type", "cls"),
+        [("reward_to_go", RewardToGo), ("discounted_return", DiscountedReturn)],
+    )
+    def test_make_value_estimator_by_name(self, categorical_actor, value_type, cls):
+        loss = ReinforceLoss(categorical_actor).make_value_estimator(value_type, gamma=0.5)
+        assert type(loss.value_estimator) is cls
+        assert loss.value_estimator.gamma.item() == 0.5
+
+    def test_make_value_estimator_by_class_receives_the_critic(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        loss = ReinforceLoss(categorical_actor, critic)
+        loss.make_value_estimator(DiscountedReturn, gamma=0.9)
+        assert loss.value_estimator.value_network is loss.critic_network
+        loss(categorical_batch)
+        value_target = categorical_batch["value_target"]
+        advantage = categorical_batch["advantage"]
+        torch.testing.assert_close(advantage, value_target - categorical_batch["state_value"])
+
+    def test_precomputed_advantage_is_used(self, categorical_actor, critic, categorical_batch):
+        categorical_batch["advantage"] = torch.ones_like(categorical_batch["next", "reward"])
+        categorical_batch["value_target"] = torch.zeros_like(categorical_batch["next", "reward"])
+        out = ReinforceLoss(categorical_actor, critic)(categorical_batch)
+        weights = torch.ones_like(categorical_batch["advantage"])
+        torch.testing.assert_close(
+            out["loss_actor"], _surrogate(categorical_actor, categorical_batch, weights)
+        )
+
+    def test_set_keys_round_trip(self, categorical_actor, categorical_batch):
+        reference = ReinforceLoss(categorical_actor)(categorical_batch.clone())
+        renamed = categorical_batch.clone()
+        renamed.rename_key_("action", "act")
+        renamed.rename_key_(("next", "reward"), ("next", "rew"))
+        renamed.rename_key_(("next", "done"), ("next", "finished"))
+        loss = ReinforceLoss(categorical_actor)
+        loss.set_keys(action="act", reward="rew", done="finished", value_target="ret")
+        out = loss(renamed)
+        torch.testing.assert_close(out["loss_actor"], reference["loss_actor"])
+        assert "ret" in renamed.keys() and "value_target" not in renamed.keys()
+        loss.set_keys(action=None)
+        assert loss.tensor_keys.action == "action"
+
+    def test_set_keys_rejects_unknown_names(self, categorical_actor):
+        with pytest.raises(ValueError, match="rewards is not an accepted tensordict key"):
+            ReinforceLoss(categorical_actor).set_keys(rewards="r")
+
+    @pytest.mark.parametrize("reduction", ["none", "mean", "sum"])
+    def test_reduction(self, categorical_actor, critic, categorical_batch, reduction):
+        loss = ReinforceLoss(categorical_actor, critic, reduction=reduction, entropy_coeff=0.1)
+        out = loss(categorical_batch)
+        mean = ReinforceLoss(categorical_actor, critic, entropy_coeff=0.1)(categorical_batch)
+        for key in ("loss_actor", "loss_value", "loss_entropy"):
+            if reduction == "none":
+                assert out[key].shape == categorical_batch.shape
+                torch.testing.assert_close(out[key].mean(), mean[key])
+            elif reduction == "sum":
+                torch.testing.assert_close(out[key], mean[key] * categorical_batch.numel())
+            else:
+                torch.testing.assert_close(out[key], mean[key])
+
+    def test_gradient_isolation(self, categorical_actor, critic, categorical_batch):
+        loss = ReinforceLoss(categorical_actor, critic)
+        out = loss(categorical_batch)
+        actor_params = list(loss.actor_network_params.values(True, True))
+        critic_params = list(loss.critic_network_params.values(True, True))
+        actor_grads = torch.autograd.grad(
+            out["loss_actor"], actor_params + critic_params, retain_graph=True, allow_unused=True
+        )
+        assert all(g is not None for g in actor_grads[: len(actor_params)])
+        assert all(g is None for g in actor_grads[len(actor_params) :])
+        value_grads = torch.autograd.grad(
+            out["loss_value"], actor_params + critic_params, allow_unused=True
+        )
+        assert all(g is None for g in value_grads[: len(actor_params)])
+        assert all(g is not None for g in value_grads[len(actor_params) :])
+
+    def test_one_hot_actor_scores_the_stored_action(self):
+        torch.manual_seed(0)
+        actor = make_one_hot_actor()
+        index = torch.randint(N_ACT, (3, 7))
+        batch = make_batch(torch.nn.functional.one_hot(index, N_ACT))
+        out = ReinforceLoss(actor)(batch.clone())
+        returns = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.99)
+        torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
+
+    @pytest.mark.parametrize("distribution", ["tanh_normal", "normal"])
+    def test_continuous_actor_scores_the_stored_action(self, distribution):
+        torch.manual_seed(0)
+        cls = {"tanh_normal": None, "normal": torch.distributions.Normal}[distribution]
+        actor = (
+            make_gaussian_actor() if cls is None else make_gaussian_actor(distribution_class=cls)
+        )
+        batch = make_batch(torch.rand(3, 7, N_ACT) * 1.8 - 0.9)
+        out = ReinforceLoss(actor)(batch.clone())
+        returns = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.99)
+        # Scoring a resampled action would make the loss random; the stored one is fixed.
+        torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
+        torch.testing.assert_close(
+            ReinforceLoss(actor)(batch.clone())["loss_actor"], out["loss_actor"]
+        )
+
+    def test_entropy_bonus(self, categorical_actor, categorical_batch):
+        out = ReinforceLoss(categorical_actor, entropy_coeff=0.5)(categorical_batch)
+        entropy = categorical_actor.get_dist(categorical_batch).entropy().mean()
+        torch.testing.assert_close(out["entropy"], entropy.detach())
+        torch.testing.assert_close(out["loss_entropy"], -0.5 * entropy)
+
+    def test_entropy_without_closed_form_is_estimated(self):
+        torch.manual_seed(0)
+        actor = make_gaussian_actor()
+        batch = make_batch(torch.rand(3, 7, N_ACT) * 1.8 - 0.9)
+        out = ReinforceLoss(actor, entropy_coeff=0.1)(batch)
+        assert torch.isfinite(out["loss_entropy"]) and out["loss_entropy"].requires_grad
+
+    def test_normalize_advantage(self, categorical_actor, categorical_batch):
+        out = ReinforceLoss(categorical_actor, normalize_advantage=True)(categorical_batch)
+        returns = categorical_batch["value_target"]
+        weights = (returns - returns.mean()) / (returns.std(unbiased=False) + 1e-8)
+        expected = _surrogate(categorical_actor, categorical_batch, weights)
+        torch.testing.assert_close(out["loss_actor"], expected)
+
+    def test_scalar_baseline_is_subtracted(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor, baseline="batch_mean")
+        out = loss(categorical_batch)
+        returns = categorical_batch["value_target"]
+        done = categorical_batch["next", "done"]
+        starts = torch.cat([torch.ones_like(done[:, :1]), done[:, :-1]], dim=1)
+        baseline = returns[starts].mean()
+        torch.testing.assert_close(out["baseline"], baseline)
+        expected = _surrogate(categorical_actor, categorical_batch, returns - baseline)
+        torch.testing.assert_close(out["loss_actor"], expected)
+
+    def test_baseline_state_is_in_state_dict(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor, baseline="running_mean")
+        loss(categorical_batch)
+        state = loss.state_dict()
+        assert state["baseline_module.count"] > 0
+        restored = ReinforceLoss(make_categorical_actor(), baseline="running_mean")
+        restored.load_state_dict(state)
+        assert restored.baseline_module.value == loss.baseline_module.value
+
+    def test_eval_mode_does_not_update_the_baseline(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor, baseline="ema", baseline_rate=0.5).eval()
+        loss(categorical_batch)
+        assert loss.baseline_module.value == 0
+
+    def test_non_functional_without_critic(self, categorical_actor, categorical_batch):
+        functional = ReinforceLoss(categorical_actor)(categorical_batch.clone())
+        plain = ReinforceLoss(categorical_actor, functional=False)(categorical_batch.clone())
+        torch.testing.assert_close(plain["loss_actor"], functional["loss_actor"])
+
+    def test_flat_batch_of_episodes(self, categorical_actor, categorical_batch):
+        flat = categorical_batch.reshape(-1)
+        flat["next", "done"][6::7] = True  # each row's end is an episode end
+        out = ReinforceLoss(categorical_actor)(flat)
+        assert torch.isfinite(out["loss_actor"])
+
+
+class TestReinforceLossErrors:
+    def test_unknown_baseline(self, categorical_actor):
+        with pytest.raises(ValueError, match="baseline must be one of"):
+            ReinforceLoss(categorical_actor, baseline="median")
+
+    def test_critic_baseline_without_critic(self, categorical_actor):
+        with pytest.raises(ValueError, match="baseline='critic' needs a critic_network"):
+            ReinforceLoss(categorical_actor, baseline="critic")
+
+    def test_negative_entropy_coeff(self, categorical_actor):
+        with pytest.raises(ValueError, match="entropy_coeff must be a number >= 0"):
+            ReinforceLoss(categorical_actor, entropy_coeff=-0.1)
+
+    def test_missing_actor(self):
+        with pytest.raises(TypeError, match="needs an actor_network"):
+            ReinforceLoss(critic_network=make_critic())
+
+    def test_gamma_argument_is_rejected_like_torchrl(self, categorical_actor):
+        with pytest.raises(TypeError, match="make_value_estimator"):
+            ReinforceLoss(categorical_actor, gamma=0.9)
+
+    def test_missing_action(self, categorical_actor, categorical_batch):
+        del categorical_batch["action"]
+        with pytest.raises(KeyError, match="no action entry 'action'"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_missing_reward(self, categorical_actor, categorical_batch):
+        del categorical_batch["next", "reward"]
+        with pytest.raises(KeyError, match=r"no entry \('next', 'reward'\)"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_empty_batch(self, categorical_actor, categorical_batch):
+        with pytest.raises(ValueError, match="empty batch"):
+            ReinforceLoss(categorical_actor)(categorical_batch[:, :0])
+
+    def test_non_finite_reward(self, categorical_actor, categorical_batch):
+        categorical_batch["next", "reward"][1, 3] = float("nan")
+        with pytest.raises(ValueError, match="reward holds 1 non-finite"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_non_finite_log_prob(self):
+        torch.manual_seed(0)
+        actor = make_gaussian_actor(distribution_class=torch.distributions.Normal)
+        action = torch.zeros(3, 7, N_ACT)
+        action[0, 0, 0] = float("inf")  # e.g. a diverged policy's sample stored by a collector
+        batch = make_batch(action)
+        with pytest.raises(ValueError, match="non-finite log-probabilities"):
+            ReinforceLoss(actor)(batch)
+
+    def test_returns_shape_mismatch(self, categorical_actor, categorical_batch):
+        # Two reward channels give two returns per step, but the policy scores one action.
+        categorical_batch["next", "reward"] = torch.randn(3, 7, 2)
+        with pytest.raises(ValueError, match=r"log-probabilities have shape \(3, 7, 1\)"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
