@@ -1,0 +1,129 @@
+"""RewardToGo and DiscountedReturn on TensorDict batches."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import N_ACT, make_batch, make_critic
+
+from rl_pg import DiscountedReturn, RewardToGo
+from rl_pg.functional import discounted_return, reward_to_go
+
+PAIRS = [(RewardToGo, reward_to_go), (DiscountedReturn, discounted_return)]
+
+
+@pytest.fixture
+def batch():
+    return make_batch(torch.randint(N_ACT, (3, 9)), p_done=0.25, seed=5)
+
+
+def _truncate(batch):
+    """Marks every third done as a truncation (done but not terminated)."""
+    done = batch["next", "done"]
+    terminated = done.clone()
+    terminated[done.cumsum(1) % 3 == 0] = False
+    batch["next", "terminated"] = terminated
+    return batch
+
+
+@pytest.mark.parametrize(("cls", "fn"), PAIRS)
+class TestMonteCarloEstimators:
+    """What RewardToGo and DiscountedReturn share; each only differs by its return."""
+
+    def test_collector_batch_without_value_network(self, cls, fn, batch):
+        cls(gamma=0.9)(batch)
+        expected = fn(batch["next", "reward"], batch["next", "done"], 0.9)
+        torch.testing.assert_close(batch["value_target"], expected)
+        torch.testing.assert_close(batch["advantage"], expected)
+
+    def test_flat_batch_of_episodes(self, cls, fn, batch):
+        flat = batch.reshape(-1)
+        cls(gamma=0.9)(flat)
+        expected = fn(flat["next", "reward"], flat["next", "done"], 0.9)
+        torch.testing.assert_close(flat["value_target"], expected)
+
+    def test_value_network_baseline_and_bootstrap(self, cls, fn, batch):
+        torch.manual_seed(0)
+        critic = make_critic()
+        batch = _truncate(batch)
+        cls(gamma=0.9, value_network=critic)(batch)
+        with torch.no_grad():
+            value = critic(batch.select("observation"))["state_value"]
+            next_value = critic(batch["next"].select("observation"))["state_value"]
+        expected = fn(
+            batch["next", "reward"],
+            batch["next", "done"],
+            0.9,
+            terminated=batch["next", "terminated"],
+            next_value=next_value,
+        )
+        torch.testing.assert_close(batch["value_target"], expected)
+        torch.testing.assert_close(batch["advantage"], expected - value)
+        assert not batch["value_target"].requires_grad
+
+    def test_named_time_dimension(self, cls, fn, batch):
+        time_major = batch.transpose(0, 1).contiguous()
+        time_major.names = ["time", None]
+        cls(gamma=0.9)(time_major)
+        cls(gamma=0.9)(batch)
+        torch.testing.assert_close(
+            time_major["value_target"].transpose(0, 1), batch["value_target"]
+        )
+
+    def test_set_keys(self, cls, fn, batch):
+        renamed = batch.clone()
+        renamed.rename_key_(("next", "reward"), ("next", "r"))
+        renamed.rename_key_(("next", "done"), ("next", "d"))
+        estimator = cls(gamma=0.9)
+        estimator.set_keys(reward="r", done="d", value_target="g", advantage="psi")
+        estimator(renamed)
+        cls(gamma=0.9)(batch)
+        torch.testing.assert_close(renamed["g"], batch["value_target"])
+        torch.testing.assert_close(renamed["psi"], batch["advantage"])
+        assert ("next", "r") in estimator.in_keys
+
+    def test_set_keys_rejects_unknown_names(self, cls, fn):
+        with pytest.raises(KeyError, match="rewards is not an accepted tensordict key"):
+            cls(gamma=0.9).set_keys(rewards="r")
+
+    def test_gamma_is_in_state_dict(self, cls, fn):
+        assert cls(gamma=0.5).state_dict()["gamma"].item() == 0.5
+
+    @pytest.mark.parametrize("gamma", [-0.5, 1.2, "0.9"])
+    def test_gamma_outside_unit_interval(self, cls, fn, gamma):
+        with pytest.raises(ValueError, match=r"gamma must be a number in \[0, 1\]"):
+            cls(gamma=gamma)
+
+    def test_gamma_tensor_with_many_values(self, cls, fn):
+        with pytest.raises(ValueError, match="one-element tensor"):
+            cls(gamma=torch.tensor([0.9, 0.8]))
+
+    def test_data_without_time_dimension(self, cls, fn, batch):
+        with pytest.raises(ValueError, match="needs a tensordict with a time dimension"):
+            cls(gamma=0.9)(batch[0, 0])
+
+    def test_missing_reward(self, cls, fn, batch):
+        del batch["next", "reward"]
+        with pytest.raises(KeyError, match=r"no entry \('next', 'reward'\)"):
+            cls(gamma=0.9)(batch)
+
+    def test_done_that_does_not_match_reward(self, cls, fn, batch):
+        batch["next", "done"] = torch.zeros(3, 9, 2, dtype=torch.bool)
+        with pytest.raises(ValueError, match=r"done of shape \(3, 9, 2\) does not match reward"):
+            cls(gamma=0.9)(batch)
+
+
+class TestRewardToGo:
+    def test_each_step_answers_for_the_rewards_after_it(self):
+        batch = make_batch(torch.zeros(1, 3, dtype=torch.long), p_done=0.0)
+        batch["next", "reward"] = torch.tensor([[[1.0], [2.0], [4.0]]])
+        RewardToGo(gamma=1.0)(batch)
+        assert batch["value_target"].flatten().tolist() == [7.0, 6.0, 4.0]
+
+
+class TestDiscountedReturn:
+    def test_every_step_gets_the_episode_return(self):
+        batch = make_batch(torch.zeros(1, 3, dtype=torch.long), p_done=0.0)
+        batch["next", "reward"] = torch.tensor([[[1.0], [2.0], [4.0]]])
+        DiscountedReturn(gamma=0.5)(batch)
+        assert batch["value_target"].flatten().tolist() == [3.0, 3.0, 3.0]
