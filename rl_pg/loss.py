@@ -350,26 +350,40 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"{key!r}; align the keys with loss.set_keys(...)."
                 )
         psi = psi.detach()
+        valid = self._valid_steps(tensordict, psi)
         diagnostics = {}
         if self.baseline_module is not None:
-            baseline = self.baseline_module(self._episode_returns(tensordict, psi))
+            baseline = self.baseline_module(self._episode_returns(tensordict, psi, valid))
             psi = psi - baseline
             diagnostics["baseline"] = baseline
-        diagnostics["advantage_mean"] = psi.mean()
-        diagnostics["advantage_std"] = psi.std(unbiased=False)
+        valid_psi = psi if valid is None else psi[valid]
+        diagnostics["advantage_mean"] = valid_psi.mean()
+        diagnostics["advantage_std"] = valid_psi.std(unbiased=False)
         if self.has_critic:
-            explained = self._explained_variance(tensordict)
+            explained = self._explained_variance(tensordict, valid)
             if explained is not None:
                 diagnostics["explained_variance"] = explained
         if self.normalize_advantage:
             psi = (psi - diagnostics["advantage_mean"]) / (diagnostics["advantage_std"] + 1e-8)
         return psi, diagnostics
 
-    def _episode_returns(self, tensordict: TensorDictBase, returns: torch.Tensor) -> torch.Tensor:
+    def _valid_steps(self, tensordict: TensorDictBase, like: torch.Tensor):
+        """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""
+        for key in self._loss_mask_keys():
+            mask = tensordict.get(key, None)
+            if mask is not None:
+                while mask.ndim < like.ndim:
+                    mask = mask.unsqueeze(-1)
+                return mask.expand_as(like)
+        return None
+
+    def _episode_returns(
+        self, tensordict: TensorDictBase, returns: torch.Tensor, valid: torch.Tensor | None
+    ) -> torch.Tensor:
         """The returns at the first step of each episode (or of each row's first segment)."""
         done = tensordict.get(("next", self.tensor_keys.done), None)
         if done is None or done.shape != returns.shape:
-            return returns
+            return returns if valid is None else returns[valid]
         time_dim = tensordict.ndim - 1
         if tensordict._has_names() and "time" in tensordict.names:
             time_dim = tensordict.names.index("time")
@@ -377,16 +391,21 @@ class ReinforceLoss(TorchRLReinforceLoss):
         length = done.shape[time_dim]
         starts.narrow(time_dim, 1, length - 1).copy_(done.narrow(time_dim, 0, length - 1))
         starts.narrow(time_dim, 0, 1).fill_(True)
+        if valid is not None:
+            starts &= valid
         return returns[starts]
 
-    def _explained_variance(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+    def _explained_variance(self, tensordict: TensorDictBase, valid) -> torch.Tensor | None:
         value = tensordict.get(self.tensor_keys.value, None)
         target = tensordict.get(self.tensor_keys.value_target, None)
         if value is None or target is None or value.shape != target.shape:
             return None
+        error = (target - value).detach()
         target = target.detach()
+        if valid is not None:
+            error, target = error[valid], target[valid]
         variance = target.var(unbiased=False)
-        return 1 - (target - value.detach()).var(unbiased=False) / variance.clamp_min(1e-8)
+        return 1 - error.var(unbiased=False) / variance.clamp_min(1e-8)
 
     def _policy(self, tensordict: TensorDictBase):
         with (

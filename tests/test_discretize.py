@@ -1,0 +1,256 @@
+"""DiscretizeAction: tables, round trips, specs in serial/parallel envs, collector, errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torchrl.collectors import Collector
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import GymEnv, ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
+
+from rl_pg import DiscretizeAction
+
+# The SPEC's driving table: (x, y) with x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j.
+DRIVING_TABLE = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
+
+
+def _box(low, high, batch=()) -> Composite:
+    low, high = torch.tensor(low), torch.tensor(high)
+    spec = Bounded(low=low, high=high, shape=low.shape)
+    if batch:
+        spec = spec.expand(*batch, *low.shape)
+    return Composite(action=spec, shape=batch)
+
+
+def _bound(transform: DiscretizeAction, low=(-1.0, -1.0), high=(1.0, 1.0), batch=()):
+    """Runs the spec transform on a box, as an environment would."""
+    return transform.transform_action_spec(_box(list(low), list(high), batch))
+
+
+def _pendulum():
+    return GymEnv("Pendulum-v1")
+
+
+def _highway():
+    import highway_env  # noqa: F401  (registers the environments)
+
+    return GymEnv("highway-fast-v0", config={"action": {"type": "ContinuousAction"}})
+
+
+class TestDiscretizeAction:
+    def test_joint_grid_is_row_major(self):
+        transform = DiscretizeAction(counts=(3, 3))
+        spec = _bound(transform)
+        assert spec["action"].n == 9
+        expected = [[x, y] for x in (-1.0, 0.0, 1.0) for y in (-1.0, 0.0, 1.0)]
+        assert transform.table.tolist() == expected
+        i, j = 2, 0
+        assert transform.to_continuous(torch.tensor(3 * i + j)).tolist() == [1.0, -1.0]
+
+    def test_explicit_table_reproduces_the_driving_actions(self):
+        transform = DiscretizeAction(actions=DRIVING_TABLE)
+        _bound(transform)
+        for i, x in enumerate((1.0, 0.0, -1.0)):
+            for j, y in enumerate((0.6, 0.0, -0.6)):
+                action = transform.to_continuous(torch.tensor(3 * i + j))
+                torch.testing.assert_close(action, torch.tensor([x, y]))
+
+    def test_single_value_is_the_midpoint(self):
+        transform = DiscretizeAction(counts=(1, 2))
+        _bound(transform, low=(0.0, -2.0), high=(4.0, 2.0))
+        assert transform.table.tolist() == [[2.0, -2.0], [2.0, 2.0]]
+
+    @settings(max_examples=60, deadline=None)
+    @given(
+        counts=st.lists(st.integers(1, 4), min_size=1, max_size=3),
+        mode=st.sampled_from(["joint", "per_dim"]),
+        one_hot=st.booleans(),
+        seed=st.integers(0, 2**16),
+    )
+    def test_round_trip(self, counts, mode, one_hot, seed):
+        generator = torch.Generator().manual_seed(seed)
+        low = torch.rand(len(counts), generator=generator) * -3
+        high = low + 0.5 + torch.rand(len(counts), generator=generator) * 3
+        transform = DiscretizeAction(counts=counts, mode=mode, one_hot=one_hot)
+        spec = _bound(transform, low.tolist(), high.tolist(), batch=(5,))["action"]
+        # discrete -> continuous -> discrete is the identity
+        discrete = spec.rand()
+        if one_hot:
+            discrete = discrete.long()
+        continuous = transform.to_continuous(discrete)
+        assert continuous.shape == (5, len(counts))
+        assert ((continuous >= low) & (continuous <= high)).all()
+        index = transform.to_index(continuous)
+        expected = discrete
+        if one_hot:
+            if mode == "joint":
+                expected = discrete.argmax(-1)
+            else:
+                chunks = discrete.split(counts, dim=-1)
+                expected = torch.stack([c.argmax(-1) for c in chunks], -1)
+        assert torch.equal(index, expected)
+        # continuous -> discrete picks the nearest action of the grid
+        point = low + torch.rand(5, len(counts), generator=generator) * (high - low)
+        nearest = transform.to_continuous(
+            transform.to_index(point)
+            if not one_hot
+            else _one_hot(transform.to_index(point), counts, mode)
+        )
+        scale = high - low
+        chosen = (((point - nearest) / scale) ** 2).sum(-1)
+        every = (((point.unsqueeze(1) - transform.table) / scale) ** 2).sum(-1)
+        assert (chosen <= every.min(-1).values + 1e-6).all()
+
+    def test_table_nearest_index(self):
+        transform = DiscretizeAction(actions=DRIVING_TABLE)
+        _bound(transform)
+        points = torch.tensor([[0.9, 0.5], [-0.2, -0.1], [-0.8, -0.7]])
+        assert transform.to_index(points).tolist() == [0, 4, 8]
+
+    def test_one_hot_spec(self):
+        spec = _bound(DiscretizeAction(counts=3, one_hot=True))["action"]
+        assert spec.shape == (9,) and spec.rand().sum() == 1
+
+    def test_per_dim_spec(self):
+        spec = _bound(DiscretizeAction(counts=(2, 5), mode="per_dim"))["action"]
+        assert spec.nvec.tolist() == [2, 5]
+
+    def test_pendulum_specs(self):
+        env = TransformedEnv(_pendulum(), DiscretizeAction(counts=7))
+        check_env_specs(env)
+        assert env.rollout(5)["action"].dtype == torch.int64
+
+    @pytest.mark.parametrize("mode", ["joint", "per_dim"])
+    @pytest.mark.parametrize("one_hot", [False, True])
+    def test_pendulum_specs_every_output(self, mode, one_hot):
+        check_env_specs(
+            TransformedEnv(_pendulum(), DiscretizeAction(counts=3, mode=mode, one_hot=one_hot))
+        )
+
+    def test_serial_env_transform_outside(self):
+        check_env_specs(TransformedEnv(SerialEnv(2, _pendulum), DiscretizeAction(counts=5)))
+
+    def test_serial_env_transform_inside(self):
+        check_env_specs(
+            SerialEnv(2, lambda: TransformedEnv(_pendulum(), DiscretizeAction(counts=5)))
+        )
+
+    def test_parallel_env(self):
+        outside = TransformedEnv(ParallelEnv(2, _pendulum), DiscretizeAction(counts=5))
+        inside = ParallelEnv(2, _discretized_pendulum)
+        try:
+            check_env_specs(outside)
+            check_env_specs(inside)
+        finally:
+            outside.close()
+            inside.close()
+
+    def test_highway_specs(self):
+        env = TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_TABLE))
+        check_env_specs(env)
+        assert env.action_spec.n == 9
+
+    def test_highway_parallel_env(self):
+        env = ParallelEnv(2, _discretized_highway)
+        try:
+            check_env_specs(env)
+        finally:
+            env.close()
+
+    def test_collector(self):
+        env = TransformedEnv(_pendulum(), DiscretizeAction(counts=5))
+        collector = Collector(env, policy=None, frames_per_batch=16, total_frames=32)
+        batches = list(collector)
+        collector.shutdown()
+        assert len(batches) == 2
+        action = batches[0]["action"]
+        assert action.dtype == torch.int64 and ((action >= 0) & (action < 5)).all()
+
+
+def _discretized_pendulum():
+    return TransformedEnv(_pendulum(), DiscretizeAction(counts=5))
+
+
+def _discretized_highway():
+    return TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_TABLE))
+
+
+def _one_hot(index, counts, mode):
+    if mode == "joint":
+        n = 1
+        for c in counts:
+            n *= c
+        return torch.nn.functional.one_hot(index, n)
+    return torch.cat(
+        [torch.nn.functional.one_hot(index[..., k], c) for k, c in enumerate(counts)], -1
+    )
+
+
+class TestDiscretizeActionErrors:
+    @pytest.mark.parametrize("counts", [0, (3, 0), (2, -1), (), 2.5, True])
+    def test_counts_below_one(self, counts):
+        with pytest.raises(ValueError, match="counts must be integers >= 1"):
+            DiscretizeAction(counts=counts)
+
+    def test_neither_counts_nor_actions(self):
+        with pytest.raises(ValueError, match=r"exactly one of counts= .* or actions="):
+            DiscretizeAction()
+
+    def test_both_counts_and_actions(self):
+        with pytest.raises(ValueError, match="exactly one of counts="):
+            DiscretizeAction(counts=3, actions=DRIVING_TABLE)
+
+    def test_unknown_mode(self):
+        with pytest.raises(ValueError, match="mode must be one of"):
+            DiscretizeAction(counts=3, mode="grid")
+
+    def test_per_dim_with_a_table(self):
+        with pytest.raises(ValueError, match=r"mode='per_dim' .* needs counts="):
+            DiscretizeAction(actions=DRIVING_TABLE, mode="per_dim")
+
+    def test_empty_table(self):
+        with pytest.raises(ValueError, match=r"non-empty \[N, action_dim\] table"):
+            DiscretizeAction(actions=torch.zeros(0, 2))
+
+    def test_table_of_the_wrong_width(self):
+        with pytest.raises(ValueError, match="actions has 3 columns but the action space has 2"):
+            _bound(DiscretizeAction(actions=[[0.0, 0.0, 0.0]]))
+
+    def test_table_outside_the_bounds(self):
+        with pytest.raises(ValueError, match=r"actions row 1 \[0.0, 1.5\] lies outside"):
+            _bound(DiscretizeAction(actions=[[0.0, 0.0], [0.0, 1.5]]))
+
+    def test_counts_of_the_wrong_length(self):
+        with pytest.raises(ValueError, match="counts has 3 entries but the action space has 2"):
+            _bound(DiscretizeAction(counts=(2, 2, 2)))
+
+    def test_infinite_bounds(self):
+        with pytest.raises(ValueError, match="needs finite bounds"):
+            _bound(DiscretizeAction(counts=3), low=(-float("inf"), 0.0), high=(1.0, 1.0))
+
+    def test_unbounded_spec(self):
+        spec = Composite(action=Unbounded(shape=(2,)))
+        with pytest.raises(TypeError, match="needs a bounded continuous action spec"):
+            DiscretizeAction(counts=3).transform_action_spec(spec)
+
+    def test_discrete_env(self):
+        with pytest.raises(TypeError, match=r"bounded continuous action spec .* got OneHot"):
+            _ = TransformedEnv(GymEnv("CartPole-v1"), DiscretizeAction(counts=3)).action_spec
+
+    def test_index_out_of_range(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(ValueError, match=r"index out of range: got values in \[-1, 2\]"):
+            transform.to_continuous(torch.tensor([2, -1]))
+
+    def test_continuous_action_of_the_wrong_width(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(ValueError, match=r"expects actions of shape \[\*B, 2\]"):
+            transform.to_index(torch.zeros(4, 3))
+
+    def test_mapping_before_an_environment(self):
+        with pytest.raises(RuntimeError, match="append it to an env"):
+            DiscretizeAction(counts=3).to_continuous(torch.tensor(0))
