@@ -4,6 +4,8 @@ Two implementations of one recurrence, both on ``[N, T]`` tensors (time last)::
 
     end[t]  = done[t] or terminated[t] or t == T - 1
     carry   = (next_value[t] if not terminated[t] else 0) if end[t] else G[t + 1]
+
+``terminated=None`` means ``terminated = done``.
     G[t]    = reward[t] + gamma[t] * carry
 
 * a numba kernel, one sequential pass per row, used for CPU tensors that need no
@@ -41,10 +43,11 @@ def _gamma_at_impl(gamma, i, t):
 
 
 @numba.njit(inline="always")
-def _bootstrap(terminated, next_value, i, t):
+def _bootstrap(done, terminated, next_value, i, t):
+    # Without a terminated mask every done step is a termination.
     if next_value is None:
         return 0.0
-    if terminated is not None and terminated[i, t]:
+    if terminated[i, t] if terminated is not None else done[i, t]:
         return 0.0
     return next_value[i, t]
 
@@ -64,7 +67,7 @@ def _scan_numba(reward, done, terminated, next_value, gamma, whole_episode, out)
         last = n_steps - 1
         for j in range(hi - lo):
             i = lo + j
-            boot = _bootstrap(terminated, next_value, i, last)
+            boot = _bootstrap(done, terminated, next_value, i, last)
             carry[j] = reward[i, last] + _gamma_at(gamma, i, last) * boot
             out[i, last] = carry[j]
         # Selects rather than branches inside this loop: it is the hot path.
@@ -75,7 +78,9 @@ def _scan_numba(reward, done, terminated, next_value, gamma, whole_episode, out)
                 if next_value is None:
                     following = carry[j] * (1 - ended)
                 else:
-                    following = _bootstrap(terminated, next_value, i, t) if ended else carry[j]
+                    following = (
+                        _bootstrap(done, terminated, next_value, i, t) if ended else carry[j]
+                    )
                 carry[j] = reward[i, t] + _gamma_at(gamma, i, t) * following
                 out[i, t] = carry[j]
                 lane_check[j] += carry[j] - carry[j]
@@ -101,10 +106,10 @@ def _as_numpy(tensor: torch.Tensor | None) -> np.ndarray | None:
 
 
 def _scan_torch(reward, done, terminated, next_value, gamma, whole_episode):
-    end = done if terminated is None else done | terminated
-    end = end.clone()
+    terminated = done if terminated is None else terminated
+    end = done | terminated
     end[:, -1] = True
-    bootstrap = end if terminated is None else end & ~terminated
+    bootstrap = end & ~terminated
     if next_value is not None:
         # ``where`` rather than a product: next values at terminated steps may be NaN
         # (TorchRL's compact observations) and must not leak into the result.

@@ -144,7 +144,7 @@ def _returns(reward, done, gamma, time_dim, terminated, next_value, *, whole_epi
     out, finite = backward_scan(
         rows(reward),
         done,
-        done if terminated is None else rows(_as_bool(terminated)),
+        None if terminated is None else rows(_as_bool(terminated)),
         rows(next_value),
         gamma,
         whole_episode=whole_episode,
