@@ -1,7 +1,8 @@
 """REINFORCE on CartPole-v1 with rl_pg's components, until greedy play is solved.
 
 Reads top to bottom: config, seeding, environments, models, loss, optimiser, loop
-(collect K whole episodes -> reward-to-go -> ReinforceLoss -> one Adam step), with a
+(collect K whole episodes with the current policy -> reward-to-go -> ReinforceLoss
+-> one Adam step), with a
 greedy evaluation every ``eval_interval`` frames. Stops when the evaluation mean
 reaches ``threshold`` (475, CartPole-v1's solve line) or after ``total_frames``.
 
@@ -106,7 +107,7 @@ def main(cfg: Config) -> dict:
     collector = Collector(
         env,
         actor,
-        frames_per_batch=200,  # only the polling granularity with trajs_per_batch
+        frames_per_batch=64,  # only the polling granularity with trajs_per_batch
         trajs_per_batch=cfg.episodes_per_batch,
         traj_format="cat",
         total_frames=cfg.total_frames,
@@ -125,10 +126,13 @@ def main(cfg: Config) -> dict:
         total.backward()
         nn.utils.clip_grad_norm_(loss.parameters(), cfg.max_grad_norm)
         optimizer.step()
+        # Strictly on-policy: drop the episode in flight, whose first steps came from
+        # the policy before this update. Its frames still count as spent.
+        collector.reset()
 
-        frames += batch.numel()
+        frames = collector.state_dict()["frames"]
         train_return = batch["next", "reward"].sum().item() / cfg.episodes_per_batch
-        progress.update(batch.numel())
+        progress.update(frames - progress.n)
         progress.set_postfix(train_return=f"{train_return:.1f}", refresh=False)
         if frames < next_eval:
             continue

@@ -220,6 +220,15 @@ class DiscretizeAction(Transform):
 
         Returns:
             The ``[*B, d]`` continuous actions.
+
+        Examples:
+            >>> import torch
+            >>> from torchrl.envs import GymEnv, TransformedEnv
+            >>> from rl_pg import DiscretizeAction
+            >>> pendulum = TransformedEnv(GymEnv("Pendulum-v1"), DiscretizeAction(counts=3))
+            >>> pendulum.transform.to_continuous(torch.tensor([0, 2]))
+            tensor([[-2.],
+                    [ 2.]])
         """
         self._ensure_built()
         if self.mode == "joint":
