@@ -152,12 +152,23 @@ class TestDiscretizeAction:
         check_env_specs(env)
         assert env.action_spec.n == 9
 
+    def test_highway_serial_env(self):
+        check_env_specs(SerialEnv(2, _discretized_highway))
+
     def test_highway_parallel_env(self):
         env = ParallelEnv(2, _discretized_highway)
         try:
             check_env_specs(env)
         finally:
             env.close()
+
+    def test_highway_collector(self):
+        collector = Collector(
+            _discretized_highway(), policy=None, frames_per_batch=8, total_frames=8
+        )
+        (batch,) = list(collector)
+        collector.shutdown()
+        assert ((batch["action"] >= 0) & (batch["action"] < 9)).all()
 
     def test_collector(self):
         env = TransformedEnv(_pendulum(), DiscretizeAction(counts=5))

@@ -229,6 +229,27 @@ class TestReinforceLoss:
         out = ReinforceLoss(categorical_actor)(flat)
         assert torch.isfinite(out["loss_actor"])
 
+    def test_padding_is_ignored(self, categorical_actor, categorical_batch):
+        # Two episodes (lengths 3 and 5) padded to [2, 5], as Collector(trajs_per_batch=...)
+        # yields them, against the same episodes laid back to back.
+        flat = categorical_batch.reshape(-1)[:8].clone()
+        flat["next", "done"][:] = False
+        flat["next", "done"][[2, 7]] = True
+        padded = categorical_batch[:2, :5].clone().zero_()
+        padded[0, :3] = flat[:3]
+        padded[1, :5] = flat[3:]
+        mask = torch.zeros(2, 5, 1, dtype=torch.bool)
+        mask[0, :3] = mask[1, :5] = True
+        padded["collector", "mask"] = mask
+        losses = []
+        for data in (flat, padded):
+            loss = ReinforceLoss(categorical_actor, baseline="running_mean")
+            losses.append((loss(data.clone()), loss.baseline_module.count.item()))
+        (flat_out, flat_count), (padded_out, padded_count) = losses
+        torch.testing.assert_close(padded_out["loss_actor"], flat_out["loss_actor"])
+        torch.testing.assert_close(padded_out["advantage_mean"], flat_out["advantage_mean"])
+        assert padded_count == flat_count == 2
+
 
 class TestReinforceLossErrors:
     def test_unknown_baseline(self, categorical_actor):
