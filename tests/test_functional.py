@@ -118,23 +118,31 @@ def _tolerance(dtype):
     )
 
 
-class TestRewardToGo:
+KERNELS = [(reward_to_go, False), (discounted_return, True)]
+
+
+@pytest.mark.parametrize(("fn", "whole_episode"), KERNELS)
+class TestAgainstPlainLoop:
     @settings(max_examples=300, deadline=None)
-    @given(return_problems())
-    def test_matches_plain_loop(self, problem):
+    @given(problem=return_problems())
+    def test_fast_path(self, fn, whole_episode, problem):
         args, kwargs, expected, dtype = problem
-        out = reward_to_go(*args, **kwargs)
+        out = fn(*args, **kwargs)
         assert out.dtype == dtype and out.shape == args[0].shape
-        torch.testing.assert_close(out.double(), expected[False], **_tolerance(dtype))
+        torch.testing.assert_close(out.double(), expected[whole_episode], **_tolerance(dtype))
 
     @settings(max_examples=100, deadline=None)
-    @given(return_problems())
-    def test_autograd_path_matches_plain_loop(self, problem):
+    @given(problem=return_problems())
+    def test_autograd_path(self, fn, whole_episode, problem):
         args, kwargs, expected, dtype = problem
         reward = args[0].clone().requires_grad_(True)
-        out = reward_to_go(reward, *args[1:], **kwargs)
-        torch.testing.assert_close(out.double().detach(), expected[False], **_tolerance(dtype))
+        out = fn(reward, *args[1:], **kwargs)
+        torch.testing.assert_close(
+            out.double().detach(), expected[whole_episode], **_tolerance(dtype)
+        )
 
+
+class TestRewardToGo:
     def test_gradient_flows_into_next_value(self):
         reward = torch.zeros(1, 3, 1)
         done = torch.zeros(1, 3, 1, dtype=torch.bool)
@@ -157,20 +165,11 @@ class TestRewardToGo:
 
 
 class TestDiscountedReturn:
-    @settings(max_examples=300, deadline=None)
-    @given(return_problems())
-    def test_matches_plain_loop(self, problem):
-        args, kwargs, expected, dtype = problem
-        out = discounted_return(*args, **kwargs)
-        torch.testing.assert_close(out.double(), expected[True], **_tolerance(dtype))
-
-    @settings(max_examples=100, deadline=None)
-    @given(return_problems())
-    def test_autograd_path_matches_plain_loop(self, problem):
-        args, kwargs, expected, dtype = problem
-        reward = args[0].clone().requires_grad_(True)
-        out = discounted_return(reward, *args[1:], **kwargs)
-        torch.testing.assert_close(out.double().detach(), expected[True], **_tolerance(dtype))
+    def test_every_step_gets_its_episode_return(self):
+        reward = torch.tensor([[1.0, 1.0, 1.0, 1.0]])
+        done = torch.tensor([[False, True, False, True]])
+        out = discounted_return(reward, done, 1.0, time_dim=-1)
+        assert out.tolist() == [[2.0, 2.0, 2.0, 2.0]]
 
 
 @pytest.mark.parametrize("fn", [reward_to_go, discounted_return])
