@@ -273,6 +273,9 @@ class TestGridworldGradient:
 
     def test_reward_to_go_and_baselines_lower_the_variance(self, gridworld_estimates):
         variance = {key: value.var(0).sum() for key, value in gridworld_estimates.items()}
+        # The table quoted in README.md: pytest tests/test_exact_gradients.py -s -k variance
+        for (value_type, baseline), total in variance.items():
+            print(f"{value_type:16s} {baseline:12s} total variance {total:9.4f}")
         for baseline in ("none", "running_mean", "critic"):
             assert variance["RewardToGo", baseline] < variance["DiscountedReturn", baseline]
         for value_type in ("DiscountedReturn", "RewardToGo"):
