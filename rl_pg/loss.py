@@ -85,6 +85,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
             Defaults to ``None``: no entropy term (TorchRL's outputs).
         normalize_advantage (bool): standardise :math:`\\Psi` (zero mean, unit
             standard deviation over the batch). Defaults to ``False``.
+        critic_coeff (float): weight carried by ``loss_value``, so that the losses can be
+            summed as they are. Defaults to ``1.0``.
 
     Raises:
         ValueError: for an unknown ``baseline``, ``baseline="critic"`` without a critic,
@@ -147,6 +149,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         baseline_rate: float = 0.01,
         entropy_coeff: float | None = None,
         normalize_advantage: bool = False,
+        critic_coeff: float = 1.0,
     ) -> None:
         actor_network = actor if actor is not None else actor_network
         critic_network = critic if critic is not None else critic_network
@@ -218,6 +221,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
         self.entropy_coeff = None if entropy_coeff is None else float(entropy_coeff)
         self.normalize_advantage = normalize_advantage
+        if not isinstance(critic_coeff, (int, float)) or critic_coeff < 0:
+            raise ValueError(f"critic_coeff must be a number >= 0, got {critic_coeff!r}.")
+        self.critic_coeff = float(critic_coeff)
         out_keys = ["loss_actor"]
         if self.has_critic:
             out_keys.append("loss_value")
@@ -304,7 +310,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             td_out.set("entropy", entropy.detach().mean())
         if self.has_critic:
             loss_value, value_clip_fraction = self.loss_critic(tensordict)
-            td_out.set("loss_value", loss_value)
+            td_out.set("loss_value", self.critic_coeff * loss_value)
             if value_clip_fraction is not None:
                 td_out.set("value_clip_fraction", value_clip_fraction)
         td_out.update(diagnostics)

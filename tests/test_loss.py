@@ -213,6 +213,13 @@ class TestReinforceLoss:
         restored.load_state_dict(state)
         assert restored.baseline_module.value == loss.baseline_module.value
 
+    def test_critic_coeff_weights_the_value_loss(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        plain = ReinforceLoss(categorical_actor, critic)(categorical_batch.clone())
+        weighted = ReinforceLoss(categorical_actor, critic, critic_coeff=2.0)(categorical_batch)
+        torch.testing.assert_close(weighted["loss_value"], 2 * plain["loss_value"])
+
     def test_eval_mode_does_not_update_the_baseline(self, categorical_actor, categorical_batch):
         loss = ReinforceLoss(categorical_actor, baseline="ema", baseline_rate=0.5).eval()
         loss(categorical_batch)
@@ -259,6 +266,10 @@ class TestReinforceLossErrors:
     def test_critic_baseline_without_critic(self, categorical_actor):
         with pytest.raises(ValueError, match="baseline='critic' needs a critic_network"):
             ReinforceLoss(categorical_actor, baseline="critic")
+
+    def test_negative_critic_coeff(self, categorical_actor, critic):
+        with pytest.raises(ValueError, match="critic_coeff must be a number >= 0"):
+            ReinforceLoss(categorical_actor, critic, critic_coeff=-1.0)
 
     def test_negative_entropy_coeff(self, categorical_actor):
         with pytest.raises(ValueError, match="entropy_coeff must be a number >= 0"):

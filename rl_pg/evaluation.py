@@ -1,0 +1,128 @@
+"""Play whole episodes with a policy, greedily or by sampling, and summarise them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+__all__ = ["evaluate", "first_episodes"]
+
+
+def first_episodes(rollout: TensorDictBase, flags: Sequence[str] = ()) -> dict[str, torch.Tensor]:
+    """Return, length and flags of the first episode of each environment in a rollout.
+
+    Args:
+        rollout (TensorDictBase): ``[T]`` or ``[*B, T]`` output of ``env.rollout``.
+        flags (sequence of str): boolean ``("next", key)`` entries to report, true if set
+            at any step of the episode (e.g. ``"crashed"``, ``"success"``).
+
+    Returns:
+        A dict of ``[N]`` tensors: ``return``, ``length``, ``finished`` and one per flag
+        found in the rollout.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from rl_pg.evaluation import first_episodes
+        >>> rollout = TensorDict({"next": {
+        ...     "reward": torch.ones(2, 4, 1),
+        ...     "done": torch.tensor([[0, 1, 0, 0], [0, 0, 0, 1]], dtype=torch.bool)[..., None],
+        ... }}, batch_size=[2, 4])
+        >>> first_episodes(rollout)["return"]
+        tensor([2., 4.])
+    """
+    rollout = rollout.reshape(-1, rollout.shape[-1]) if rollout.ndim > 1 else rollout[None]
+    done = rollout["next", "done"].reshape(*rollout.shape, -1).any(-1)
+    # A step belongs to the first episode if no done came strictly before it.
+    first = (done.cumsum(-1) - done.long()) == 0
+    reward = rollout["next", "reward"].reshape(*rollout.shape, -1).sum(-1)
+    out = {
+        "return": (reward * first).sum(-1),
+        "length": first.sum(-1),
+        "finished": (done & first).any(-1),
+    }
+    for flag in flags:
+        value = rollout.get(("next", flag), None)
+        if value is not None:
+            value = value.reshape(*rollout.shape, -1).any(-1).bool()
+            out[flag] = (value & first).any(-1)
+    return out
+
+
+def evaluate(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    *,
+    episodes: int,
+    deterministic: bool = True,
+    max_steps: int = 100_000,
+    flags: Sequence[str] = (),
+) -> dict[str, float]:
+    """Plays ``episodes`` episodes and returns their mean and std return and flag rates.
+
+    A batched ``env`` plays its environments in parallel; only the first episode of
+    each counts, so the result does not favour short episodes.
+
+    Keyword Args:
+        episodes (int): number of episodes.
+        deterministic (bool): act greedily (the distribution's mode, e.g. argmax) rather
+            than by sampling. Defaults to ``True``.
+        max_steps (int): cap on an episode's length. Defaults to ``100_000``.
+        flags (sequence of str): boolean entries to report as rates (see
+            :func:`first_episodes`). Defaults to ``()``.
+
+    Returns:
+        ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...}``.
+
+    Raises:
+        ValueError: for ``episodes < 1``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> from rl_pg.envs import BanditEnv
+        >>> from rl_pg.evaluation import evaluate
+        >>> actor = ProbabilisticActor(
+        ...     TensorDictModule(torch.nn.Linear(1, 4), ["observation"], ["logits"]),
+        ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+        ... )
+        >>> with torch.no_grad():  # a policy that prefers arm 3, which pays 0
+        ...     _ = actor.module[0].module.bias.copy_(torch.tensor([0.0, 0.0, 0.0, 9.0]))
+        ...     _ = actor.module[0].module.weight.zero_()
+        >>> evaluate(actor, BanditEnv(num_arms=4, batch_size=8), episodes=8)["mean_return"]
+        0.0
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}.")
+    n_envs = max(1, math.prod(env.batch_size))
+    results: dict[str, list[torch.Tensor]] = {}
+    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    with set_exploration_type(exploration), torch.no_grad():
+        played = 0
+        while played < episodes:
+            rollout = env.rollout(
+                max_steps,
+                policy,
+                break_when_any_done=n_envs == 1,
+                break_when_all_done=n_envs > 1,
+            )
+            for key, value in first_episodes(rollout, flags).items():
+                results.setdefault(key, []).append(value)
+            played += n_envs
+    stats = {key: torch.cat(value)[:episodes].float() for key, value in results.items()}
+    out = {
+        "mean_return": stats["return"].mean().item(),
+        "std_return": stats["return"].std(unbiased=False).item(),
+        "mean_length": stats["length"].mean().item(),
+    }
+    for flag in flags:
+        if flag in stats:
+            out[f"{flag}_rate"] = stats[flag].mean().item()
+    return out
