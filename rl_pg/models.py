@@ -1,0 +1,123 @@
+"""Policy and value networks sized from an environment's specs."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded, Categorical, OneHot
+from torchrl.envs import EnvBase
+from torchrl.modules import (
+    MLP,
+    IndependentNormal,
+    OneHotCategorical,
+    ProbabilisticActor,
+    TanhNormal,
+    ValueOperator,
+)
+
+__all__ = ["mlp_actor", "mlp_critic"]
+
+
+def _trunk(env: EnvBase, out_features: int, hidden: Sequence[int], activation, key: str):
+    spec = env.observation_spec[key]
+    obs_shape = spec.shape[len(env.batch_size) :]
+    layers: list[nn.Module] = []
+    if len(obs_shape) > 1:  # e.g. highway's [vehicles, features] table
+        layers.append(nn.Flatten(start_dim=-len(obs_shape)))
+    layers.append(
+        MLP(
+            in_features=math.prod(obs_shape),
+            out_features=out_features,
+            num_cells=list(hidden),
+            activation_class=activation,
+        )
+    )
+    return nn.Sequential(*layers) if len(layers) > 1 else layers[0]
+
+
+def mlp_actor(
+    env: EnvBase,
+    *,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.Tanh,
+    observation_key: str = "observation",
+) -> ProbabilisticActor:
+    """An MLP policy for ``env``'s action space.
+
+    A categorical (index) action gets a softmax policy, a one-hot action a one-hot
+    categorical, a bounded continuous action a ``TanhNormal`` inside the bounds, an
+    unbounded one an independent Normal. Observations with several dimensions are
+    flattened.
+
+    Keyword Args:
+        hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
+        activation (type): activation class. Defaults to ``nn.Tanh``.
+        observation_key (str): the observation entry. Defaults to ``"observation"``.
+
+    Examples:
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor
+        >>> actor = mlp_actor(GridWorldEnv(batch_size=3), hidden=(32,))
+        >>> actor(GridWorldEnv(batch_size=3).reset())["action"].shape
+        torch.Size([3])
+    """
+    spec = env.action_spec
+    n_act = spec.shape[-1] if spec.shape[len(env.batch_size) :] else 1
+    if isinstance(spec, Categorical):
+        n_act = spec.space.n
+    if isinstance(spec, (Categorical, OneHot)):
+        net = _trunk(env, n_act, hidden, activation, observation_key)
+        distribution = (
+            torch.distributions.Categorical if isinstance(spec, Categorical) else OneHotCategorical
+        )
+        return ProbabilisticActor(
+            TensorDictModule(net, [observation_key], ["logits"]),
+            in_keys=["logits"],
+            spec=spec,
+            distribution_class=distribution,
+        )
+    net = nn.Sequential(
+        _trunk(env, 2 * n_act, hidden, activation, observation_key), NormalParamExtractor()
+    )
+    kwargs = {}
+    distribution = IndependentNormal
+    if isinstance(spec, Bounded):
+        distribution = TanhNormal
+        kwargs = {"low": spec.space.low, "high": spec.space.high}
+    return ProbabilisticActor(
+        TensorDictModule(net, [observation_key], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=distribution,
+        distribution_kwargs=kwargs,
+    )
+
+
+def mlp_critic(
+    env: EnvBase,
+    *,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.Tanh,
+    observation_key: str = "observation",
+) -> ValueOperator:
+    """An MLP state-value network writing ``"state_value"``.
+
+    Keyword Args:
+        hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
+        activation (type): activation class. Defaults to ``nn.Tanh``.
+        observation_key (str): the observation entry. Defaults to ``"observation"``.
+
+    Examples:
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_critic
+        >>> env = GridWorldEnv()
+        >>> mlp_critic(env)(env.reset())["state_value"].shape
+        torch.Size([1])
+    """
+    return ValueOperator(
+        _trunk(env, 1, hidden, activation, observation_key), in_keys=[observation_key]
+    )

@@ -1,0 +1,595 @@
+"""The on-policy, replay-free training loop every recipe runs.
+
+collect (a TorchRL collector) -> returns (the loss's value estimator) ->
+``ReinforceLoss`` -> one optimiser step -> log, evaluate, checkpoint.
+
+Two ways to batch experience:
+
+* ``batch_mode="episodes"``: ``episodes_per_batch`` complete episodes per update,
+  REINFORCE as the SPEC states it. With one worker the loop is strictly on-policy:
+  after each update the collector drops the episode in flight (whose first steps the
+  previous policy chose); those frames still count as spent.
+* ``batch_mode="segments"``: ``segment_length`` steps from every environment per
+  update; unfinished episodes bootstrap from the critic (the SPEC's Pong set-up).
+
+A run directory holds ``checkpoint.pt`` (written atomically), ``summary.json``,
+``logs/`` (TorchRL's CSV logger, TensorBoard optional) and ``learning_curve.png``.
+``resume=True`` continues from the checkpoint; with one worker, a run killed at any
+time and resumed ends exactly as the uninterrupted run with the same seed would.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import random
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
+from tqdm import tqdm
+
+from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rl_pg.evaluation import evaluate
+from rl_pg.loss import ReinforceLoss
+
+__all__ = ["TrainConfig", "TrainingDiverged", "train"]
+
+CHECKPOINT = "checkpoint.pt"
+SUMMARY = "summary.json"
+CURVE = "learning_curve.png"
+# Config fields that may change when a run is resumed; any other change is refused.
+_RESUMABLE_FIELDS = frozenset(
+    {
+        "total_frames",
+        "total_updates",
+        "resume",
+        "run_dir",
+        "workers",
+        "ray",
+        "tensorboard",
+        "progress",
+    }
+)
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or its gradient became non-finite; the last good checkpoint is kept."""
+
+
+@dataclass
+class TrainConfig:
+    """Settings of the training loop shared by every recipe."""
+
+    seed: int = 0
+    """Seed of torch, numpy, random and the environments."""
+    total_frames: int = 100_000
+    """Environment steps to train for (at most)."""
+    total_updates: int | None = None
+    """Updates to train for (at most; None: no limit)."""
+    run_dir: Path | None = None
+    """Where checkpoints, logs and the summary go. Defaults to runs/<recipe>-seed<seed>."""
+    resume: bool = False
+    """Continue the run in run_dir from its checkpoint."""
+    workers: int = 1
+    """Collector processes; more than 1 uses TorchRL's multi-process collector."""
+    ray: bool = False
+    """Collect with TorchRL's Ray collector (pip install rl_pg[ray]); uses `workers` actors."""
+    batch_mode: Literal["episodes", "segments"] = "episodes"
+    """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
+    episodes_per_batch: int = 8
+    """Complete episodes per update (batch_mode='episodes')."""
+    segment_length: int = 50
+    """Steps per environment per update (batch_mode='segments')."""
+    returns: Literal["reward_to_go", "discounted_return"] = "reward_to_go"
+    """Return that weights log pi: reward-to-go (causality) or the whole-episode return."""
+    gamma: float = 0.99
+    """Discount factor."""
+    baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
+    """What is subtracted from the return."""
+    baseline_rate: float = 0.01
+    """Rate of the 'ema' baseline."""
+    entropy_coeff: float = 0.0
+    """Entropy bonus weight."""
+    critic_coeff: float = 1.0
+    """Value-loss weight."""
+    normalize_advantage: bool = False
+    """Standardise the policy weights over each batch."""
+    optimizer: Literal["adam", "sgd"] = "adam"
+    """Optimiser of actor and critic."""
+    lr: float = 1e-3
+    """Learning rate."""
+    weight_decay: float = 0.0
+    """L2 weight decay."""
+    max_grad_norm: float | None = None
+    """Gradient-norm clipping (None: no clipping)."""
+    eval_interval: int = 10_000
+    """Frames between evaluations."""
+    eval_episodes: int = 20
+    """Episodes per evaluation."""
+    eval_greedy: bool = True
+    """Evaluate greedily (argmax / mean action) rather than by sampling."""
+    threshold: float | None = None
+    """Evaluation mean return that counts as solved."""
+    stop_when_solved: bool = True
+    """Stop at the first evaluation that reaches the threshold."""
+    checkpoint_interval: int = 50
+    """Updates between checkpoints (one is always written at the end)."""
+    log_interval: int = 1
+    """Updates between training-metric log lines."""
+    tensorboard: bool = False
+    """Also log to TensorBoard (pip install tensorboard)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+@dataclass
+class _State:
+    """Everything about the run's progress that a checkpoint must restore."""
+
+    frames: int = 0
+    updates: int = 0
+    train_time: float = 0.0
+    solved_at_frames: int | None = None
+    last_eval: dict[str, float] = field(default_factory=dict)
+    history: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
+
+    def record(self, name: str, frames: int, value: float) -> None:
+        self.history.setdefault(name, []).append((frames, value))
+
+
+def train(
+    cfg: TrainConfig,
+    *,
+    recipe: str,
+    make_env: Callable[[], EnvBase],
+    make_models: Callable[[EnvBase], tuple[TensorDictModuleBase, TensorDictModuleBase | None]],
+    make_eval_env: Callable[[], EnvBase] | None = None,
+    eval_flags: Sequence[str] = (),
+) -> dict[str, Any]:
+    """Trains ``make_models``' actor (and critic) on ``make_env`` with REINFORCE.
+
+    Args:
+        cfg (TrainConfig): the loop's settings.
+
+    Keyword Args:
+        recipe (str): the recipe's name, written to the summary and the checkpoint.
+        make_env (callable): builds one training environment (must be picklable for
+            ``workers > 1`` or ``ray``).
+        make_models (callable): ``env -> (actor, critic or None)``; sizes come from the
+            environment's specs.
+        make_eval_env (callable, optional): builds the evaluation environment.
+            Defaults to ``make_env``.
+        eval_flags (sequence of str): boolean entries reported as rates by evaluations,
+            e.g. ``("crashed",)``. Defaults to ``()``.
+
+    Returns:
+        The summary written to ``run_dir/summary.json``.
+
+    Raises:
+        CheckpointError: a fresh run in a directory that has a checkpoint, or a resume
+            from a missing, corrupted or incompatible one (nothing is overwritten).
+        TrainingDiverged: the loss or gradient became non-finite.
+    """
+    run_dir = (
+        Path(cfg.run_dir) if cfg.run_dir is not None else Path("runs") / f"{recipe}-seed{cfg.seed}"
+    )
+    checkpoint_path = run_dir / CHECKPOINT
+    saved = _open_run_dir(cfg, recipe, run_dir, checkpoint_path)
+    _seed_everything(cfg.seed)
+
+    env = make_env()
+    actor, critic = make_models(env)
+    loss = _make_loss(cfg, actor, critic)
+    optimizer = _make_optimizer(cfg, loss)
+    state = _State()
+    if saved is not None:
+        state = _restore(saved, loss, optimizer, checkpoint_path)
+    eval_env = (make_eval_env or make_env)()
+    collector = _make_collector(cfg, env, make_env, actor, state)
+    logger = _make_logger(cfg, run_dir, state)
+
+    progress = tqdm(
+        total=cfg.total_frames,
+        initial=state.frames,
+        unit="frames",
+        disable=None if cfg.progress else True,  # None: shown on terminals only
+    )
+    next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
+    collector_frames = 0
+    try:
+        start = time.perf_counter()
+        for batch in collector:
+            metrics = _update(cfg, loss, optimizer, batch)
+            state.updates += 1
+            collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
+            state.frames += spent
+            if cfg.workers > 1 or cfg.ray:
+                collector.update_policy_weights_()
+            elif cfg.batch_mode == "episodes":
+                _restart_episodes(collector, cfg.seed, state.updates)
+            if state.updates % cfg.log_interval == 0:
+                metrics["train/episode_return"] = _mean_episode_return(batch)
+                for name, value in metrics.items():
+                    if math.isfinite(value):
+                        logger.log_scalar(name, value, step=state.frames)
+                        state.record(name, state.frames, value)
+                progress.set_postfix(
+                    train=f"{metrics['train/episode_return']:.2f}",
+                    eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
+                    refresh=False,
+                )
+            progress.update(spent)
+            done = state.frames >= cfg.total_frames or (
+                cfg.total_updates is not None and state.updates >= cfg.total_updates
+            )
+            if state.frames >= next_eval or done:
+                state.train_time += time.perf_counter() - start
+                next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
+                _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
+                solved = cfg.threshold is not None and (
+                    state.last_eval["eval/mean_return"] >= cfg.threshold
+                )
+                if solved and state.solved_at_frames is None:
+                    state.solved_at_frames = state.frames
+                done = done or (solved and cfg.stop_when_solved)
+                start = time.perf_counter()
+            if done or state.updates % cfg.checkpoint_interval == 0:
+                state.train_time += time.perf_counter() - start
+                _save(cfg, recipe, loss, optimizer, state, checkpoint_path)
+                start = time.perf_counter()
+                if cfg.batch_mode == "segments" and cfg.workers == 1 and not cfg.ray:
+                    # A resumed run restarts its environments here; so does this one.
+                    _restart_episodes(collector, cfg.seed, state.updates)
+            if done:
+                break
+    finally:
+        progress.close()
+        collector.shutdown()
+        eval_env.close()
+    summary = _summary(cfg, recipe, state, run_dir)
+    (run_dir / SUMMARY).write_text(json.dumps(summary, indent=2))
+    _plot(state, cfg.threshold, run_dir / CURVE, recipe)
+    return summary
+
+
+# ----------------------------------------------------------------- building ---
+def _validate(cfg: TrainConfig) -> None:
+    choices = {
+        "batch_mode": ("episodes", "segments"),
+        "returns": ("reward_to_go", "discounted_return"),
+        "optimizer": ("adam", "sgd"),
+    }
+    for name, allowed in choices.items():
+        if getattr(cfg, name) not in allowed:
+            raise ValueError(f"{name} must be one of {allowed}, got {getattr(cfg, name)!r}.")
+    positive = (
+        "total_frames",
+        "workers",
+        "episodes_per_batch",
+        "segment_length",
+        "eval_interval",
+        "eval_episodes",
+        "checkpoint_interval",
+        "log_interval",
+    )
+    for name in positive:
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+    if cfg.total_updates is not None and cfg.total_updates < 1:
+        raise ValueError(f"total_updates must be >= 1 or None, got {cfg.total_updates!r}.")
+    if not 0 <= cfg.gamma <= 1:
+        raise ValueError(f"gamma must lie in [0, 1], got {cfg.gamma!r}.")
+    if cfg.lr <= 0:
+        raise ValueError(f"lr must be > 0, got {cfg.lr!r}.")
+
+
+def _open_run_dir(cfg, recipe, run_dir: Path, checkpoint_path: Path) -> dict | None:
+    if cfg.resume:
+        saved = load_checkpoint(checkpoint_path)
+        if saved.get("recipe") != recipe:
+            raise CheckpointError(
+                f"{checkpoint_path} was written by recipe {saved.get('recipe')!r}, not "
+                f"{recipe!r}; resume it with that recipe."
+            )
+        current = _config_dict(cfg)
+        changed = {
+            key: (saved["config"].get(key), value)
+            for key, value in current.items()
+            if key not in _RESUMABLE_FIELDS and saved["config"].get(key) != value
+        }
+        if changed:
+            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            raise CheckpointError(
+                f"Cannot resume {checkpoint_path} with a different configuration ({details}). "
+                f"Only {sorted(_RESUMABLE_FIELDS)} may change on resume."
+            )
+        return saved
+    if checkpoint_path.exists():
+        raise CheckpointError(
+            f"{run_dir} already holds a checkpoint; pass --resume to continue it, or choose "
+            f"another --run-dir. Nothing was overwritten."
+        )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return None
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
+    loss = ReinforceLoss(
+        actor,
+        critic,
+        baseline=cfg.baseline,
+        baseline_rate=cfg.baseline_rate,
+        entropy_coeff=cfg.entropy_coeff or None,
+        critic_coeff=cfg.critic_coeff,
+        normalize_advantage=cfg.normalize_advantage,
+        loss_critic_type="l2",
+        # The collector runs the actor itself: keep one set of parameters.
+        functional=False,
+    )
+    loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
+    return loss
+
+
+def _make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
+    params = [p for p in loss.parameters() if p.requires_grad]
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
+def _make_collector(cfg: TrainConfig, env: EnvBase, make_env, actor, state: _State):
+    if cfg.batch_mode == "episodes":
+        kwargs = {
+            "frames_per_batch": 64,  # polling granularity only, with trajs_per_batch
+            "trajs_per_batch": cfg.episodes_per_batch,
+            "traj_format": "cat",
+        }
+    else:
+        n_envs = max(1, math.prod(env.batch_size))
+        kwargs = {"frames_per_batch": cfg.segment_length * n_envs * max(1, cfg.workers)}
+    kwargs.update(total_frames=-1, auto_register_policy_transforms=False)
+    if cfg.ray or cfg.workers > 1:
+        env.close()
+        backend = "ray" if cfg.ray else "process"
+        options = {"ray_init_config": {"num_cpus": cfg.workers}} if cfg.ray else {}
+        collector = Collector(
+            [make_env] * cfg.workers,
+            actor,
+            backend=backend,
+            num_collectors=cfg.workers,
+            sync=True,
+            backend_options=options,
+            **kwargs,
+        )
+        collector.set_seed(_derived_seed(cfg.seed, state.updates))
+        return collector
+    collector = Collector(env, actor, **kwargs)
+    _restart_episodes(collector, cfg.seed, state.updates)
+    return collector
+
+
+def _make_logger(cfg: TrainConfig, run_dir: Path, state: _State) -> _Loggers:
+    _trim_csv_logs(run_dir / "logs", state.frames)
+    loggers: list[Logger] = [CSVLogger(exp_name="csv", log_dir=str(run_dir / "logs"))]
+    if cfg.tensorboard:
+        loggers.append(TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir / "logs")))
+    return _Loggers(loggers)
+
+
+class _Loggers:
+    """Sends each scalar to every TorchRL logger."""
+
+    def __init__(self, loggers: list[Logger]) -> None:
+        self.loggers = loggers
+
+    def log_scalar(self, name: str, value: float, step: int) -> None:
+        for logger in self.loggers:
+            logger.log_scalar(name, value, step=step)
+
+
+def _trim_csv_logs(log_dir: Path, frames: int) -> None:
+    """Drops the rows a killed run logged after its last checkpoint (they are redone)."""
+    for path in log_dir.glob("csv/scalars/**/*.csv"):
+        rows = [row for row in path.read_text().splitlines() if row]
+        kept = [row for row in rows if int(float(row.split(",")[0])) <= frames]
+        if len(kept) != len(rows):
+            path.write_text("".join(f"{row}\n" for row in kept))
+
+
+# -------------------------------------------------------------------- steps ---
+def _update(cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase) -> dict:
+    losses = loss(batch)
+    total = sum(value for key, value in losses.items() if key.startswith("loss_"))
+    if not torch.isfinite(total):
+        raise TrainingDiverged(
+            f"The loss became {total.item()} ({_describe(losses)}); training stopped and "
+            f"the last good checkpoint was kept. Lower the learning rate or clip gradients."
+        )
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
+    grad_norm = nn.utils.clip_grad_norm_(params, max_norm)
+    if not torch.isfinite(grad_norm):
+        raise TrainingDiverged(
+            f"The gradient norm became {grad_norm.item()}; training stopped and the last "
+            f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
+        )
+    optimizer.step()
+    metrics = {
+        f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
+    }
+    for key in ("entropy", "advantage_mean", "advantage_std", "explained_variance", "baseline"):
+        value = losses.get(key, None)
+        if value is not None:
+            metrics[f"train/{key}"] = value.item()
+    metrics["train/grad_norm"] = grad_norm.item()
+    return metrics
+
+
+def _describe(losses: TensorDictBase) -> str:
+    return ", ".join(f"{k}={v.item():.4g}" for k, v in losses.items() if k.startswith("loss_"))
+
+
+def _frames_spent(cfg, collector, batch, last_count: int) -> tuple[int, int]:
+    """Environment steps taken since the last update (dropped in-flight ones included)."""
+    if cfg.workers > 1 or cfg.ray:
+        return last_count, batch.numel()
+    count = collector.state_dict()["frames"]
+    return count, count - last_count
+
+
+def _restart_episodes(collector, seed: int, updates: int) -> None:
+    """Reseeds and resets the environments: the next batch depends only on (seed, updates)."""
+    collector.set_seed(_derived_seed(seed, updates))
+    collector.reset()
+
+
+def _derived_seed(seed: int, updates: int) -> int:
+    # Spread runs apart so that run s at update u never replays run s + 1 at update u - 1.
+    return (seed * 1_000_003 + updates) % 2**31
+
+
+def _mean_episode_return(batch: TensorDictBase) -> float:
+    """Mean return of the episodes that end in the batch (NaN if none does).
+
+    Reads ``("next", "episode_reward")`` (TorchRL's ``RewardSum``) when the environment
+    has it, which also counts the steps of earlier batches; sums the batch otherwise.
+    """
+    done = batch["next", "done"].squeeze(-1)
+    episode_reward = batch.get(("next", "episode_reward"), None)
+    if episode_reward is not None:
+        ended = episode_reward.reshape(done.shape)[done]
+        return ended.mean().item() if ended.numel() else float("nan")
+    reward = batch["next", "reward"].reshape(done.shape)
+    flat_done, flat_reward = done.reshape(-1, done.shape[-1]), reward.reshape(-1, done.shape[-1])
+    returns = []
+    for row_done, row_reward in zip(flat_done, flat_reward, strict=True):
+        ends = row_done.nonzero().squeeze(-1).tolist()
+        sums = torch.cumsum(row_reward, 0)
+        previous = None
+        for end in ends:
+            returns.append((sums[end] - (sums[previous] if previous is not None else 0)).item())
+            previous = end
+    return float(np.mean(returns)) if returns else float("nan")
+
+
+def _evaluate(cfg, actor, eval_env, eval_flags, state: _State, logger) -> None:
+    eval_env.set_seed(cfg.seed + 1_000_003)  # the same start states at every evaluation
+    start = time.perf_counter()
+    result = evaluate(
+        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, flags=eval_flags
+    )
+    result = {f"eval/{key}": value for key, value in result.items()}
+    result["time/eval_s"] = time.perf_counter() - start
+    result["time/train_s"] = state.train_time
+    state.last_eval = result
+    for name, value in result.items():
+        logger.log_scalar(name, value, step=state.frames)
+        state.record(name, state.frames, value)
+
+
+# ------------------------------------------------------------- checkpoints ---
+def _config_dict(cfg: TrainConfig) -> dict[str, Any]:
+    return {
+        key: str(value) if isinstance(value, Path) else value
+        for key, value in dataclasses.asdict(cfg).items()
+    }
+
+
+def _save(cfg, recipe, loss, optimizer, state: _State, path: Path) -> None:
+    save_checkpoint(
+        {
+            "recipe": recipe,
+            "config": _config_dict(cfg),
+            "loss": loss.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "state": dataclasses.asdict(state),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "numpy": np.random.get_state(),
+                "random": random.getstate(),
+            },
+        },
+        path,
+    )
+
+
+def _restore(saved: dict, loss, optimizer, path: Path) -> _State:
+    try:
+        loss.load_state_dict(saved["loss"])
+        optimizer.load_state_dict(saved["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as err:
+        raise CheckpointError(
+            f"{path} does not fit the models this configuration builds ({err}). It was "
+            f"left as it is; resume it with the configuration that wrote it."
+        ) from err
+    torch.set_rng_state(saved["rng"]["torch"])
+    np.random.set_state(saved["rng"]["numpy"])
+    random.setstate(saved["rng"]["random"])
+    state = _State(**saved["state"])
+    state.history = {k: [tuple(p) for p in v] for k, v in state.history.items()}
+    return state
+
+
+# ------------------------------------------------------------------ results ---
+def _summary(cfg: TrainConfig, recipe: str, state: _State, run_dir: Path) -> dict[str, Any]:
+    summary = {
+        "recipe": recipe,
+        "run_dir": str(run_dir),
+        "seed": cfg.seed,
+        "frames": state.frames,
+        "updates": state.updates,
+        "train_wall_s": state.train_time,
+        "eval_mean_return": state.last_eval.get("eval/mean_return"),
+        "eval_std_return": state.last_eval.get("eval/std_return"),
+        "threshold": cfg.threshold,
+        "solved_at_frames": state.solved_at_frames,
+    }
+    for key, value in state.last_eval.items():
+        if key.endswith("_rate"):
+            summary[key.removeprefix("eval/")] = value
+    return summary
+
+
+def _plot(state: _State, threshold: float | None, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, label in (
+        ("train/episode_return", "training episodes"),
+        ("eval/mean_return", "evaluation"),
+    ):
+        points = state.history.get(name, [])
+        if points:
+            frames, values = zip(*points, strict=True)
+            ax.plot(frames, values, label=label, marker="o" if name.startswith("eval") else None)
+    if threshold is not None:
+        ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+    ax.set(xlabel="frames", ylabel="episode return", title=title)
+    ax.legend(loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
