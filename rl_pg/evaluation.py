@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
@@ -11,7 +12,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["evaluate", "first_episodes"]
+__all__ = ["evaluate", "first_episodes", "play"]
 
 
 def first_episodes(rollout: TensorDictBase, flags: Sequence[str] = ()) -> dict[str, torch.Tensor]:
@@ -126,3 +127,66 @@ def evaluate(
         if flag in stats:
             out[f"{flag}_rate"] = stats[flag].mean().item()
     return out
+
+
+def play(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    *,
+    episodes: int,
+    deterministic: bool = True,
+    max_steps: int = 100_000,
+    record: str | Path | None = None,
+    fps: int = 30,
+) -> list[float]:
+    """Plays ``episodes`` episodes one after the other; optionally records them.
+
+    Keyword Args:
+        episodes (int): number of episodes.
+        deterministic (bool): act greedily rather than by sampling. Defaults to ``True``.
+        max_steps (int): cap on an episode's length. Defaults to ``100_000``.
+        record (str or Path, optional): a ``.gif`` or ``.mp4`` path; the environment must
+            put its frames under ``"pixels"`` (e.g. ``GymEnv(..., from_pixels=True,
+            pixels_only=False)``). Defaults to ``None``.
+        fps (int): frames per second of the recording. Defaults to ``30``.
+
+    Returns:
+        The return of every episode.
+
+    Raises:
+        ValueError: when recording an environment that gives no ``"pixels"``.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.evaluation import play
+        >>> from rl_pg.models import mlp_actor
+        >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
+        <torch._C.Generator object at ...>
+        >>> env = GridWorldEnv(max_steps=5)
+        >>> len(play(mlp_actor(env), env, episodes=2, deterministic=False))
+        2
+    """
+    returns, frames = [], []
+    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    with set_exploration_type(exploration), torch.no_grad():
+        for _ in range(episodes):
+            rollout = env.rollout(max_steps, policy, break_when_any_done=True)
+            returns.append(rollout["next", "reward"].sum().item())
+            if record is not None:
+                pixels = rollout.get("pixels", None)
+                if pixels is None:
+                    raise ValueError(
+                        "Recording needs frames under 'pixels': build the environment with "
+                        "from_pixels=True, pixels_only=False (this one does not render)."
+                    )
+                frames.extend(pixels.numpy())
+    if record is not None:
+        import imageio.v2 as imageio
+
+        Path(record).parent.mkdir(parents=True, exist_ok=True)
+        if str(record).endswith(".gif"):
+            imageio.mimsave(record, frames, duration=1000 / fps, loop=0)
+        else:
+            imageio.mimsave(record, frames, fps=fps)
+    return returns

@@ -44,7 +44,7 @@ from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.evaluation import evaluate
 from rl_pg.loss import ReinforceLoss
 
-__all__ = ["TrainConfig", "TrainingDiverged", "train"]
+__all__ = ["TrainConfig", "TrainingDiverged", "load_models", "read_run", "train"]
 
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
@@ -549,6 +549,39 @@ def _restore(saved: dict, loss, optimizer, path: Path) -> _State:
     state = _State(**saved["state"])
     state.history = {k: [tuple(p) for p in v] for k, v in state.history.items()}
     return state
+
+
+def read_run(run: str | Path) -> dict[str, Any]:
+    """The checkpoint of a run directory (or a checkpoint file itself).
+
+    Raises:
+        CheckpointError: missing or corrupted checkpoint.
+    """
+    path = Path(run)
+    return load_checkpoint(path / CHECKPOINT if path.is_dir() else path)
+
+
+def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
+    """Loads a checkpoint's weights (see :func:`read_run`) into freshly built models.
+
+    Raises:
+        CheckpointError: the weights do not fit the models.
+    """
+    for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
+        if module is None:
+            continue
+        weights = {
+            key.removeprefix(prefix): value
+            for key, value in saved["loss"].items()
+            if key.startswith(prefix)
+        }
+        try:
+            module.load_state_dict(weights)
+        except RuntimeError as err:
+            raise CheckpointError(
+                f"The checkpoint's {prefix[:-1]} does not fit the model built from its "
+                f"config ({err})."
+            ) from err
 
 
 # ------------------------------------------------------------------ results ---

@@ -1,0 +1,69 @@
+"""Deploy a trained agent: load a run directory (or checkpoint), play, record.
+
+python recipes/play.py runs/cartpole-seed0 --episodes 5 --gif cartpole.gif
+python recipes/play.py runs/highway-seed0 --sample          # sample, not greedy
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+from rl_pg.evaluation import play
+from rl_pg.trainer import load_models, read_run
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+@dataclass
+class Args:
+    """Play a trained agent's episodes and print their returns."""
+
+    run: tyro.conf.Positional[Path]
+    """Run directory (or checkpoint file) written by a recipe."""
+    episodes: int = 5
+    """Episodes to play."""
+    sample: bool = False
+    """Sample actions from the policy instead of acting greedily."""
+    gif: Path | None = None
+    """Record the episodes to this .gif (or .mp4) file; the environment must render."""
+    fps: int = 30
+    """Frames per second of the recording."""
+    seed: int = 0
+    """Seed of the environment and of the sampled actions."""
+
+
+def main(args: Args) -> list[float]:
+    saved = read_run(args.run)
+    recipe = importlib.import_module(saved["recipe"])
+    fields = {f.name for f in dataclasses.fields(recipe.Config)}
+    cfg = recipe.Config(**{k: v for k, v in saved["config"].items() if k in fields})
+    env = recipe.make_env(cfg, render=args.gif is not None)
+    actor, critic = recipe.make_models(env, cfg)
+    load_models(saved, actor, critic)
+    torch.manual_seed(args.seed)
+    env.set_seed(args.seed)
+    returns = play(
+        actor,
+        env,
+        episodes=args.episodes,
+        deterministic=not args.sample,
+        record=args.gif,
+        fps=args.fps,
+    )
+    for episode, value in enumerate(returns):
+        print(f"episode {episode}: return {value:.2f}")
+    print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episodes")
+    if args.gif is not None:
+        print(f"recorded {args.gif}")
+    return returns
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,47 @@
+"""Boolean flags from a gymnasium ``info`` dict (crashes, successes) as TorchRL entries."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Categorical, Composite
+from torchrl.envs.gym_like import BaseInfoDictReader
+
+__all__ = ["InfoFlags"]
+
+
+class InfoFlags(BaseInfoDictReader):
+    """Reads ``info[key]`` as a ``[1]`` boolean entry, ``False`` when the key is absent.
+
+    TorchRL's default reader expects numpy arrays; simulators such as highway-env and
+    MetaDrive report plain Python booleans.
+
+    Args:
+        keys (sequence of str): the info keys to read.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from rl_pg.envs.info import InfoFlags
+        >>> reader = InfoFlags(["crashed"])
+        >>> reader({"crashed": True, "speed": 20.0}, TensorDict())["crashed"]
+        tensor([True])
+    """
+
+    def __init__(self, keys: Sequence[str]) -> None:
+        self.keys = list(keys)
+        self._info_spec = Composite(
+            {key: Categorical(2, shape=(1,), dtype=torch.bool) for key in self.keys}, shape=[]
+        )
+
+    def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
+        for key in self.keys:
+            tensordict.set(key, torch.tensor([bool(info_dict.get(key, False))]))
+        return tensordict
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._info_spec
