@@ -11,6 +11,7 @@ the running-average baseline only better-than-average arms are.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -85,6 +86,7 @@ def main(cfg: Config) -> dict:
     )
     _, running_reward = _running_reward(summary["run_dir"], cfg)
     summary["final_running_reward"] = float(running_reward[-1])
+    (Path(summary["run_dir"]) / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 

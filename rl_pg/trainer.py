@@ -23,7 +23,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import random
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -32,10 +34,11 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.collectors import Collector
+from torchrl.collectors.weight_update import RayWeightUpdater
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
 from tqdm import tqdm
@@ -85,7 +88,7 @@ class TrainConfig:
     workers: int = 1
     """Collector processes; more than 1 uses TorchRL's multi-process collector."""
     ray: bool = False
-    """Collect with TorchRL's Ray collector (pip install rl_pg[ray]); uses `workers` actors."""
+    """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
     batch_mode: Literal["episodes", "segments"] = "episodes"
     """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
     episodes_per_batch: int = 8
@@ -182,6 +185,7 @@ def train(
             from a missing, corrupted or incompatible one (nothing is overwritten).
         TrainingDiverged: the loss or gradient became non-finite.
     """
+    _validate(cfg)
     run_dir = (
         Path(cfg.run_dir) if cfg.run_dir is not None else Path("runs") / f"{recipe}-seed{cfg.seed}"
     )
@@ -197,7 +201,7 @@ def train(
     if saved is not None:
         state = _restore(saved, loss, optimizer, checkpoint_path)
     eval_env = (make_eval_env or make_env)()
-    collector = _make_collector(cfg, env, make_env, actor, state)
+    collector, sync_weights = _make_collector(cfg, env, make_env, actor, state)
     logger = _make_logger(cfg, run_dir, state)
 
     progress = tqdm(
@@ -215,8 +219,8 @@ def train(
             state.updates += 1
             collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
             state.frames += spent
-            if cfg.workers > 1 or cfg.ray:
-                collector.update_policy_weights_()
+            if sync_weights is not None:
+                sync_weights()
             elif cfg.batch_mode == "episodes":
                 _restart_episodes(collector, cfg.seed, state.updates)
             if state.updates % cfg.log_interval == 0:
@@ -294,6 +298,11 @@ def _validate(cfg: TrainConfig) -> None:
         raise ValueError(f"gamma must lie in [0, 1], got {cfg.gamma!r}.")
     if cfg.lr <= 0:
         raise ValueError(f"lr must be > 0, got {cfg.lr!r}.")
+    if cfg.ray and cfg.batch_mode != "segments":
+        raise ValueError(
+            "The Ray collector yields fixed-length batches: use --batch-mode segments with "
+            "--ray (whole-episode batches need the local or multi-process collectors)."
+        )
 
 
 def _open_run_dir(cfg, recipe, run_dir: Path, checkpoint_path: Path) -> dict | None:
@@ -366,25 +375,54 @@ def _make_collector(cfg: TrainConfig, env: EnvBase, make_env, actor, state: _Sta
     else:
         n_envs = max(1, math.prod(env.batch_size))
         kwargs = {"frames_per_batch": cfg.segment_length * n_envs * max(1, cfg.workers)}
-    kwargs.update(total_frames=-1, auto_register_policy_transforms=False)
-    if cfg.ray or cfg.workers > 1:
+    kwargs["total_frames"] = -1
+    # Our policies need no extra environment transform (no recurrent state).
+    inner = {"auto_register_policy_transforms": False}
+    if cfg.ray:
         env.close()
-        backend = "ray" if cfg.ray else "process"
-        options = {"ray_init_config": {"num_cpus": cfg.workers}} if cfg.ray else {}
         collector = Collector(
             [make_env] * cfg.workers,
             actor,
-            backend=backend,
+            backend="ray",
             num_collectors=cfg.workers,
             sync=True,
-            backend_options=options,
+            backend_options={
+                "ray_init_config": {
+                    "num_cpus": cfg.workers,
+                    "include_dashboard": False,
+                    # Actors import the recipe's make_env the way this process does.
+                    "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
+                },
+                "collector_kwargs": inner,
+                # Weights go through Ray's object store (below) rather than the default
+                # torch.distributed group, which needs a network set-up many hosts lack.
+                "weight_sync_schemes": {},
+            },
+            # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
+            **{**kwargs, "total_frames": 2**62},
+        )
+        updater = RayWeightUpdater(
+            policy_weights=TensorDict.from_module(actor),
+            remote_collectors=collector.remote_collectors,
+            max_interval=0,
+        )
+        return collector, updater
+    kwargs.update(inner)
+    if cfg.workers > 1:
+        env.close()
+        collector = Collector(
+            [make_env] * cfg.workers,
+            actor,
+            backend="process",
+            num_collectors=cfg.workers,
+            sync=True,
             **kwargs,
         )
         collector.set_seed(_derived_seed(cfg.seed, state.updates))
-        return collector
+        return collector, collector.update_policy_weights_
     collector = Collector(env, actor, **kwargs)
     _restart_episodes(collector, cfg.seed, state.updates)
-    return collector
+    return collector, None
 
 
 def _make_logger(cfg: TrainConfig, run_dir: Path, state: _State) -> _Loggers:

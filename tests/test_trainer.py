@@ -1,0 +1,222 @@
+"""The training loop: outputs, learning, checkpoints, resume, divergence, collectors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+from torchrl.modules import ValueOperator
+
+from rl_pg.checkpoint import CheckpointError, load_checkpoint
+from rl_pg.envs import GridWorldEnv
+from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.trainer import TrainConfig, TrainingDiverged, train
+
+
+def make_grid():
+    return GridWorldEnv(batch_size=8, max_steps=30)
+
+
+def make_grid_models(env):
+    kwargs = {"hidden": (32,), "activation": nn.ReLU}
+    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
+
+
+def _cfg(tmp_path, **overrides) -> TrainConfig:
+    defaults = {
+        "run_dir": tmp_path / "run",
+        "total_frames": 100_000,
+        "total_updates": 6,
+        "episodes_per_batch": 8,
+        "gamma": 1.0,
+        "lr": 0.02,
+        "eval_interval": 500,
+        "eval_episodes": 1,
+        "checkpoint_interval": 2,
+        "progress": False,
+    }
+    return TrainConfig(**{**defaults, **overrides})
+
+
+def _train(cfg, **kwargs):
+    return train(cfg, recipe="grid", make_env=make_grid, make_models=make_grid_models, **kwargs)
+
+
+def _weights(run_dir: Path) -> dict:
+    return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
+
+
+class TestTrain:
+    def test_run_directory(self, tmp_path):
+        summary = _train(_cfg(tmp_path))
+        run = tmp_path / "run"
+        assert json.loads((run / "summary.json").read_text()) == summary
+        for key in ("recipe", "seed", "frames", "train_wall_s", "eval_mean_return"):
+            assert key in summary
+        assert summary["updates"] == 6 and summary["frames"] > 0
+        assert (run / "checkpoint.pt").is_file() and (run / "learning_curve.png").is_file()
+        scalars = run / "logs" / "csv" / "scalars"
+        namespaces = {p.parent.name for p in scalars.glob("*/*.csv")}
+        assert namespaces == {"train", "eval", "loss", "time"}
+
+    def test_solves_the_gridworld(self, tmp_path):
+        threshold = GridWorldEnv().optimal_return - 1e-6
+        cfg = _cfg(tmp_path, total_updates=60, eval_interval=1, threshold=threshold)
+        summary = _train(cfg)
+        assert summary["solved_at_frames"] is not None
+        assert summary["eval_mean_return"] >= threshold
+
+    def test_segments_mode(self, tmp_path):
+        summary = _train(_cfg(tmp_path, batch_mode="segments", segment_length=10))
+        assert summary["frames"] == 6 * 10 * 8
+
+    def test_refuses_to_overwrite_a_run(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=1))
+        before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
+        with pytest.raises(CheckpointError, match="already holds a checkpoint; pass --resume"):
+            _train(_cfg(tmp_path, total_updates=1))
+        assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
+
+    def test_resume_without_checkpoint(self, tmp_path):
+        with pytest.raises(CheckpointError, match="No checkpoint at"):
+            _train(_cfg(tmp_path, resume=True))
+
+    def test_resume_with_another_configuration(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        with pytest.raises(CheckpointError, match=r"different configuration \(lr: 0.02 -> 0.5\)"):
+            _train(_cfg(tmp_path, resume=True, lr=0.5))
+
+    def test_resume_from_another_recipe(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        with pytest.raises(CheckpointError, match="written by recipe 'grid'"):
+            train(
+                _cfg(tmp_path, resume=True),
+                recipe="other",
+                make_env=make_grid,
+                make_models=make_grid_models,
+            )
+
+    def test_resume_from_a_corrupted_checkpoint(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        path = tmp_path / "run" / "checkpoint.pt"
+        path.write_bytes(path.read_bytes()[:100])
+        with pytest.raises(CheckpointError, match="is corrupted"):
+            _train(_cfg(tmp_path, resume=True))
+        assert len(path.read_bytes()) == 100  # left as it was
+
+    def test_resume_with_models_that_do_not_fit(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+
+        def wider(env):
+            return mlp_actor(env, hidden=(64,)), mlp_critic(env, hidden=(64,))
+
+        with pytest.raises(CheckpointError, match="does not fit the models"):
+            train(_cfg(tmp_path, resume=True), recipe="grid", make_env=make_grid, make_models=wider)
+
+    def test_resume_continues_exactly(self, tmp_path):
+        straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6)
+        _train(straight)
+        split = _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=4)
+        _train(split)
+        resumed = _train(_cfg(tmp_path, run_dir=tmp_path / "split", total_updates=6, resume=True))
+        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
+        for key in ("frames", "updates", "eval_mean_return"):
+            assert resumed[key] == expected[key]
+        for key, value in _weights(tmp_path / "straight").items():
+            assert torch.equal(value, _weights(tmp_path / "split")[key]), key
+
+    def test_non_finite_gradient_stops_and_keeps_the_checkpoint(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        path = tmp_path / "run" / "checkpoint.pt"
+        before = path.read_bytes()
+        with pytest.raises(TrainingDiverged, match="gradient norm became nan"):
+            train(
+                _cfg(tmp_path, resume=True, total_updates=4),
+                recipe="grid",
+                make_env=make_grid,
+                make_models=_models_with_nan_gradient,
+            )
+        assert path.read_bytes() == before
+
+    def test_multi_process_collection(self, tmp_path):
+        summary = _train(_cfg(tmp_path, workers=2, total_updates=3))
+        assert summary["updates"] == 3 and summary["frames"] > 0
+
+    @pytest.mark.parametrize(
+        ("override", "message"),
+        [
+            ({"batch_mode": "steps"}, "batch_mode must be one of"),
+            ({"episodes_per_batch": 0}, "episodes_per_batch must be an integer >= 1"),
+            ({"gamma": 1.5}, r"gamma must lie in \[0, 1\]"),
+            ({"lr": 0.0}, "lr must be > 0"),
+            ({"ray": True}, "use --batch-mode segments with --ray"),
+        ],
+    )
+    def test_bad_configuration(self, tmp_path, override, message):
+        with pytest.raises(ValueError, match=message):
+            _train(_cfg(tmp_path, **override))
+
+
+class _NanGradient(nn.Module):
+    """Adds sqrt(0 * x): nothing to the value, NaN (= sqrt'(0) * 0) to its gradient."""
+
+    def forward(self, value):
+        return value + torch.sqrt(torch.zeros_like(value) * value)
+
+
+def _models_with_nan_gradient(env):
+    actor, critic = make_grid_models(env)
+    # Appended after the critic's layers, so the checkpoint's parameter names still fit.
+    layers = nn.Sequential(*critic.module, _NanGradient())
+    return actor, ValueOperator(layers, in_keys=["observation"])
+
+
+_KILLABLE_RUN = textwrap.dedent(
+    """
+    import sys
+    sys.path.insert(0, {tests!r})
+    from test_trainer import _cfg, _train
+    from pathlib import Path
+    _train(_cfg(Path({tmp!r}), run_dir=Path({run!r}), total_updates=12, checkpoint_interval=1))
+    """
+)
+
+
+class TestKilledRun:
+    def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path):
+        _train(_cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=12))
+        run = tmp_path / "killed"
+        script = _KILLABLE_RUN.format(
+            tests=str(Path(__file__).parent), tmp=str(tmp_path), run=str(run)
+        )
+        process = subprocess.Popen([sys.executable, "-c", script], env=os.environ.copy())
+        deadline = time.monotonic() + 120
+        try:
+            while time.monotonic() < deadline:
+                checkpoint = run / "checkpoint.pt"
+                if checkpoint.is_file() and load_checkpoint(checkpoint)["state"]["updates"] >= 4:
+                    break
+                assert process.poll() is None, "the run ended before it could be killed"
+                time.sleep(0.02)
+            process.send_signal(signal.SIGKILL)
+        finally:
+            process.wait()
+        killed_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
+        assert 4 <= killed_at < 12
+        resumed = _train(
+            _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True)
+        )
+        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
+        for key in ("frames", "updates", "eval_mean_return"):
+            assert resumed[key] == expected[key]
+        for key, value in _weights(tmp_path / "straight").items():
+            assert torch.equal(value, _weights(run)[key]), key
