@@ -11,14 +11,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-import bandit  # noqa: E402
-import cartpole  # noqa: E402
-import gridworld  # noqa: E402
-import highway  # noqa: E402
-import lunarlander  # noqa: E402
-import metadrive  # noqa: E402
-import play  # noqa: E402
-import pong  # noqa: E402
+import bandit
+import cartpole
+import gridworld
+import highway
+import lunarlander
+import metadrive
+import play
+import pong
 
 TINY = {"eval_episodes": 1, "checkpoint_interval": 1, "progress": False}
 RECIPES = {
@@ -117,7 +117,12 @@ def test_metadrive_missing_says_how_to_install(tmp_path):
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
 def test_ray_collection(tmp_path):
     cfg = gridworld.Config(
-        run_dir=tmp_path, ray=True, workers=2, batch_mode="segments", segment_length=10,
-        total_updates=2, **TINY,
+        run_dir=tmp_path,
+        ray=True,
+        workers=2,
+        batch_mode="segments",
+        segment_length=10,
+        total_updates=2,
+        **TINY,
     )
     assert gridworld.main(cfg)["updates"] == 2
