@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from functools import partial
 
 import tyro
-from torchrl.envs import EnvBase, GymEnv
+from torchrl.envs import EnvBase
 
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.envs import gym_env
+from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import TrainConfig, train
 
 
@@ -39,16 +40,11 @@ class Config(TrainConfig):
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    return GymEnv(
-        cfg.env_id,
-        categorical_action_encoding=True,
-        **({"from_pixels": True, "pixels_only": False} if render else {}),
-    )
+    return gym_env(cfg.env_id, render=render)
 
 
 def make_models(env: EnvBase, cfg: Config):
-    hidden = (cfg.hidden, cfg.hidden)
-    return mlp_actor(env, hidden=hidden), mlp_critic(env, hidden=hidden)
+    return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden))
 
 
 def main(cfg: Config) -> dict:

@@ -18,7 +18,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import GridWorldEnv
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import TrainConfig, train
 
 # The SPEC's comparison; the tutorial could not combine reward-to-go with a baseline.
@@ -65,8 +65,7 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
 
 
 def make_models(env: EnvBase, cfg: Config):
-    kwargs = {"hidden": (cfg.hidden,), "activation": nn.ReLU}
-    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
+    return mlp_actor_critic(env, hidden=(cfg.hidden,), activation=nn.ReLU)
 
 
 def main(cfg: Config) -> dict:

@@ -16,14 +16,11 @@ from functools import partial
 
 import tyro
 from torch import nn
-from torchrl.envs import EnvBase, GymEnv, TransformedEnv
+from torchrl.envs import EnvBase
 
-from rl_pg import DiscretizeAction
-from rl_pg.envs.info import InfoFlags
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.envs import driving_env
+from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import TrainConfig, train
-
-DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
 
 
 @dataclass
@@ -59,18 +56,16 @@ class Config(TrainConfig):
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     import highway_env  # noqa: F401  (registers the environments)
 
-    env = GymEnv(
+    return driving_env(
         cfg.env_id,
+        flags=["crashed"],
+        render=render,
         config={"action": {"type": "ContinuousAction"}},
-        **({"from_pixels": True, "pixels_only": False} if render else {}),
     )
-    env.set_info_dict_reader(InfoFlags(["crashed"]))
-    return TransformedEnv(env, DiscretizeAction(actions=DRIVING_ACTIONS))
 
 
 def make_models(env: EnvBase, cfg: Config):
-    kwargs = {"hidden": (cfg.hidden,), "activation": nn.ReLU}
-    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
+    return mlp_actor_critic(env, hidden=(cfg.hidden,), activation=nn.ReLU)
 
 
 def main(cfg: Config) -> dict:

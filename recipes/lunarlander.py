@@ -13,9 +13,10 @@ from dataclasses import dataclass
 from functools import partial
 
 import tyro
-from torchrl.envs import EnvBase, GymEnv
+from torchrl.envs import EnvBase, RewardSum, SerialEnv, TransformedEnv
 
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.envs import gym_env
+from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import TrainConfig, train
 
 
@@ -25,6 +26,8 @@ class Config(TrainConfig):
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))) with a Gaussian policy."""
+    envs: int = 1
+    """Landers stepped together in one process (useful with --batch-mode segments)."""
     hidden: int = 128
     """Width of the two hidden layers of the actor and of the critic."""
     total_frames: int = 1_000_000
@@ -43,18 +46,19 @@ class Config(TrainConfig):
     """Evaluation mean return that counts as solved."""
 
 
+def make_lander(cfg: Config, *, render: bool = False) -> EnvBase:
+    return gym_env("LunarLander-v3", render=render, continuous=cfg.continuous)
+
+
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    return GymEnv(
-        "LunarLander-v3",
-        continuous=cfg.continuous,
-        categorical_action_encoding=True,
-        **({"from_pixels": True, "pixels_only": False} if render else {}),
-    )
+    if render or cfg.envs == 1:
+        return make_lander(cfg, render=render)
+    # RewardSum logs whole-episode returns even when updates see segments.
+    return TransformedEnv(SerialEnv(cfg.envs, partial(make_lander, cfg)), RewardSum())
 
 
 def make_models(env: EnvBase, cfg: Config):
-    hidden = (cfg.hidden, cfg.hidden)
-    return mlp_actor(env, hidden=hidden), mlp_critic(env, hidden=hidden)
+    return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden))
 
 
 def main(cfg: Config) -> dict:
@@ -63,6 +67,7 @@ def main(cfg: Config) -> dict:
         recipe="lunarlander",
         make_env=partial(make_env, cfg),
         make_models=partial(make_models, cfg=cfg),
+        make_eval_env=partial(make_lander, cfg),
     )
 
 

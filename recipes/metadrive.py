@@ -21,14 +21,12 @@ from pathlib import Path
 
 import tyro
 from torch import nn
-from torchrl.envs import EnvBase, GymEnv, TransformedEnv
+from torchrl.envs import EnvBase
 
-from rl_pg import DiscretizeAction
-from rl_pg.envs.info import InfoFlags
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.envs import driving_env
+from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import TrainConfig, train
 
-DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
 INSTALL_HINT = (
     "MetaDrive is not installed. It is an optional backend because it downloads its "
     "assets from the internet on first use: `pip install metadrive-simulator`, then run "
@@ -82,14 +80,11 @@ def _require_metadrive():
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     _require_metadrive()
-    env = GymEnv(cfg.env_id, **({"from_pixels": True, "pixels_only": False} if render else {}))
-    env.set_info_dict_reader(InfoFlags(["crash", "arrive_dest"]))
-    return TransformedEnv(env, DiscretizeAction(actions=DRIVING_ACTIONS))
+    return driving_env(cfg.env_id, flags=["crash", "arrive_dest"], render=render)
 
 
 def make_models(env: EnvBase, cfg: Config):
-    kwargs = {"hidden": (cfg.hidden,), "activation": nn.ReLU}
-    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
+    return mlp_actor_critic(env, hidden=(cfg.hidden,), activation=nn.ReLU)
 
 
 def main(cfg: Config) -> dict:

@@ -20,9 +20,10 @@ import torch
 import tyro
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import EnvBase, GymEnv, RewardSum, SerialEnv, TransformedEnv
+from torchrl.envs import EnvBase, RewardSum, SerialEnv, TransformedEnv
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
+from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
 from rl_pg.trainer import TrainConfig, train
 
@@ -66,12 +67,7 @@ def make_game(*, render: bool = False) -> EnvBase:
     import gymnasium
 
     gymnasium.register_envs(ale_py)
-    env = GymEnv(
-        "ALE/Pong-v5",
-        frameskip=4,
-        repeat_action_probability=0.0,
-        categorical_action_encoding=True,
-    )
+    env = gym_env("ALE/Pong-v5", frameskip=4, repeat_action_probability=0.0)
     return TransformedEnv(env, FrameDifference(keep_pixels=render))
 
 

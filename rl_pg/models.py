@@ -19,7 +19,7 @@ from torchrl.modules import (
     ValueOperator,
 )
 
-__all__ = ["mlp_actor", "mlp_critic"]
+__all__ = ["mlp_actor", "mlp_actor_critic", "mlp_critic"]
 
 
 def _trunk(env: EnvBase, out_features: int, hidden: Sequence[int], activation, key: str):
@@ -121,3 +121,23 @@ def mlp_critic(
     return ValueOperator(
         _trunk(env, 1, hidden, activation, observation_key), in_keys=[observation_key]
     )
+
+
+def mlp_actor_critic(
+    env: EnvBase,
+    *,
+    hidden: Sequence[int] = (64, 64),
+    activation: type[nn.Module] = nn.Tanh,
+    observation_key: str = "observation",
+) -> tuple[ProbabilisticActor, ValueOperator]:
+    """:func:`mlp_actor` and :func:`mlp_critic` with the same layers (separate weights).
+
+    Examples:
+        >>> from rl_pg.envs import BanditEnv
+        >>> from rl_pg.models import mlp_actor_critic
+        >>> actor, critic = mlp_actor_critic(BanditEnv(num_arms=3), hidden=(8,))
+        >>> type(actor).__name__, type(critic).__name__
+        ('ProbabilisticActor', 'ValueOperator')
+    """
+    kwargs = {"hidden": hidden, "activation": activation, "observation_key": observation_key}
+    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)

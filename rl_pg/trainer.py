@@ -375,54 +375,49 @@ def _make_collector(cfg: TrainConfig, env: EnvBase, make_env, actor, state: _Sta
     else:
         n_envs = max(1, math.prod(env.batch_size))
         kwargs = {"frames_per_batch": cfg.segment_length * n_envs * max(1, cfg.workers)}
-    kwargs["total_frames"] = -1
     # Our policies need no extra environment transform (no recurrent state).
     inner = {"auto_register_policy_transforms": False}
+    if not cfg.ray and cfg.workers == 1:
+        collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
+        _restart_episodes(collector, cfg.seed, state.updates)
+        return collector, None
+
+    env.close()
     if cfg.ray:
-        env.close()
-        collector = Collector(
-            [make_env] * cfg.workers,
-            actor,
-            backend="ray",
-            num_collectors=cfg.workers,
-            sync=True,
-            backend_options={
-                "ray_init_config": {
-                    "num_cpus": cfg.workers,
-                    "include_dashboard": False,
-                    # Actors import the recipe's make_env the way this process does.
-                    "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
-                },
-                "collector_kwargs": inner,
-                # Weights go through Ray's object store (below) rather than the default
-                # torch.distributed group, which needs a network set-up many hosts lack.
-                "weight_sync_schemes": {},
+        backend_options = {
+            "ray_init_config": {
+                "num_cpus": cfg.workers,
+                "include_dashboard": False,
+                # Actors import the recipe's make_env the way this process does.
+                "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
             },
-            # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
-            **{**kwargs, "total_frames": 2**62},
-        )
-        updater = RayWeightUpdater(
+            "collector_kwargs": inner,
+            # Weights go through Ray's object store (below) rather than the default
+            # torch.distributed group, which needs a network set-up many hosts lack.
+            "weight_sync_schemes": {},
+        }
+        # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
+        kwargs["total_frames"] = 2**62
+    else:
+        backend_options = inner
+        kwargs["total_frames"] = -1
+    collector = Collector(
+        [make_env] * cfg.workers,
+        actor,
+        backend="ray" if cfg.ray else "process",
+        num_collectors=cfg.workers,
+        sync=True,
+        backend_options=backend_options,
+        **kwargs,
+    )
+    if cfg.ray:
+        return collector, RayWeightUpdater(
             policy_weights=TensorDict.from_module(actor),
             remote_collectors=collector.remote_collectors,
             max_interval=0,
         )
-        return collector, updater
-    kwargs.update(inner)
-    if cfg.workers > 1:
-        env.close()
-        collector = Collector(
-            [make_env] * cfg.workers,
-            actor,
-            backend="process",
-            num_collectors=cfg.workers,
-            sync=True,
-            **kwargs,
-        )
-        collector.set_seed(_derived_seed(cfg.seed, state.updates))
-        return collector, collector.update_policy_weights_
-    collector = Collector(env, actor, **kwargs)
-    _restart_episodes(collector, cfg.seed, state.updates)
-    return collector, None
+    collector.set_seed(_derived_seed(cfg.seed, state.updates))
+    return collector, collector.update_policy_weights_
 
 
 def _make_logger(cfg: TrainConfig, run_dir: Path, state: _State) -> _Loggers:

@@ -11,9 +11,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import GymEnv, ParallelEnv, SerialEnv, TransformedEnv, check_env_specs
 
 from rl_pg import DiscretizeAction
-
-# The SPEC's driving table: (x, y) with x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j.
-DRIVING_TABLE = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
+from rl_pg.envs import DRIVING_ACTIONS
 
 
 def _box(low, high, batch=()) -> Composite:
@@ -50,7 +48,7 @@ class TestDiscretizeAction:
         assert transform.to_continuous(torch.tensor(3 * i + j)).tolist() == [1.0, -1.0]
 
     def test_explicit_table_reproduces_the_driving_actions(self):
-        transform = DiscretizeAction(actions=DRIVING_TABLE)
+        transform = DiscretizeAction(actions=DRIVING_ACTIONS)
         _bound(transform)
         for i, x in enumerate((1.0, 0.0, -1.0)):
             for j, y in enumerate((0.6, 0.0, -0.6)):
@@ -104,7 +102,7 @@ class TestDiscretizeAction:
         assert (chosen <= every.min(-1).values + 1e-6).all()
 
     def test_table_nearest_index(self):
-        transform = DiscretizeAction(actions=DRIVING_TABLE)
+        transform = DiscretizeAction(actions=DRIVING_ACTIONS)
         _bound(transform)
         points = torch.tensor([[0.9, 0.5], [-0.2, -0.1], [-0.8, -0.7]])
         assert transform.to_index(points).tolist() == [0, 4, 8]
@@ -148,7 +146,7 @@ class TestDiscretizeAction:
             inside.close()
 
     def test_highway_specs(self):
-        env = TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_TABLE))
+        env = TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_ACTIONS))
         check_env_specs(env)
         assert env.action_spec.n == 9
 
@@ -185,7 +183,7 @@ def _discretized_pendulum():
 
 
 def _discretized_highway():
-    return TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_TABLE))
+    return TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_ACTIONS))
 
 
 def _one_hot(index, counts, mode):
@@ -211,7 +209,7 @@ class TestDiscretizeActionErrors:
 
     def test_both_counts_and_actions(self):
         with pytest.raises(ValueError, match="exactly one of counts="):
-            DiscretizeAction(counts=3, actions=DRIVING_TABLE)
+            DiscretizeAction(counts=3, actions=DRIVING_ACTIONS)
 
     def test_unknown_mode(self):
         with pytest.raises(ValueError, match="mode must be one of"):
@@ -219,7 +217,7 @@ class TestDiscretizeActionErrors:
 
     def test_per_dim_with_a_table(self):
         with pytest.raises(ValueError, match=r"mode='per_dim' .* needs counts="):
-            DiscretizeAction(actions=DRIVING_TABLE, mode="per_dim")
+            DiscretizeAction(actions=DRIVING_ACTIONS, mode="per_dim")
 
     def test_empty_table(self):
         with pytest.raises(ValueError, match=r"non-empty \[N, action_dim\] table"):

@@ -134,15 +134,14 @@ class TestTorchRLScenarios:
         }
         loss_fn = loss_class(actor, critic, delay_value=delay_value, functional=functional)
         data = _flat_batch()
-        with pytest.warns(UserWarning) if delay_value else _no_warning_check():
-            if advantage is not None:
-                target = loss_fn.target_critic_network_params if delay_value else None
-                estimators[advantage]()(
-                    data, params=TensorDict.from_module(critic), target_params=target
-                )
-            elif td_est is not None:
-                loss_fn.make_value_estimator(td_est)
-            out = loss_fn(data)
+        if advantage is not None:
+            target = loss_fn.target_critic_network_params if delay_value else None
+            estimators[advantage]()(
+                data, params=TensorDict.from_module(critic), target_params=target
+            )
+        elif td_est is not None:
+            loss_fn.make_value_estimator(td_est)
+        out = loss_fn(data)
         actor_params, critic_params = list(actor.parameters()), list(critic.parameters())
         torch.autograd.grad(out["loss_actor"], actor_params, retain_graph=True)
         torch.autograd.grad(out["loss_value"], critic_params, retain_graph=True)
@@ -259,11 +258,3 @@ class TestParityWithTorchRL:
     def test_rl_pg_loss_is_a_torchrl_reinforce_loss(self):
         actor, critic = _modules()
         assert isinstance(rl_pg.ReinforceLoss(actor, critic), torchrl.objectives.ReinforceLoss)
-
-
-class _no_warning_check:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False

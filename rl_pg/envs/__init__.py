@@ -2,5 +2,7 @@
 
 from rl_pg.envs.bandit import BanditEnv
 from rl_pg.envs.gridworld import GridWorldEnv
+from rl_pg.envs.gym import DRIVING_ACTIONS, driving_env, gym_env
+from rl_pg.envs.info import InfoFlags
 
-__all__ = ["BanditEnv", "GridWorldEnv"]
+__all__ = ["DRIVING_ACTIONS", "BanditEnv", "GridWorldEnv", "InfoFlags", "driving_env", "gym_env"]
