@@ -82,7 +82,7 @@ class TrainConfig:
     total_updates: int | None = None
     """Updates to train for (at most; None: no limit)."""
     run_dir: Path | None = None
-    """Where checkpoints, logs and the summary go. Defaults to runs/<recipe>-seed<seed>."""
+    """Where checkpoints, logs and the summary go (default: runs/<recipe>-seed<seed>-<time>)."""
     resume: bool = False
     """Continue the run in run_dir from its checkpoint."""
     workers: int = 1
@@ -186,9 +186,7 @@ def train(
         TrainingDiverged: the loss or gradient became non-finite.
     """
     _validate(cfg)
-    run_dir = (
-        Path(cfg.run_dir) if cfg.run_dir is not None else Path("runs") / f"{recipe}-seed{cfg.seed}"
-    )
+    run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)
     checkpoint_path = run_dir / CHECKPOINT
     saved = _open_run_dir(cfg, recipe, run_dir, checkpoint_path)
     _seed_everything(cfg.seed)
@@ -298,6 +296,8 @@ def _validate(cfg: TrainConfig) -> None:
         raise ValueError(f"gamma must lie in [0, 1], got {cfg.gamma!r}.")
     if cfg.lr <= 0:
         raise ValueError(f"lr must be > 0, got {cfg.lr!r}.")
+    if cfg.resume and cfg.run_dir is None:
+        raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
     if cfg.ray and cfg.batch_mode != "segments":
         raise ValueError(
             "The Ray collector yields fixed-length batches: use --batch-mode segments with "
@@ -333,6 +333,11 @@ def _open_run_dir(cfg, recipe, run_dir: Path, checkpoint_path: Path) -> dict | N
         )
     run_dir.mkdir(parents=True, exist_ok=True)
     return None
+
+
+def _new_run_dir(recipe: str, seed: int) -> Path:
+    # Time-stamped, so that running a recipe twice never collides with an earlier run.
+    return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _seed_everything(seed: int) -> None:

@@ -159,6 +159,7 @@ class TestTrain:
             ({"gamma": 1.5}, r"gamma must lie in \[0, 1\]"),
             ({"lr": 0.0}, "lr must be > 0"),
             ({"ray": True}, "use --batch-mode segments with --ray"),
+            ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
         ],
     )
     def test_bad_configuration(self, tmp_path, override, message):
