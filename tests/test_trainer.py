@@ -68,6 +68,10 @@ class TestTrain:
         namespaces = {p.parent.name for p in scalars.glob("*/*.csv")}
         assert namespaces == {"train", "eval", "loss", "time"}
 
+    def test_tensorboard_logs(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2, tensorboard=True))
+        assert list((tmp_path / "run" / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+
     def test_solves_the_gridworld(self, tmp_path):
         threshold = GridWorldEnv().optimal_return - 1e-6
         cfg = _cfg(tmp_path, total_updates=60, eval_interval=1, threshold=threshold)
