@@ -184,6 +184,24 @@ def train(
         CheckpointError: a fresh run in a directory that has a checkpoint, or a resume
             from a missing, corrupted or incompatible one (nothing is overwritten).
         TrainingDiverged: the loss or gradient became non-finite.
+        ValueError: an invalid configuration (the message names the field).
+
+    Examples:
+        >>> import tempfile
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor_critic
+        >>> from rl_pg.trainer import TrainConfig, train
+        >>> cfg = TrainConfig(
+        ...     run_dir=tempfile.mkdtemp(), total_updates=2, eval_episodes=1, progress=False
+        ... )
+        >>> summary = train(
+        ...     cfg,
+        ...     recipe="demo",
+        ...     make_env=lambda: GridWorldEnv(batch_size=4),
+        ...     make_models=mlp_actor_critic,
+        ... )
+        >>> summary["updates"], sorted(summary)[:4]
+        (2, ['eval_mean_return', 'eval_std_return', 'frames', 'recipe'])
     """
     _validate(cfg)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)
@@ -594,6 +612,14 @@ def read_run(run: str | Path) -> dict[str, Any]:
 
     Raises:
         CheckpointError: missing or corrupted checkpoint.
+
+    Examples:
+        >>> import tempfile
+        >>> from rl_pg.trainer import read_run
+        >>> read_run(tempfile.mkdtemp())  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        rl_pg.checkpoint.CheckpointError: No checkpoint at .../checkpoint.pt.
     """
     path = Path(run)
     return load_checkpoint(path / CHECKPOINT if path.is_dir() else path)
@@ -604,6 +630,18 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
 
     Raises:
         CheckpointError: the weights do not fit the models.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor
+        >>> from rl_pg.trainer import load_models
+        >>> actor = mlp_actor(GridWorldEnv(), hidden=(4,))
+        >>> saved = {"loss": {f"actor_network.{k}": torch.zeros_like(v)
+        ...                   for k, v in actor.state_dict().items()}}
+        >>> load_models(saved, actor)
+        >>> float(sum(p.abs().sum() for p in actor.parameters()))
+        0.0
     """
     for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
         if module is None:
