@@ -1,6 +1,6 @@
 """REINFORCE on CartPole-v1 until greedy play is solved (mean >= 475 over 20 episodes).
 
-Config -> environment -> models -> rl_pg's training loop: each update uses 8 whole
+Config -> environment -> models -> rl_pg's training loop: each update uses 4 whole
 episodes collected by the current policy, reward-to-go minus a learned V(s).
 
     python recipes/cartpole.py --help
@@ -29,7 +29,9 @@ class Config(TrainConfig):
     """Width of the two hidden layers of the actor and of the critic."""
     total_frames: int = 300_000
     """Environment steps to train for (at most)."""
-    lr: float = 3e-3
+    episodes_per_batch: int = 4
+    """Complete episodes per update."""
+    lr: float = 5e-3
     """Learning rate."""
     max_grad_norm: float | None = 1.0
     """Gradient-norm clipping (None: no clipping)."""
