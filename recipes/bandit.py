@@ -11,6 +11,7 @@ the running-average baseline only better-than-average arms are.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from functools import partial
@@ -108,11 +109,8 @@ def compare(cfg: Config, variants: dict, name: str) -> dict:
     results = run_variants(main, cfg, variants, seeds=seeds, root=root)
     curves = {}
     for variant, runs in results.items():
-        run_cfgs = [Config(**{**cfg.__dict__, **variants[variant]}) for _ in runs]
-        curves[variant] = [
-            _running_reward(run["run_dir"], run_cfg)
-            for run, run_cfg in zip(runs, run_cfgs, strict=True)
-        ]
+        run_cfg = dataclasses.replace(cfg, **variants[variant])
+        curves[variant] = [_running_reward(run["run_dir"], run_cfg) for run in runs]
     plot_curves(
         curves,
         root / "comparison.png",

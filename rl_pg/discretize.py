@@ -203,9 +203,8 @@ class DiscretizeAction(Transform):
                     "DiscretizeAction learns its bounds from the environment: append it to an "
                     "env (TransformedEnv(env, DiscretizeAction(...))) before mapping actions."
                 )
-            self.parent.full_action_spec  # noqa: B018 (building the spec builds the table)
-            if self.table is None:
-                self._build(self.parent.full_action_spec[self.action_key])
+            # The parent is the environment before this transform: its spec is the box.
+            self._build(self.parent.full_action_spec[self.action_key])
 
     # ------------------------------------------------------------- mappings ---
     def _inv_apply_transform(self, action: torch.Tensor) -> torch.Tensor:

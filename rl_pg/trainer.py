@@ -45,6 +45,7 @@ from tqdm import tqdm
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.evaluation import evaluate
+from rl_pg.functional import discounted_return
 from rl_pg.loss import ReinforceLoss
 
 __all__ = ["TrainConfig", "TrainingDiverged", "load_models", "read_run", "train"]
@@ -537,16 +538,9 @@ def _mean_episode_return(batch: TensorDictBase) -> float:
         ended = episode_reward.reshape(done.shape)[done]
         return ended.mean().item() if ended.numel() else float("nan")
     reward = batch["next", "reward"].reshape(done.shape)
-    flat_done, flat_reward = done.reshape(-1, done.shape[-1]), reward.reshape(-1, done.shape[-1])
-    returns = []
-    for row_done, row_reward in zip(flat_done, flat_reward, strict=True):
-        ends = row_done.nonzero().squeeze(-1).tolist()
-        sums = torch.cumsum(row_reward, 0)
-        previous = None
-        for end in ends:
-            returns.append((sums[end] - (sums[previous] if previous is not None else 0)).item())
-            previous = end
-    return float(np.mean(returns)) if returns else float("nan")
+    # Undiscounted whole-episode return at every step; read at each episode's last step.
+    returns = discounted_return(reward, done, 1.0, time_dim=-1)[done]
+    return returns.mean().item() if returns.numel() else float("nan")
 
 
 def _evaluate(cfg, actor, eval_env, eval_flags, state: _State, logger) -> None:
