@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 __all__ = ["evaluate", "first_episodes", "play"]
 
@@ -108,12 +108,10 @@ def evaluate(
     with set_exploration_type(exploration), torch.no_grad():
         played = 0
         while played < episodes:
-            rollout = env.rollout(
-                max_steps,
-                policy,
-                break_when_any_done=n_envs == 1,
-                break_when_all_done=n_envs > 1,
-            )
+            if n_envs == 1:
+                rollout = env.rollout(max_steps, policy, break_when_any_done=True)
+            else:
+                rollout = _until_each_done(policy, env, max_steps)
             for key, value in first_episodes(rollout, flags).items():
                 results.setdefault(key, []).append(value)
             played += n_envs
@@ -127,6 +125,33 @@ def evaluate(
         if flag in stats:
             out[f"{flag}_rate"] = stats[flag].mean().item()
     return out
+
+
+def _until_each_done(
+    policy: TensorDictModuleBase, env: EnvBase, max_steps: int, chunk: int = 64
+) -> TensorDictBase:
+    """``[*B, T]`` rollout of a batched env until each of its envs has ended an episode.
+
+    Finished environments are reset (as in training) rather than stepped past their
+    end, which vector environments without auto-reset do not allow.
+    """
+    tensordict = env.reset()
+    parts, steps = [], 0
+    finished = torch.zeros(env.batch_size, dtype=torch.bool)
+    while steps < max_steps and not finished.all():
+        part = env.rollout(
+            min(chunk, max_steps - steps),
+            policy,
+            auto_reset=False,
+            tensordict=tensordict,
+            break_when_any_done=False,
+        )
+        parts.append(part)
+        steps += part.shape[-1]
+        done = part["next", "done"].reshape(*part.shape, -1).any(-1)
+        finished |= done.any(-1)
+        tensordict = env.maybe_reset(step_mdp(part[..., -1]))
+    return torch.cat(parts, dim=-1)
 
 
 def play(
