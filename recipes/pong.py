@@ -2,12 +2,13 @@
 
 Frames go through ``FrameDifference`` (80x80 binarised differences, 6 400 inputs);
 a shared Linear(6400, 200)-ReLU trunk feeds a policy head (6 logits) and a value
-head. 16 environments; every 50 steps an update with n-step returns bootstrapped
-from V; gamma 0.99, entropy 0.01, value-loss weight 2, Adam 1e-3, gradient clip 1.
-Needs the atari extra (ale-py ships the ROMs):
+head. 16 games stepped as one batch (gymnasium's SyncVectorEnv behind TorchRL);
+every 50 steps an update with n-step returns bootstrapped from V; gamma 0.99,
+entropy 0.01, value-loss weight 2, Adam 1e-3, gradient clip 1. Needs the atari extra
+(ale-py ships the ROMs):
 
     pip install -c constraints.txt -e ".[atari]"
-    python recipes/pong.py --workers 2
+    python recipes/pong.py
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import torch
 import tyro
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import EnvBase, RewardSum, SerialEnv, TransformedEnv
+from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
 from rl_pg.envs import gym_env
@@ -32,8 +33,8 @@ from rl_pg.trainer import TrainConfig, train
 class Config(TrainConfig):
     """REINFORCE + learned baseline with bootstrapped 50-step segments on ALE Pong."""
 
-    envs: int = 16
-    """Pong games played at once (split evenly over the workers)."""
+    num_envs: int = 16
+    """Pong games played at once, as one batch (split evenly over the workers)."""
     hidden: int = 200
     """Width of the shared trunk."""
     total_frames: int = 2_000_000
@@ -62,21 +63,31 @@ class Config(TrainConfig):
     """Updates between training-metric log lines."""
 
 
-def make_game(*, render: bool = False) -> EnvBase:
+def _register_atari() -> None:
     import ale_py
     import gymnasium
 
     gymnasium.register_envs(ale_py)
-    env = gym_env("ALE/Pong-v5", frameskip=4, repeat_action_probability=0.0)
+
+
+ALE = {"frameskip": 4, "repeat_action_probability": 0.0}  # SPEC: skip 4, no sticky actions
+
+
+def make_game(*, render: bool = False) -> EnvBase:
+    """One game (evaluation, deployment)."""
+    _register_atari()
+    env = gym_env("ALE/Pong-v5", render=False, **ALE)
     return TransformedEnv(env, FrameDifference(keep_pixels=render))
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if render:
         return make_game(render=True)
-    per_worker = max(1, cfg.envs // max(1, cfg.workers))
+    _register_atari()
+    per_worker = max(1, cfg.num_envs // max(1, cfg.workers))
+    games = gym_env("ALE/Pong-v5", num_envs=per_worker, **ALE)  # frames under "observation"
     # RewardSum logs whole-game scores even though updates see 50-step segments.
-    return TransformedEnv(SerialEnv(per_worker, make_game), RewardSum())
+    return TransformedEnv(games, Compose(FrameDifference(in_key="observation"), RewardSum()))
 
 
 def make_models(env: EnvBase, cfg: Config):

@@ -21,8 +21,10 @@ class FrameDifference(Transform):
     data (``prev_key``), which keeps the transform stateless and batch-safe.
 
     Keyword Args:
-        in_key (str): the pixels entry. Defaults to ``"pixels"``.
-        out_key (str): the difference entry. Defaults to ``"observation"``.
+        in_key (str): the pixels entry. Defaults to ``"pixels"`` (``GymEnv``'s name
+            for image observations; batched gymnasium envs call them ``"observation"``).
+        out_key (str): the difference entry; may be ``in_key``, replacing the frames.
+            Defaults to ``"observation"``.
         prev_key (str): where the previous processed frame is kept. Defaults to
             ``"previous_frame"``.
         keep_pixels (bool): keep the raw frames (for rendering). Defaults to ``False``.
@@ -49,7 +51,10 @@ class FrameDifference(Transform):
     ) -> None:
         super().__init__(in_keys=[in_key], out_keys=[out_key, prev_key])
         self.in_key, self.out_key, self.prev_key = in_key, out_key, prev_key
-        self.keep_pixels = keep_pixels
+        # Raw frames are dropped unless asked for, or overwritten when in_key == out_key.
+        self.drop_pixels = not keep_pixels and in_key != out_key
+        if keep_pixels and in_key == out_key:
+            raise ValueError("keep_pixels=True needs an out_key other than in_key.")
 
     @classmethod
     def process(cls, pixels: torch.Tensor) -> torch.Tensor:
@@ -67,7 +72,7 @@ class FrameDifference(Transform):
         frame = self.process(tensordict_reset.get(self.in_key))
         tensordict_reset.set(self.out_key, torch.zeros_like(frame).flatten(-2))
         tensordict_reset.set(self.prev_key, frame)
-        if not self.keep_pixels:
+        if self.drop_pixels:
             tensordict_reset.exclude(self.in_key, inplace=True)
         return tensordict_reset
 
@@ -76,7 +81,7 @@ class FrameDifference(Transform):
         previous = tensordict.get(self.prev_key)
         next_tensordict.set(self.out_key, (frame - previous).flatten(-2))
         next_tensordict.set(self.prev_key, frame)
-        if not self.keep_pixels:
+        if self.drop_pixels:
             next_tensordict.exclude(self.in_key, inplace=True)
         return next_tensordict
 
@@ -86,6 +91,6 @@ class FrameDifference(Transform):
         device = pixels.device
         observation_spec[self.out_key] = Bounded(-1.0, 1.0, (*batch, 6400), device=device)
         observation_spec[self.prev_key] = Bounded(0.0, 1.0, (*batch, 80, 80), device=device)
-        if not self.keep_pixels:
+        if self.drop_pixels:
             del observation_spec[self.in_key]
         return observation_spec
