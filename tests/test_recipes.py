@@ -31,7 +31,10 @@ RECIPES = {
         {"total_frames": 1_500, "eval_interval": 1_500, "continuous": True},
     ),
     "highway": (highway, {"total_frames": 60, "eval_interval": 60, "episodes_per_batch": 1}),
-    "pong": (pong, {"total_frames": 400, "eval_interval": 400, "num_envs": 2, "segment_length": 20}),
+    "pong": (
+        pong,
+        {"total_frames": 400, "eval_interval": 400, "num_envs": 2, "segment_length": 20},
+    ),
 }
 
 

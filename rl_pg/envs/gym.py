@@ -16,9 +16,7 @@ DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
 """The SPEC's 9 driving actions: (x, y), x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j."""
 
 
-def gym_env(
-    env_id: str, *, num_envs: int | None = None, render: bool = False, **kwargs
-) -> EnvBase:
+def gym_env(env_id: str, *, num_envs: int | None = None, render: bool = False, **kwargs) -> EnvBase:
     """A gymnasium environment as a TorchRL env, with index (not one-hot) discrete actions.
 
     With ``num_envs`` the environments are stepped together in this process by
