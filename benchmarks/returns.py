@@ -10,15 +10,14 @@ of any scan) and against TorchRL's fastest equivalent.
 
 from __future__ import annotations
 
-import json
-import platform
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import tyro
+from common import REPO, write_json
 from tensordict import TensorDict
 from torchrl.objectives.value import TD1Estimator
 from torchrl.objectives.value.functional import reward2go, vec_td1_return_estimate
@@ -41,7 +40,7 @@ class Config:
     """Discount."""
     repeats: int = 200
     """Timed calls per contender (interleaved)."""
-    json_path: Path = Path("benchmarks/results/returns.json")
+    json_path: Path = REPO / "benchmarks/results/returns.json"
     """Where the results are written."""
 
 
@@ -112,21 +111,13 @@ def main(cfg: Config) -> dict:
     print(f"\nreward_to_go vs torch.cumsum:            {ours / floor:.2f}x   (target <= 3)")
     print(f"TorchRL's fastest equivalent / ours:     {torchrl_best / ours:.1f}x  (target >= 20)")
 
-    result = {
-        "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()},
-        "machine": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "processor": platform.processor() or platform.machine(),
-        },
-        "median_ms": median_ms,
-        "reward_to_go_over_cumsum": ours / floor,
-        "torchrl_fastest_over_reward_to_go": torchrl_best / ours,
-    }
-    cfg.json_path.parent.mkdir(parents=True, exist_ok=True)
-    cfg.json_path.write_text(json.dumps(result, indent=2))
-    return result
+    return write_json(
+        cfg.json_path,
+        cfg,
+        median_ms=median_ms,
+        reward_to_go_over_cumsum=ours / floor,
+        torchrl_fastest_over_reward_to_go=torchrl_best / ours,
+    )
 
 
 if __name__ == "__main__":

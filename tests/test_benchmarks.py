@@ -1,0 +1,90 @@
+"""Every benchmark script runs end to end on a tiny budget and writes its JSON.
+
+The numbers themselves are machine-dependent: they are read, never asserted, here.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+
+def _script(name):
+    return importlib.import_module(name)
+
+
+def test_returns(tmp_path):
+    returns = _script("returns")
+    out = returns.main(returns.Config(batch=8, steps=40, repeats=3, json_path=tmp_path / "r.json"))
+    assert json.loads((tmp_path / "r.json").read_text()) == out
+    assert out["reward_to_go_over_cumsum"] > 0 and out["machine"]["cores"] >= 1
+
+
+def test_envs(tmp_path):
+    envs = _script("envs")
+    cfg = envs.Config(batch_sizes=[1, 8], seconds=0.02, repeats=1, json_path=tmp_path / "e.json")
+    out = envs.main(cfg)
+    medians = out["median_steps_per_s"]
+    assert set(medians) == {
+        "rl_pg GridWorldEnv",
+        "rl_pg BanditEnv",
+        "Python gridworld (gymnasium.Env, SyncVectorEnv)",
+    }
+    assert all(v > 0 for by_batch in medians.values() for v in by_batch.values())
+
+
+def test_python_gridworld_matches_ours():
+    """The Python contender is the same MDP as GridWorldEnv (same moves, rewards, ends)."""
+    import torch
+
+    from rl_pg.envs import GridWorldEnv
+
+    envs = _script("envs")
+    ours, theirs = GridWorldEnv(), envs.PythonGridWorld()
+    generator = torch.Generator().manual_seed(0)
+    td, (obs, _) = ours.reset(), theirs.reset(seed=0)
+    for _ in range(300):
+        action = int(torch.randint(4, (), generator=generator))
+        td["action"] = torch.tensor(action)
+        td, next_root = ours.step_and_maybe_reset(td)
+        obs, reward, terminated, truncated, _ = theirs.step(action)
+        assert td["next", "observation"].tolist() == obs.tolist()
+        assert td["next", "reward"].item() == pytest.approx(reward)
+        assert td["next", "terminated"].item() == terminated
+        assert td["next", "truncated"].item() == truncated
+        if terminated or truncated:
+            obs, _ = theirs.reset()
+        td = next_root
+
+
+@pytest.mark.parametrize("script", ["throughput", "time_to_solve"])
+def test_comparisons_with_sb3(script, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    module = _script(script)
+    if script == "throughput":
+        cfg = module.Config(
+            seconds=0.01, repeats=1, probe_frames=512, json_path=tmp_path / "t.json"
+        )
+        out = module.main(cfg)
+        assert out["rl_pg_over_floor8"] > 0 and out["rl_pg_over_stock_collector"] > 0
+    else:
+        cfg = module.Config(
+            seeds=[0],
+            eval_interval=512,
+            eval_episodes=2,
+            threshold=12.0,
+            budget_frames=2_048,
+            json_path=tmp_path / "s.json",
+        )
+        out = module.main(cfg)
+        assert set(out["runs"]) == {"rl_pg", "sb3_a2c", "sb3_ppo"}
+        assert all(
+            run["0"]["train_wall_s"] > 0
+            for run in json.loads((tmp_path / "s.json").read_text())["runs"].values()
+        )
