@@ -44,6 +44,8 @@ def main(args: Args) -> list[float]:
     recipe = importlib.import_module(saved["recipe"])
     fields = {f.name for f in dataclasses.fields(recipe.Config)}
     cfg = recipe.Config(**{k: v for k, v in saved["config"].items() if k in fields})
+    if "num_envs" in fields:  # play one environment, whatever the run trained on
+        cfg = dataclasses.replace(cfg, num_envs=1)
     env = recipe.make_env(cfg, render=args.gif is not None)
     actor, critic = recipe.make_models(env, cfg)
     load_models(saved, actor, critic)

@@ -81,8 +81,8 @@ def make_game(*, render: bool = False) -> EnvBase:
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render:
-        return make_game(render=True)
+    if render or cfg.num_envs == 1:
+        return make_game(render=render)
     _register_atari()
     per_worker = max(1, cfg.num_envs // max(1, cfg.workers))
     games = gym_env("ALE/Pong-v5", num_envs=per_worker, **ALE)  # frames under "observation"

@@ -25,6 +25,10 @@ RECIPES = {
     "bandit": (bandit, {"total_updates": 20, "eval_interval": 10, "samples_per_update": 4}),
     "gridworld": (gridworld, {"total_updates": 3, "eval_interval": 100}),
     "cartpole": (cartpole, {"total_frames": 600, "eval_interval": 600}),
+    "cartpole-whole-episodes": (
+        cartpole,
+        {"total_frames": 600, "eval_interval": 600, "batch_mode": "episodes", "num_envs": 1},
+    ),
     "lunarlander": (lunarlander, {"total_frames": 1_500, "eval_interval": 1_500}),
     "lunarlander-continuous": (
         lunarlander,
@@ -87,6 +91,13 @@ def test_play_records_a_gif(tmp_path, capsys):
     returns = play.main(play.Args(run=tmp_path, episodes=2, gif=gif))
     assert len(returns) == 2 and gif.stat().st_size > 0
     assert "mean return" in capsys.readouterr().out
+
+
+def test_play_uses_one_environment_of_a_batched_run(tmp_path, capsys):
+    summary = cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=300, **TINY))
+    assert summary["frames"] >= 32 * 8  # trained on the default batch of 32 CartPoles
+    returns = play.main(play.Args(run=tmp_path, episodes=3, sample=True))
+    assert len(returns) == 3 and all(r >= 1 for r in returns)
 
 
 def test_play_refuses_to_record_what_does_not_render(tmp_path):
