@@ -39,8 +39,9 @@ class Config(TrainConfig):
     """Discount factor (SPEC)."""
     entropy_coeff: float = 0.1
     """Entropy bonus weight (SPEC)."""
-    lr: float = 1e-3
-    """Learning rate (the SPEC's 1e-4 is tuned for far more steps)."""
+    lr: float = 3e-3
+    """Learning rate (the SPEC's 1e-4 is tuned for far more steps; 1e-3 left the policy
+    near uniform after 13k steps, 1e-2 settled on slow, safe driving)."""
     normalize_advantage: bool = True
     """Standardise the policy weights over each batch."""
     eval_interval: int = 5_000
