@@ -17,7 +17,7 @@ from functools import partial
 from typing import Literal
 
 import tyro
-from torchrl.envs import EnvBase, RewardSum, TransformedEnv
+from torchrl.envs import EnvBase
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
@@ -57,8 +57,7 @@ class Config(TrainConfig):
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if render or cfg.num_envs == 1:
         return gym_env(cfg.env_id, render=render)
-    # RewardSum logs whole-episode returns even when updates see segments.
-    return TransformedEnv(gym_env(cfg.env_id, num_envs=cfg.num_envs), RewardSum())
+    return gym_env(cfg.env_id, num_envs=cfg.num_envs)
 
 
 def make_eval_env(cfg: Config) -> EnvBase:

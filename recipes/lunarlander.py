@@ -17,7 +17,7 @@ from functools import partial
 from typing import Literal
 
 import tyro
-from torchrl.envs import EnvBase, RewardSum, SerialEnv, TransformedEnv
+from torchrl.envs import EnvBase, SerialEnv
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
@@ -67,8 +67,7 @@ def make_lander(cfg: Config, *, render: bool = False) -> EnvBase:
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if render or cfg.envs == 1:
         return make_lander(cfg, render=render)
-    # RewardSum logs whole-episode returns even when updates see segments.
-    return TransformedEnv(SerialEnv(cfg.envs, partial(make_lander, cfg)), RewardSum())
+    return SerialEnv(cfg.envs, partial(make_lander, cfg))
 
 
 def make_models(env: EnvBase, cfg: Config):

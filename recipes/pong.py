@@ -21,7 +21,7 @@ import torch
 import tyro
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
 from rl_pg.envs import gym_env
@@ -86,8 +86,7 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     _register_atari()
     per_worker = max(1, cfg.num_envs // max(1, cfg.workers))
     games = gym_env("ALE/Pong-v5", num_envs=per_worker, **ALE)  # frames under "observation"
-    # RewardSum logs whole-game scores even though updates see 50-step segments.
-    return TransformedEnv(games, Compose(FrameDifference(in_key="observation"), RewardSum()))
+    return TransformedEnv(games, FrameDifference(in_key="observation"))
 
 
 def make_models(env: EnvBase, cfg: Config):

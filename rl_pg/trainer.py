@@ -230,10 +230,12 @@ def train(
     )
     next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
     collector_frames = 0
+    episode_returns = _EpisodeReturns(carry=cfg.batch_mode == "segments")
     try:
         start = time.perf_counter()
         for batch in collector:
             metrics = _update(cfg, loss, optimizer, batch)
+            episode_returns.add(batch)
             state.updates += 1
             collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
             state.frames += spent
@@ -242,7 +244,7 @@ def train(
             elif cfg.batch_mode == "episodes":
                 _restart_episodes(collector, cfg.seed, state.updates)
             if state.updates % cfg.log_interval == 0:
-                metrics["train/episode_return"] = _mean_episode_return(batch)
+                metrics["train/episode_return"] = episode_returns.pop_mean()
                 for name, value in metrics.items():
                     if math.isfinite(value):
                         logger.log_scalar(name, value, step=state.frames)
@@ -274,6 +276,7 @@ def train(
                 if cfg.batch_mode == "segments" and cfg.workers == 1 and not cfg.ray:
                     # A resumed run restarts its environments here; so does this one.
                     _restart_episodes(collector, cfg.seed, state.updates)
+                    episode_returns.reset()
             if done:
                 break
     finally:
@@ -540,21 +543,47 @@ def _derived_seed(seed: int, updates: int) -> int:
     return (seed * 1_000_003 + updates) % 2**31
 
 
-def _mean_episode_return(batch: TensorDictBase) -> float:
-    """Mean return of the episodes that end in the batch (NaN if none does).
+class _EpisodeReturns:
+    """Undiscounted returns of the training episodes that end in the batches.
 
-    Reads ``("next", "episode_reward")`` (TorchRL's ``RewardSum``) when the environment
-    has it, which also counts the steps of earlier batches; sums the batch otherwise.
+    With segments an episode spans batches: each environment's running sum is carried
+    from one batch to the next, with one loop over the segment's T steps per batch. (A
+    per-step transform such as TorchRL's ``RewardSum`` does the same at every
+    environment step and cost ~15 % of CartPole's collection time.)
     """
-    done = batch["next", "done"].squeeze(-1)
-    episode_reward = batch.get(("next", "episode_reward"), None)
-    if episode_reward is not None:
-        ended = episode_reward.reshape(done.shape)[done]
-        return ended.mean().item() if ended.numel() else float("nan")
-    reward = batch["next", "reward"].reshape(done.shape)
-    # Undiscounted whole-episode return at every step; read at each episode's last step.
-    returns = discounted_return(reward, done, 1.0, time_dim=-1)[done]
-    return returns.mean().item() if returns.numel() else float("nan")
+
+    def __init__(self, *, carry: bool) -> None:
+        self.carry = carry
+        self.partial: torch.Tensor | None = None
+        self.ended: list[torch.Tensor] = []
+
+    def reset(self) -> None:
+        """The environments restarted: episodes in flight are gone."""
+        self.partial = None
+
+    def add(self, batch: TensorDictBase) -> None:
+        done = batch["next", "done"].reshape(*batch.shape, -1).any(-1)
+        reward = batch["next", "reward"].reshape(*batch.shape, -1).sum(-1)
+        if not self.carry:  # whole episodes: read the return at each episode's last step
+            self.ended.append(discounted_return(reward, done, 1.0, time_dim=-1)[done])
+            return
+        done = done.reshape(-1, done.shape[-1])  # [environments, T]
+        reward = reward.reshape(done.shape)
+        if self.partial is None or self.partial.shape[0] != reward.shape[0]:
+            self.partial = reward.new_zeros(reward.shape[0])
+        running = self.partial
+        for t in range(reward.shape[-1]):
+            running = running + reward[:, t]
+            if done[:, t].any():
+                self.ended.append(running[done[:, t]])
+                running = running.masked_fill(done[:, t], 0.0)
+        self.partial = running
+
+    def pop_mean(self) -> float:
+        """Mean over the episodes ended since the last call (NaN if none)."""
+        ended = torch.cat(self.ended) if self.ended else torch.zeros(0)
+        self.ended = []
+        return ended.float().mean().item() if ended.numel() else float("nan")
 
 
 def _evaluate(cfg, actor, eval_env, eval_flags, state: _State, logger) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -13,13 +14,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torch import nn
 from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor, mlp_critic
-from rl_pg.trainer import TrainConfig, TrainingDiverged, train
+from rl_pg.trainer import TrainConfig, TrainingDiverged, _EpisodeReturns, train
 
 
 def make_grid():
@@ -225,3 +227,27 @@ class TestKilledRun:
             assert resumed[key] == expected[key]
         for key, value in _weights(tmp_path / "straight").items():
             assert torch.equal(value, _weights(run)[key]), key
+
+
+def test_training_episode_returns_are_summed_across_segments():
+    generator = torch.Generator().manual_seed(0)
+    n_envs, steps, cut = 3, 40, 8
+    reward = torch.randn(n_envs, steps, generator=generator)
+    done = torch.rand(n_envs, steps, generator=generator) < 0.15
+    expected, running = [], torch.zeros(n_envs)
+    for t in range(steps):  # plain loop over the whole stream
+        running += reward[:, t]
+        for i in range(n_envs):
+            if done[i, t]:
+                expected.append(running[i].item())
+                running[i] = 0.0
+    tracker = _EpisodeReturns(carry=True)
+    for start in range(0, steps, cut):  # the same stream as 8-step segments
+        sl = slice(start, start + cut)
+        batch = TensorDict(
+            {"next": {"reward": reward[:, sl, None], "done": done[:, sl, None]}},
+            batch_size=[n_envs, cut],
+        )
+        tracker.add(batch)
+    assert tracker.pop_mean() == pytest.approx(sum(expected) / len(expected), rel=1e-5)
+    assert math.isnan(tracker.pop_mean())  # nothing ended since the last call
