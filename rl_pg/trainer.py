@@ -64,6 +64,7 @@ _RESUMABLE_FIELDS = frozenset(
         "ray",
         "tensorboard",
         "progress",
+        "threads",
     }
 )
 
@@ -90,6 +91,9 @@ class TrainConfig:
     """Collector processes; more than 1 uses TorchRL's multi-process collector."""
     ray: bool = False
     """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
+    threads: int | None = 1
+    """torch threads of this process: small models update fastest on one, and a second
+    thread only contends with the environment on a busy machine (None: torch's default)."""
     batch_mode: Literal["episodes", "segments"] = "episodes"
     """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
     episodes_per_batch: int = 8
@@ -205,6 +209,8 @@ def train(
         (2, ['eval_mean_return', 'eval_std_return', 'frames', 'recipe'])
     """
     _validate(cfg)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)
     checkpoint_path = run_dir / CHECKPOINT
     saved = _open_run_dir(cfg, recipe, run_dir, checkpoint_path)
@@ -313,6 +319,8 @@ def _validate(cfg: TrainConfig) -> None:
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+    if cfg.threads is not None and cfg.threads < 1:
+        raise ValueError(f"threads must be >= 1 or None, got {cfg.threads!r}.")
     if cfg.total_updates is not None and cfg.total_updates < 1:
         raise ValueError(f"total_updates must be >= 1 or None, got {cfg.total_updates!r}.")
     if not 0 <= cfg.gamma <= 1:

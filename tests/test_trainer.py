@@ -164,6 +164,7 @@ class TestTrain:
             ({"episodes_per_batch": 0}, "episodes_per_batch must be an integer >= 1"),
             ({"gamma": 1.5}, r"gamma must lie in \[0, 1\]"),
             ({"lr": 0.0}, "lr must be > 0"),
+            ({"threads": 0}, "threads must be >= 1 or None"),
             ({"ray": True}, "use --batch-mode segments with --ray"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
         ],
