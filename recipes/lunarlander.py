@@ -1,6 +1,6 @@
 """REINFORCE with a learned baseline on LunarLander-v3 (solved at a greedy mean of 200).
 
-8 landers in one process; every update uses 64 steps of each, returns bootstrapped from
+8 landers stepped as one batch; every update uses 64 steps of each, returns bootstrapped from
 V where episodes are cut (whole-episode batches, ``--batch-mode episodes``, learned
 but did not hold 200 in our run: see RESULTS.md). Discrete engines by default;
 --continuous switches to continuous thrust with a Gaussian (TanhNormal) policy. Needs
@@ -17,7 +17,7 @@ from functools import partial
 from typing import Literal
 
 import tyro
-from torchrl.envs import EnvBase, SerialEnv
+from torchrl.envs import EnvBase
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
@@ -30,8 +30,8 @@ class Config(TrainConfig):
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))) with a Gaussian policy."""
-    envs: int = 8
-    """Landers stepped together in one process."""
+    num_envs: int = 8
+    """Landers stepped together as one batch in this process."""
     hidden: int = 128
     """Width of the two hidden layers of the actor and of the critic."""
     total_frames: int = 1_000_000
@@ -65,9 +65,9 @@ def make_lander(cfg: Config, *, render: bool = False) -> EnvBase:
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render or cfg.envs == 1:
+    if render or cfg.num_envs == 1:
         return make_lander(cfg, render=render)
-    return SerialEnv(cfg.envs, partial(make_lander, cfg))
+    return gym_env("LunarLander-v3", num_envs=cfg.num_envs, continuous=cfg.continuous)
 
 
 def make_models(env: EnvBase, cfg: Config):
