@@ -66,12 +66,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
         delay_value (bool): keep target parameters for the critic. Defaults to ``False``.
         loss_critic_type (str): ``"l1"``, ``"l2"`` or ``"smooth_l1"``. Defaults to
             ``"smooth_l1"``.
-        gamma: removed in TorchRL; passing it raises (use ``make_value_estimator``).
-        advantage_key, value_target_key: deprecated in TorchRL; use ``set_keys``.
+        gamma (float): removed in TorchRL; passing it raises (use ``make_value_estimator``).
+        advantage_key (str): deprecated in TorchRL; use ``set_keys``.
+        value_target_key (str): deprecated in TorchRL; use ``set_keys``.
         separate_losses (bool): shared actor/critic parameters get gradients from the
             actor loss only. Defaults to ``False``.
         functional (bool): functionalise the modules. Defaults to ``True``.
-        actor, critic: aliases of ``actor_network`` and ``critic_network``.
+        actor (ProbabilisticTensorDictSequential): alias of ``actor_network``.
+        critic (TensorDictModule): alias of ``critic_network``.
         reduction (str, optional): ``"none"``, ``"mean"`` or ``"sum"``. Defaults to
             ``"mean"``.
         clip_value (float, optional): clip the value prediction around the stored one.

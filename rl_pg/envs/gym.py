@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import gymnasium as gym
 from torchrl.envs import EnvBase, GymEnv, GymWrapper, TransformedEnv
@@ -16,7 +17,9 @@ DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
 """The SPEC's 9 driving actions: (x, y), x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j."""
 
 
-def gym_env(env_id: str, *, num_envs: int | None = None, render: bool = False, **kwargs) -> EnvBase:
+def gym_env(
+    env_id: str, *, num_envs: int | None = None, render: bool = False, **kwargs: Any
+) -> EnvBase:
     """A gymnasium environment as a TorchRL env, with index (not one-hot) discrete actions.
 
     With ``num_envs`` the environments are stepped together in this process by
@@ -59,7 +62,7 @@ def gym_env(env_id: str, *, num_envs: int | None = None, render: bool = False, *
 
 
 def driving_env(
-    env_id: str, *, flags: Sequence[str] = (), render: bool = False, **kwargs
+    env_id: str, *, flags: Sequence[str] = (), render: bool = False, **kwargs: Any
 ) -> EnvBase:
     """A driving simulator whose ``[acceleration, steering]`` action is one of the SPEC's 9.
 

@@ -1,0 +1,65 @@
+"""MkDocs hook: tables generated from the code, so the docs cannot drift from it.
+
+``{{ config_table("cartpole") }}`` in a page becomes the table of every field of
+``recipes/cartpole.py``'s ``Config`` (flag, default, description), read from the
+dataclass and its field docstrings, the same text ``--help`` prints;
+``config_table("play", "Args")`` names another dataclass of the module.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import itertools
+import re
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Docstrings written under dataclass fields (subclasses override their bases)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        tree = ast.parse(inspect.getsource(klass))
+        body = tree.body[0].body
+        for node, after in itertools.pairwise(body):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def config_table(recipe: str, name: str = "Config") -> str:
+    if str(REPO / "recipes") not in sys.path:
+        sys.path.insert(0, str(REPO / "recipes"))
+    config = getattr(importlib.import_module(recipe), name)
+    docs = field_docs(config)
+    rows = ["| flag | default | meaning |", "|---|---|---|"]
+    for field in dataclasses.fields(config):
+        if field.default is not dataclasses.MISSING:
+            default = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        else:
+            default = "(required)"
+        positional = "Positional" in str(field.type)
+        flag = field.name.upper() if positional else "--" + field.name.replace("_", "-")
+        text = docs.get(field.name, "").replace("|", "\\|").replace("<", "&lt;")
+        rows.append(f"| `{flag}` | `{default!r}` | {text} |")
+    return "\n".join(rows)
+
+
+def on_page_markdown(markdown: str, **kwargs) -> str:
+    return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2) or "Config"), markdown)
