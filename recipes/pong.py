@@ -76,7 +76,7 @@ ALE = {"frameskip": 4, "repeat_action_probability": 0.0}  # SPEC: skip 4, no sti
 def make_game(*, render: bool = False) -> EnvBase:
     """One game (evaluation, deployment)."""
     _register_atari()
-    env = gym_env("ALE/Pong-v5", render=False, **ALE)
+    env = gym_env("ALE/Pong-v5", **ALE)  # GymEnv names image observations "pixels"
     return TransformedEnv(env, FrameDifference(keep_pixels=render))
 
 
