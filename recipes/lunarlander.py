@@ -70,6 +70,13 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     return gym_env("LunarLander-v3", num_envs=cfg.num_envs, continuous=cfg.continuous)
 
 
+def make_eval_env(cfg: Config) -> EnvBase:
+    """The evaluation episodes, played side by side."""
+    if cfg.eval_episodes == 1:
+        return make_lander(cfg)
+    return gym_env("LunarLander-v3", num_envs=cfg.eval_episodes, continuous=cfg.continuous)
+
+
 def make_models(env: EnvBase, cfg: Config):
     return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden))
 
@@ -80,7 +87,7 @@ def main(cfg: Config) -> dict:
         recipe="lunarlander",
         make_env=partial(make_env, cfg),
         make_models=partial(make_models, cfg=cfg),
-        make_eval_env=partial(make_lander, cfg),
+        make_eval_env=partial(make_eval_env, cfg),
     )
 
 

@@ -118,6 +118,10 @@ class TrainConfig:
     """Optimiser of actor and critic."""
     lr: float = 1e-3
     """Learning rate."""
+    lr_schedule: Literal["constant", "linear"] = "constant"
+    """'linear': decay the learning rate from lr at frame 0 to 0 at total_frames
+    (set before each update from the frames seen so far, so a resumed run continues the
+    same schedule; raising total_frames on resume stretches what is left of it)."""
     weight_decay: float = 0.0
     """L2 weight decay."""
     max_grad_norm: float | None = None
@@ -240,7 +244,7 @@ def train(
     try:
         start = time.perf_counter()
         for batch in collector:
-            metrics = _update(cfg, loss, optimizer, batch)
+            metrics = _update(cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames))
             episode_returns.add(batch)
             state.updates += 1
             collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
@@ -301,6 +305,7 @@ def _validate(cfg: TrainConfig) -> None:
         "batch_mode": ("episodes", "segments"),
         "returns": ("reward_to_go", "discounted_return"),
         "optimizer": ("adam", "sgd"),
+        "lr_schedule": ("constant", "linear"),
     }
     for name, allowed in choices.items():
         if getattr(cfg, name) not in allowed:
@@ -498,7 +503,16 @@ def _trim_csv_logs(log_dir: Path, frames: int) -> None:
 
 
 # -------------------------------------------------------------------- steps ---
-def _update(cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase) -> dict:
+def _learning_rate(cfg: TrainConfig, frames: int) -> float:
+    """The learning rate of the update that follows ``frames`` environment steps."""
+    if cfg.lr_schedule == "linear":
+        return cfg.lr * max(0.0, 1.0 - frames / cfg.total_frames)
+    return cfg.lr
+
+
+def _update(
+    cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase, *, lr: float
+) -> dict:
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
     if not torch.isfinite(total):
@@ -516,6 +530,8 @@ def _update(cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictB
             f"The gradient norm became {grad_norm.item()}; training stopped and the last "
             f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
         )
+    for group in optimizer.param_groups:
+        group["lr"] = lr
     optimizer.step()
     metrics = {
         f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
@@ -525,6 +541,7 @@ def _update(cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictB
         if value is not None:
             metrics[f"train/{key}"] = value.item()
     metrics["train/grad_norm"] = grad_norm.item()
+    metrics["train/lr"] = lr
     return metrics
 
 

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -85,6 +86,21 @@ class TestTrain:
         summary = _train(_cfg(tmp_path, batch_mode="segments", segment_length=10))
         assert summary["frames"] == 6 * 10 * 8
 
+    def test_linear_learning_rate_schedule(self, tmp_path):
+        # 6 updates x 80 frames = total_frames: update k (0-based) starts at 80k frames.
+        cfg = _cfg(
+            tmp_path, batch_mode="segments", segment_length=10, total_frames=480, total_updates=None
+        )
+        summary = _train(replace(cfg, lr_schedule="linear"))
+        assert summary["frames"] == 480
+        csv = tmp_path / "run" / "logs" / "csv" / "scalars" / "train" / "lr.csv"
+        logged = [float(row.split(",")[1]) for row in csv.read_text().split()]
+        assert logged == pytest.approx([0.02 * (1 - k / 6) for k in range(6)])
+        constant = _train(replace(cfg, run_dir=tmp_path / "constant"))
+        csv = tmp_path / "constant" / "logs" / "csv" / "scalars" / "train" / "lr.csv"
+        assert [float(row.split(",")[1]) for row in csv.read_text().split()] == [0.02] * 6
+        assert constant["eval_mean_return"] is not None
+
     def test_refuses_to_overwrite_a_run(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=1))
         before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
@@ -128,12 +144,19 @@ class TestTrain:
         with pytest.raises(CheckpointError, match="does not fit the models"):
             train(_cfg(tmp_path, resume=True), recipe="grid", make_env=make_grid, make_models=wider)
 
-    def test_resume_continues_exactly(self, tmp_path):
-        straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6)
+    @pytest.mark.parametrize(
+        "schedule",
+        [{}, {"lr_schedule": "linear", "total_frames": 1500}],
+        ids=["constant", "linear"],
+    )
+    def test_resume_continues_exactly(self, tmp_path, schedule):
+        straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)
         _train(straight)
-        split = _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=4)
+        split = _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=4, **schedule)
         _train(split)
-        resumed = _train(_cfg(tmp_path, run_dir=tmp_path / "split", total_updates=6, resume=True))
+        resumed = _train(
+            _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=6, resume=True, **schedule)
+        )
         expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
         for key in ("frames", "updates", "eval_mean_return"):
             assert resumed[key] == expected[key]
@@ -161,6 +184,7 @@ class TestTrain:
         ("override", "message"),
         [
             ({"batch_mode": "steps"}, "batch_mode must be one of"),
+            ({"lr_schedule": "cosine"}, "lr_schedule must be one of"),
             ({"episodes_per_batch": 0}, "episodes_per_batch must be an integer >= 1"),
             ({"gamma": 1.5}, r"gamma must lie in \[0, 1\]"),
             ({"lr": 0.0}, "lr must be > 0"),
