@@ -1,4 +1,4 @@
-"""Backward linear scans behind :mod:`rl_pg.functional`.
+"""Backward linear scans behind [`rl_pg.functional`][rl_pg.functional].
 
 Two implementations of one recurrence, both on ``[N, T]`` tensors (time last)::
 

@@ -3,8 +3,8 @@
 A baseline ``b`` is subtracted from the return before it weights ``log pi``. Any
 ``b`` that does not depend on the current batch's actions leaves the gradient
 unbiased, which is why the stateful baselines answer with their value *before* they
-take in the batch's returns. :class:`BatchMean` is the exception (it uses the batch
-itself) and carries an :math:`O(1/N)` bias for a batch of ``N`` episodes.
+take in the batch's returns. [`BatchMean`][rl_pg.baselines.BatchMean] is the exception
+(it uses the batch itself) and carries an `O(1/N)` bias for a batch of ``N`` episodes.
 
 Each baseline is called with the batch's episode returns, answers the ``b`` to
 subtract, and, in training mode, then updates its state. The state is saved in the
@@ -73,13 +73,13 @@ class RunningMean(nn.Module):
 
 
 class ExponentialMovingAverage(nn.Module):
-    """:math:`b \\leftarrow (1 - \\alpha) b + \\alpha R` per episode return ``R``, from 0.
+    """`b ← (1 − α) b + α R` per episode return ``R``, from 0.
 
     The episodes of a batch are taken in order, which is the same as applying the
     update once per episode.
 
     Keyword Args:
-        rate (float): :math:`\\alpha`, in ``(0, 1]``. Defaults to ``0.01``.
+        rate (float): `α`, in ``(0, 1]``. Defaults to ``0.01``.
 
     Examples:
         >>> import torch

@@ -57,7 +57,7 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Reads a checkpoint written by :func:`save_checkpoint`.
+    """Reads a checkpoint written by [`save_checkpoint`][rl_pg.checkpoint.save_checkpoint].
 
     Raises:
         CheckpointError: when the file is missing or cannot be read; the file is left

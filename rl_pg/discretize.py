@@ -21,8 +21,8 @@ class DiscretizeAction(Transform):
     The policy picks **one** index among ``N`` action vectors (``mode="joint"``), or one
     value per action dimension (``mode="per_dim"``, a multi-categorical action); the
     transform hands the matching continuous vector to the environment. The action
-    spec seen by the policy becomes :class:`~torchrl.data.Categorical` (or
-    :class:`~torchrl.data.OneHot` with ``one_hot=True``; ``MultiCategorical`` /
+    spec seen by the policy becomes `torchrl.data.Categorical` (or
+    `torchrl.data.OneHot` with ``one_hot=True``; ``MultiCategorical`` /
     ``MultiOneHot`` per dimension).
 
     The action vectors are either

@@ -1,9 +1,9 @@
 """Monte-Carlo return estimators as TorchRL value estimators.
 
-:class:`RewardToGo` and :class:`DiscountedReturn` plug in wherever TorchRL expects a
-:class:`~torchrl.objectives.value.ValueEstimatorBase` (``loss.make_value_estimator``,
-a standalone call on collector output, ...). Both are registered with TorchRL under
-the names ``"reward_to_go"`` and ``"discounted_return"``.
+[`RewardToGo`][rl_pg.RewardToGo] and [`DiscountedReturn`][rl_pg.DiscountedReturn] plug
+in wherever TorchRL expects a `torchrl.objectives.value.ValueEstimatorBase`
+(``loss.make_value_estimator``, a standalone call on collector output, ...). Both are
+registered with TorchRL under the names ``"reward_to_go"`` and ``"discounted_return"``.
 """
 
 from __future__ import annotations
@@ -171,11 +171,12 @@ class _MonteCarloReturn(ValueEstimatorBase):
 
 @register_value_estimator("reward_to_go", default_kwargs={"gamma": 0.99})
 class RewardToGo(_MonteCarloReturn):
-    """Reward-to-go :math:`G_t = \\sum_{k \\ge t} \\gamma^{k-t} r_k` as a TorchRL value estimator.
+    """Reward-to-go `G_t = Σ_{k≥t} γ^(k−t) r_k` as a TorchRL value estimator.
 
-    Writes ``value_target`` (:math:`G_t`) and ``advantage`` (:math:`G_t - V(s_t)` with a
-    value network, :math:`G_t` without). Episodes that are truncated or cut by the batch
-    bootstrap from the value network when there is one (see :func:`rl_pg.functional.reward_to_go`).
+    Writes ``value_target`` (`G_t`) and ``advantage`` (`G_t − V(s_t)` with a
+    value network, `G_t` without). Episodes that are truncated or cut by the batch
+    bootstrap from the value network when there is one (see
+    [`reward_to_go`][rl_pg.functional.reward_to_go]).
 
     Keyword Args:
         gamma (float): discount in ``[0, 1]``.
@@ -192,7 +193,7 @@ class RewardToGo(_MonteCarloReturn):
 
     Raises:
         ValueError: for ``gamma`` outside ``[0, 1]``, data without a time dimension, and
-            the bad inputs listed in :func:`rl_pg.functional.reward_to_go`.
+            the bad inputs listed in [`reward_to_go`][rl_pg.functional.reward_to_go].
         KeyError: when a key it reads is missing (the message names it).
 
     Examples:
@@ -211,11 +212,11 @@ class RewardToGo(_MonteCarloReturn):
 
 @register_value_estimator("discounted_return", default_kwargs={"gamma": 0.99})
 class DiscountedReturn(_MonteCarloReturn):
-    """Whole-episode return :math:`R(\\tau) = \\sum_k \\gamma^k r_k` at every step.
+    """Whole-episode return `R(τ) = Σ_k γ^k r_k` at every step.
 
     The "no causality" estimator: every step of an episode gets the same target. With a
-    value network the ``advantage`` is :math:`R(\\tau) - V(s_t)`. Takes the keyword
-    arguments of :class:`RewardToGo`.
+    value network the ``advantage`` is `R(τ) − V(s_t)`. Takes the keyword
+    arguments of [`RewardToGo`][rl_pg.RewardToGo].
 
     Examples:
         >>> import torch

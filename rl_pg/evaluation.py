@@ -76,7 +76,7 @@ def evaluate(
             than by sampling. Defaults to ``True``.
         max_steps (int): cap on an episode's length. Defaults to ``100_000``.
         flags (sequence of str): boolean entries to report as rates (see
-            :func:`first_episodes`). Defaults to ``()``.
+            [`first_episodes`][rl_pg.evaluation.first_episodes]). Defaults to ``()``.
 
     Returns:
         ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...}``.

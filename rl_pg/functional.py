@@ -4,10 +4,10 @@ Both functions take TorchRL's layout: ``done[t]`` is ``("next", "done")`` of ste
 ``t``, i.e. it marks the **last** step of an episode, and a row may hold several
 episodes back to back. Within an episode the reward-to-go is
 
-.. math:: G_t = r_t + \\gamma_t G_{t+1}
+    G_t = r_t + γ_t G_{t+1}
 
-At an episode's last step :math:`G_{t+1}` is replaced by the bootstrap value
-:math:`V(s_{t+1})` (``next_value``) when the episode did not really end there:
+At an episode's last step `G_{t+1}` is replaced by the bootstrap value
+`V(s_{t+1})` (``next_value``) when the episode did not really end there:
 
 * a step that is ``done`` but not ``terminated`` (a truncation, e.g. a time limit);
 * the last step of a row that is not ``done`` (an episode cut by the batch).
@@ -34,7 +34,7 @@ def reward_to_go(
     terminated: torch.Tensor | None = None,
     next_value: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Discounted reward-to-go :math:`G_t = \\sum_{k \\ge t} \\gamma^{k-t} r_k` inside each episode.
+    """Discounted reward-to-go `G_t = Σ_{k≥t} γ^(k−t) r_k` inside each episode.
 
     This is the "causality" return of REINFORCE: an action answers only for the
     rewards that follow it.
@@ -89,12 +89,13 @@ def discounted_return(
     terminated: torch.Tensor | None = None,
     next_value: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The episode's whole discounted return :math:`R(\\tau) = \\sum_k \\gamma^k r_k` at every step.
+    """The episode's whole discounted return `R(τ) = Σ_k γ^k r_k` at every step.
 
     This is the "no causality" return of REINFORCE: every action of an episode is
-    credited with the same number. It equals :func:`reward_to_go` at each episode's
-    first step. An episode that starts before the row does (a segment cut by the
-    previous batch) gets the return from the row's first step on.
+    credited with the same number. It equals
+    [`reward_to_go`][rl_pg.functional.reward_to_go] at each episode's first step. An
+    episode that starts before the row does (a segment cut by the previous batch) gets
+    the return from the row's first step on.
 
     Args:
         reward (torch.Tensor): rewards, ``[*B, T, 1]`` or ``[*B, T]`` with ``time_dim=-1``.
@@ -114,7 +115,7 @@ def discounted_return(
         A tensor of the shape and dtype of ``reward``.
 
     Raises:
-        ValueError: as :func:`reward_to_go`.
+        ValueError: as [`reward_to_go`][rl_pg.functional.reward_to_go].
 
     Examples:
         >>> import torch

@@ -30,27 +30,27 @@ _BASELINE_CHOICES = ("none", "critic", *BASELINES)
 
 
 class ReinforceLoss(TorchRLReinforceLoss):
-    """REINFORCE: the surrogate :math:`-\\frac{1}{N}\\sum_t \\Psi_t \\log \\pi_\\theta(a_t|s_t)`.
+    """REINFORCE: the surrogate `−(1/N) Σ_t Ψ_t log π_θ(a_t|s_t)`.
 
-    A subclass of :class:`torchrl.objectives.ReinforceLoss` with the same constructor,
+    A subclass of `torchrl.objectives.ReinforceLoss` with the same constructor,
     defaults, keys and outputs, so TorchRL code keeps working when only the import
     changes. On top of it:
 
     * ``critic_network`` is optional. Without it there is no ``loss_value`` and the
-      default value estimator is :class:`~rl_pg.RewardToGo` (``gamma=0.99``).
-    * ``baseline`` chooses what is subtracted from the return :math:`\\Psi_t`:
+      default value estimator is [`RewardToGo`][rl_pg.RewardToGo] (``gamma=0.99``).
+    * ``baseline`` chooses what is subtracted from the return `Ψ_t`:
       ``"none"``, ``"batch_mean"``, ``"running_mean"`` (of every episode return seen),
       ``"ema"`` (rate ``baseline_rate``) or ``"critic"`` (the estimator's
       ``advantage``, TorchRL's behaviour). Its state is a buffer in ``state_dict``.
-    * ``entropy_coeff`` adds ``loss_entropy`` :math:`= -\\beta H(\\pi(\\cdot|s))` and
+    * ``entropy_coeff`` adds ``loss_entropy`` `= −β H(π(·|s))` and
       a detached ``entropy``.
-    * ``normalize_advantage`` standardises :math:`\\Psi` over the batch.
+    * ``normalize_advantage`` standardises `Ψ` over the batch.
     * Detached diagnostics: ``advantage_mean``, ``advantage_std``, ``baseline`` (scalar
       baselines) and ``explained_variance`` (with a critic whose values are in the data).
     * Non-finite log-probabilities, empty batches and missing keys raise clear errors.
 
     The stored action is scored, never resampled. ``loss_actor`` sends no gradient into
-    the critic (:math:`\\Psi` is detached) and ``loss_value`` none into the actor.
+    the critic (`Ψ` is detached) and ``loss_value`` none into the actor.
     For a policy over several independent action dimensions whose distribution reports
     one log-probability per dimension (e.g. ``torch.distributions.Normal``), the
     log-probabilities are summed over those dimensions: the joint log-probability is
@@ -58,7 +58,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the policy, e.g. a
-            :class:`~torchrl.modules.ProbabilisticActor`.
+            `torchrl.modules.ProbabilisticActor`.
         critic_network (TensorDictModule, optional): a state-value network writing
             ``"state_value"``. Defaults to ``None``.
 
@@ -81,11 +81,11 @@ class ReinforceLoss(TorchRLReinforceLoss):
         baseline (str, optional): one of ``"none"``, ``"batch_mean"``,
             ``"running_mean"``, ``"ema"``, ``"critic"``. Defaults to ``"critic"`` with a
             critic, ``"none"`` without.
-        baseline_rate (float): the rate :math:`\\alpha` of the ``"ema"`` baseline.
+        baseline_rate (float): the rate `α` of the ``"ema"`` baseline.
             Defaults to ``0.01``.
-        entropy_coeff (float, optional): the entropy bonus :math:`\\beta \\ge 0`.
+        entropy_coeff (float, optional): the entropy bonus `β ≥ 0`.
             Defaults to ``None``: no entropy term (TorchRL's outputs).
-        normalize_advantage (bool): standardise :math:`\\Psi` (zero mean, unit
+        normalize_advantage (bool): standardise `Ψ` (zero mean, unit
             standard deviation over the batch). Defaults to ``False``.
         critic_coeff (float): weight carried by ``loss_value``, so that the losses can be
             summed as they are. Defaults to ``1.0``.
@@ -257,8 +257,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
         """Builds the value estimator that computes returns when the data has none.
 
         Takes everything TorchRL's ``make_value_estimator`` takes, plus ``"reward_to_go"``
-        and ``"discounted_return"`` (or the classes :class:`~rl_pg.RewardToGo` /
-        :class:`~rl_pg.DiscountedReturn`, which receive the critic as value network).
+        and ``"discounted_return"`` (or the classes [`RewardToGo`][rl_pg.RewardToGo] /
+        [`DiscountedReturn`][rl_pg.DiscountedReturn], which receive the critic as value network).
 
         Examples:
             >>> import torch
@@ -342,7 +342,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
 
     def _policy_weights(self, tensordict: TensorDictBase):
-        """The detached :math:`\\Psi_t` that weights ``log pi``, and diagnostics."""
+        """The detached `Ψ_t` that weights ``log pi``, and diagnostics."""
         key = (
             self.tensor_keys.advantage
             if self.baseline == "critic"

@@ -130,7 +130,9 @@ def mlp_actor_critic(
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
 ) -> tuple[ProbabilisticActor, ValueOperator]:
-    """:func:`mlp_actor` and :func:`mlp_critic` with the same layers (separate weights).
+    """An actor and a critic with the same layers (separate weights).
+
+    See [`mlp_actor`][rl_pg.models.mlp_actor] and [`mlp_critic`][rl_pg.models.mlp_critic].
 
     Examples:
         >>> from rl_pg.envs import BanditEnv

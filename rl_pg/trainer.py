@@ -688,7 +688,9 @@ def read_run(run: str | Path) -> dict[str, Any]:
 
 
 def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
-    """Loads a checkpoint's weights (see :func:`read_run`) into freshly built models.
+    """Loads a checkpoint's weights into freshly built models.
+
+    The checkpoint comes from [`read_run`][rl_pg.trainer.read_run].
 
     Raises:
         CheckpointError: the weights do not fit the models.

@@ -1,31 +1,57 @@
 """The documentation's code: every ```python block of docs/ runs, page by page.
 
 Blocks of one page share a namespace and run top to bottom, as a reader would paste
-them. Pages with nothing to run are skipped.
+them. A block followed directly by a ```text title="Output" block must print exactly
+that text. Pages with nothing to run are skipped.
 """
 
 from __future__ import annotations
 
+import contextlib
+import gc
+import io
 import re
 from pathlib import Path
 
 import pytest
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-BLOCK = re.compile(r"^```python\n(.*?)^```", re.DOTALL | re.MULTILINE)
+BLOCK = re.compile(
+    r'^```python\n(?P<code>.*?)^```\n(?:\n?^```text title="Output"\n(?P<output>.*?)^```\n)?',
+    re.DOTALL | re.MULTILINE,
+)
 PAGES = sorted(p for p in DOCS.rglob("*.md") if BLOCK.search(p.read_text()))
+
+
+def _lines(text: str) -> list[str]:
+    return [line.rstrip() for line in text.strip("\n").splitlines()]
 
 
 def test_there_is_code_to_run():
     assert PAGES, "no ```python block found under docs/"
 
 
+def test_output_blocks_follow_code():
+    text = '```python\nprint(1)\n```\n\n```text title="Output"\n1\n```\n```python\nx = 2\n```\n'
+    found = [(m["code"], m["output"]) for m in BLOCK.finditer(text)]
+    assert found == [("print(1)\n", "1\n"), ("x = 2\n", None)]
+
+
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(DOCS)))
 def test_page_code_runs(page, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # anything a block writes lands in a temporary directory
     namespace: dict = {"__name__": "__docs__"}
-    for number, block in enumerate(BLOCK.findall(page.read_text()), start=1):
+    for number, match in enumerate(BLOCK.finditer(page.read_text()), start=1):
+        printed = io.StringIO()
         try:
-            exec(compile(block, f"{page.name}:block{number}", "exec"), namespace)
+            with contextlib.redirect_stdout(printed):
+                exec(compile(match["code"], f"{page.name}:block{number}", "exec"), namespace)
         except Exception as err:
             raise AssertionError(f"{page.name}, code block {number} failed: {err!r}") from err
+        if match["output"] is not None:
+            assert _lines(printed.getvalue()) == _lines(match["output"]), (
+                f"{page.name}, code block {number} printed something else than its Output block"
+            )
+    # Finalise what the page built now, not at interpreter exit (see composing.md).
+    namespace.clear()
+    gc.collect()
