@@ -80,13 +80,19 @@ def make_game(*, render: bool = False) -> EnvBase:
     return TransformedEnv(env, FrameDifference(keep_pixels=render))
 
 
-def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render or cfg.num_envs == 1:
-        return make_game(render=render)
+def make_games(num_envs: int) -> EnvBase:
+    """``num_envs`` games stepped as one batch."""
+    if num_envs == 1:
+        return make_game()
     _register_atari()
-    per_worker = max(1, cfg.num_envs // max(1, cfg.workers))
-    games = gym_env("ALE/Pong-v5", num_envs=per_worker, **ALE)  # frames under "observation"
+    games = gym_env("ALE/Pong-v5", num_envs=num_envs, **ALE)  # frames under "observation"
     return TransformedEnv(games, FrameDifference(in_key="observation"))
+
+
+def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    if render:
+        return make_game(render=True)
+    return make_games(max(1, cfg.num_envs // max(1, cfg.workers)))
 
 
 def make_models(env: EnvBase, cfg: Config):
@@ -110,7 +116,7 @@ def main(cfg: Config) -> dict:
         recipe="pong",
         make_env=partial(make_env, cfg),
         make_models=partial(make_models, cfg=cfg),
-        make_eval_env=make_game,
+        make_eval_env=partial(make_games, cfg.eval_episodes),  # the games side by side
     )
 
 
