@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -69,3 +71,29 @@ def test_bad_arguments():
         gym_env("CartPole-v1", num_envs=0)
     with pytest.raises(ValueError, match="single environment"):
         gym_env("CartPole-v1", num_envs=2, render=True)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ale_py") is None, reason="ale-py is not installed")
+def test_single_and_batched_games_keep_gymnasium_frameskip():
+    # TorchRL's GymEnv replaces gymnasium's `frameskip` by its own `frame_skip` (1 by
+    # default); a single env must skip like gymnasium and like the batched games.
+    import ale_py
+
+    gym.register_envs(ale_py)
+    kwargs = {"frameskip": 4, "repeat_action_probability": 0.0}
+    raw = gym.make("ALE/Pong-v5", **kwargs)
+    single = gym_env("ALE/Pong-v5", **kwargs)
+    batched = gym_env("ALE/Pong-v5", num_envs=2, **kwargs)
+    expected, _ = raw.reset(seed=3)
+    single.set_seed(3)
+    batched.set_seed(3)
+    one, both = single.reset(), batched.reset()
+    assert np.array_equal(one["pixels"].numpy(), expected)
+    assert np.array_equal(both["observation"][0].numpy(), expected)
+    for step in range(40):
+        action = (1, 2, 3)[step % 3]
+        expected, *_ = raw.step(action)
+        one = single.step(one.set("action", torch.tensor(action)))["next"]
+        both = batched.step(both.set("action", torch.tensor([action, action])))["next"]
+        assert np.array_equal(one["pixels"].numpy(), expected), step
+        assert np.array_equal(both["observation"][0].numpy(), expected), step

@@ -46,6 +46,11 @@ def gym_env(
     if num_envs is None:
         if render:
             kwargs.update(from_pixels=True, pixels_only=False)
+        if "frameskip" in kwargs:
+            # TorchRL's GymEnv overwrites gymnasium's `frameskip` with its own
+            # `frame_skip` (default 1): pass it under TorchRL's name, which reaches
+            # gymnasium.make as frameskip, so that one env skips like the batched ones.
+            kwargs["frame_skip"] = kwargs.pop("frameskip")
         return GymEnv(env_id, categorical_action_encoding=True, **kwargs)
     if render:
         raise ValueError("render=True needs a single environment: leave num_envs=None.")
