@@ -60,21 +60,18 @@ class Config(TrainConfig):
     """Evaluation mean return that counts as solved."""
 
 
-def make_lander(cfg: Config, *, render: bool = False) -> EnvBase:
-    return gym_env("LunarLander-v3", render=render, continuous=cfg.continuous)
+def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase:
+    """``num_envs`` landers stepped as one batch (one lander: batch size ``[]``)."""
+    return gym_env(
+        "LunarLander-v3",
+        num_envs=num_envs if num_envs > 1 else None,
+        render=render,
+        continuous=cfg.continuous,
+    )
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render or cfg.num_envs == 1:
-        return make_lander(cfg, render=render)
-    return gym_env("LunarLander-v3", num_envs=cfg.num_envs, continuous=cfg.continuous)
-
-
-def make_eval_env(cfg: Config) -> EnvBase:
-    """The evaluation episodes, played side by side."""
-    if cfg.eval_episodes == 1:
-        return make_lander(cfg)
-    return gym_env("LunarLander-v3", num_envs=cfg.eval_episodes, continuous=cfg.continuous)
+    return make_landers(cfg, 1 if render else cfg.num_envs, render=render)
 
 
 def make_models(env: EnvBase, cfg: Config):
@@ -87,7 +84,7 @@ def main(cfg: Config) -> dict:
         recipe="lunarlander",
         make_env=partial(make_env, cfg),
         make_models=partial(make_models, cfg=cfg),
-        make_eval_env=partial(make_eval_env, cfg),
+        make_eval_env=partial(make_landers, cfg, cfg.eval_episodes),  # side by side
     )
 
 
