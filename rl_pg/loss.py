@@ -8,10 +8,14 @@ import torch
 from tensordict import TensorDict, TensorDictBase, is_tensor_collection
 from tensordict.nn import (
     CompositeDistribution,
+    ProbabilisticTensorDictModule,
     ProbabilisticTensorDictSequential,
     TensorDictModule,
+    TensorDictModuleBase,
     dispatch,
 )
+from torchrl.data import Bounded, Composite
+from torchrl.modules import OneHotCategorical
 from torchrl.objectives import LossModule
 from torchrl.objectives import ReinforceLoss as TorchRLReinforceLoss
 from torchrl.objectives.utils import (
@@ -21,12 +25,16 @@ from torchrl.objectives.utils import (
 )
 from torchrl.objectives.value import ValueEstimatorBase
 
+from rl_pg._checks import check_bool, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import _MonteCarloReturn
 
 __all__ = ["ReinforceLoss"]
 
 _BASELINE_CHOICES = ("none", "critic", *BASELINES)
+_LOSS_CRITIC_TYPES = ("l1", "l2", "smooth_l1")
+_ONE_HOT_DISTRIBUTIONS = (torch.distributions.OneHotCategorical, OneHotCategorical)
+_REDUCTIONS = (None, "none", "mean", "sum")
 
 
 class ReinforceLoss(TorchRLReinforceLoss):
@@ -130,6 +138,10 @@ class ReinforceLoss(TorchRLReinforceLoss):
         "reward_to_go",
         "discounted_return",
     )
+    # TorchRL's class declares ``out_keys`` as a list that tensordict turns into a
+    # property only when that class is first instantiated; declared here, the property
+    # exists from the start and ``select_out_keys`` works in any order.
+    out_keys = TensorDictModuleBase.out_keys
 
     def __init__(
         self,
@@ -157,6 +169,20 @@ class ReinforceLoss(TorchRLReinforceLoss):
         critic_network = critic if critic is not None else critic_network
         if actor_network is None:
             raise TypeError("ReinforceLoss needs an actor_network (a probabilistic policy).")
+        if not hasattr(actor_network, "get_dist"):
+            raise TypeError(
+                f"actor_network must be a probabilistic policy with get_dist() (e.g. "
+                f"torchrl.modules.ProbabilisticActor), got {type(actor_network).__name__}."
+            )
+        if critic_network is not None and not isinstance(critic_network, TensorDictModuleBase):
+            raise TypeError(
+                f"critic_network must be a TensorDictModule writing the state value (e.g. "
+                f"torchrl.modules.ValueOperator), got {type(critic_network).__name__}."
+            )
+        delay_value = check_bool("delay_value", delay_value)
+        functional = check_bool("functional", functional)
+        separate_losses = check_bool("separate_losses", separate_losses)
+        normalize_advantage = check_bool("normalize_advantage", normalize_advantage)
         if not functional and delay_value:
             raise RuntimeError(
                 "delay_value and ~functional are incompatible, as delayed value currently "
@@ -164,6 +190,12 @@ class ReinforceLoss(TorchRLReinforceLoss):
             )
         if gamma is not None:
             raise TypeError(_GAMMA_LMBDA_DEPREC_ERROR)
+        if loss_critic_type not in _LOSS_CRITIC_TYPES:
+            raise ValueError(
+                f"loss_critic_type must be one of {_LOSS_CRITIC_TYPES}, got {loss_critic_type!r}."
+            )
+        if reduction not in _REDUCTIONS:
+            raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}.")
         if baseline is None:
             baseline = "critic" if critic_network is not None else "none"
         if baseline not in _BASELINE_CHOICES:
@@ -173,10 +205,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 "baseline='critic' needs a critic_network; pass one, or pick a scalar "
                 "baseline such as 'running_mean'."
             )
-        if entropy_coeff is not None and not (
-            isinstance(entropy_coeff, (int, float)) and entropy_coeff >= 0
-        ):
-            raise ValueError(f"entropy_coeff must be a number >= 0 or None, got {entropy_coeff!r}.")
+        entropy_coeff = check_real("entropy_coeff", entropy_coeff, low=0, optional=True)
+        critic_coeff = check_real("critic_coeff", critic_coeff, low=0)
+        baseline_rate = check_real("baseline_rate", baseline_rate, low=0, low_open=True, high=1)
 
         self._functional = functional
         # TorchRL's constructor insists on a critic; everything else it does is below.
@@ -209,23 +240,27 @@ class ReinforceLoss(TorchRLReinforceLoss):
             self.target_critic_network_params = None
 
         if clip_value is not None:
-            if isinstance(clip_value, float):
-                clip_value = torch.tensor(clip_value)
-            elif not isinstance(clip_value, torch.Tensor) or clip_value.numel() != 1:
+            if isinstance(clip_value, bool) or not (
+                isinstance(clip_value, (int, float))
+                or (isinstance(clip_value, torch.Tensor) and clip_value.numel() == 1)
+            ):
+                # TorchRL's wording, which its own tests match.
                 raise ValueError(
                     f"clip_value must be a float or a scalar tensor, got {clip_value}."
                 )
+            check_real("clip_value", clip_value, low=0, low_open=True)
+            if not isinstance(clip_value, torch.Tensor):
+                clip_value = torch.tensor(float(clip_value))
         self.register_buffer("clip_value", clip_value)
 
         self.baseline = baseline
         self.baseline_module = (
             make_baseline(baseline, rate=baseline_rate) if baseline in BASELINES else None
         )
-        self.entropy_coeff = None if entropy_coeff is None else float(entropy_coeff)
+        self.entropy_coeff = entropy_coeff
         self.normalize_advantage = normalize_advantage
-        if not isinstance(critic_coeff, (int, float)) or critic_coeff < 0:
-            raise ValueError(f"critic_coeff must be a number >= 0, got {critic_coeff!r}.")
-        self.critic_coeff = float(critic_coeff)
+        self.critic_coeff = critic_coeff
+        self._deferred_key_error: KeyError | None = None
         out_keys = ["loss_actor"]
         if self.has_critic:
             out_keys.append("loss_value")
@@ -235,6 +270,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
         # Eagerly, unlike TorchRL: the estimator's buffers (gamma) are then in
         # state_dict from the start, so a checkpoint loads into a freshly built loss.
         self._default_value_estimator()
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        # TorchRL builds its estimator at the first forward, so set_keys never meets one
+        # and a value key the critic does not write only fails when returns are needed.
+        # This estimator exists from the start: the same check waits for the same moment.
+        try:
+            super()._forward_value_estimator_keys(**kwargs)
+        except KeyError as err:
+            self._deferred_key_error = err
+            self._set_in_keys()
+        else:
+            self._deferred_key_error = None
 
     def _set_in_keys(self):
         keys = [
@@ -298,9 +345,11 @@ class ReinforceLoss(TorchRLReinforceLoss):
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if tensordict.numel() == 0:
+        # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
+        if tensordict.batch_size.numel() == 0:
             raise ValueError(
-                f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)})."
+                f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
+                " there is no step to learn from. Collect at least one step."
             )
         weights, diagnostics = self._policy_weights(tensordict)
         dist = self._policy(tensordict)
@@ -334,6 +383,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
         return td_out
 
     def _run_value_estimator(self, tensordict: TensorDictBase) -> None:
+        if self._deferred_key_error is not None:
+            self._forward_value_estimator_keys()  # the keys may have been fixed since
+            if self._deferred_key_error is not None:
+                raise KeyError(
+                    f"The value estimator cannot use the keys set with loss.set_keys(...): "
+                    f"{self._deferred_key_error.args[0]} Set value= to a key the critic "
+                    f"writes, or build the critic with that out_key."
+                ) from self._deferred_key_error
         functional_critic = self.functional and self.has_critic
         self.value_estimator(
             tensordict,
@@ -357,8 +414,21 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"The value estimator {type(self.value_estimator).__name__} did not write "
                     f"{key!r}; align the keys with loss.set_keys(...)."
                 )
-        psi = psi.detach()
+        psi = _step_column(psi.detach(), tensordict.batch_size, key)
         valid = self._valid_steps(tensordict, psi)
+        if valid is not None and not bool(valid.any()):
+            raise ValueError(
+                "Every step of the batch is masked out as padding: there is no step to learn "
+                "from. Collect at least one valid step."
+            )
+        finite = torch.isfinite(psi) if valid is None else torch.isfinite(psi) | ~valid
+        if not bool(finite.all()):
+            raise ValueError(
+                f"{key!r} holds {int((~finite).sum())} non-finite value(s): the policy "
+                f"gradient would be NaN. If you computed it yourself, check the rewards and "
+                f"the value network; or delete the entry and let the loss's value "
+                f"estimator compute it."
+            )
         diagnostics = {}
         if self.baseline_module is not None:
             baseline = self.baseline_module(self._episode_returns(tensordict, psi, valid))
@@ -421,7 +491,16 @@ class ReinforceLoss(TorchRLReinforceLoss):
             if self.functional
             else contextlib.nullcontext()
         ):
-            return self.actor_network.get_dist(tensordict)
+            try:
+                return self.actor_network.get_dist(tensordict)
+            except ValueError as err:
+                # torch.distributions validates its parameters (NaN logits or scales).
+                first_line = str(err).splitlines()[0]  # torch appends the whole tensor
+                raise ValueError(
+                    f"The policy built an invalid distribution from this batch "
+                    f"({first_line}). "
+                    f"{self._why_not_finite(tensordict)}"
+                ) from err
 
     def _log_prob(self, dist, tensordict: TensorDictBase, weights: torch.Tensor) -> torch.Tensor:
         if isinstance(dist, CompositeDistribution):
@@ -433,6 +512,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"The input tensordict has no action entry {self.tensor_keys.action!r}; "
                     f"collect it or rename the key with loss.set_keys(action=...)."
                 )
+            _check_support(dist, action, self.tensor_keys.action, self._declared_bounds())
         log_prob = dist.log_prob(action)
         if is_tensor_collection(log_prob):
             log_prob = _sum_td_features(log_prob)
@@ -440,11 +520,60 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if not bool(torch.isfinite(log_prob).all()):
             raise ValueError(
                 f"The policy gave {int((~torch.isfinite(log_prob)).sum())} non-finite "
-                "log-probabilities for the stored actions: an action outside the "
-                "distribution's support (e.g. out of the bounds of a TanhNormal), or NaN "
-                "in the policy's output."
+                f"log-probabilities for the stored actions. {self._why_not_finite(tensordict)}"
             )
         return log_prob
+
+    def _why_not_finite(self, tensordict: TensorDictBase) -> str:
+        for key in self.actor_network.in_keys:
+            value = tensordict.get(key, None)
+            if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
+                return (
+                    f"The policy's input {key!r} holds {int((~torch.isfinite(value)).sum())} "
+                    f"NaN/inf value(s): check the observations (or their normalisation)."
+                )
+        return (
+            "Either an action has (near) zero probability under the policy (e.g. on the "
+            "bounds of a TanhNormal that was not declared), or the policy's output is "
+            "NaN because its weights diverged: lower the learning rate or clip gradients."
+        )
+
+    def _declared_bounds(self) -> bool:
+        """Whether the policy declares action bounds: a bounded action spec, or ``low`` /
+        ``high`` given to its distribution.
+
+        TorchRL's own tests score actions drawn from ``randn`` under a ``TanhNormal`` whose
+        spec is unbounded; only bounds the user stated are enforced, so that they pass.
+        """
+        spec = getattr(self.actor_network, "spec", None)
+        if spec is not None and any(
+            isinstance(leaf, Bounded) and leaf.dtype.is_floating_point
+            for leaf in (spec.values(True, True) if isinstance(spec, Composite) else [spec])
+        ):
+            return True
+        return any(
+            {"low", "high"} & set(getattr(module, "distribution_kwargs", None) or {})
+            for module in self.actor_network.modules()
+            if isinstance(module, ProbabilisticTensorDictModule)
+        )
+
+    def loss_critic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
+        target = tensordict.get(self.tensor_keys.value_target, None)
+        if target is not None and not bool(torch.isfinite(target).all()):
+            raise ValueError(
+                f"{self.tensor_keys.value_target!r} holds non-finite values: the critic would "
+                f"regress on NaN. Check the rewards and the value network that computed it."
+            )
+        try:
+            return super().loss_critic(tensordict)
+        except RuntimeError as err:
+            if "incompatible" not in str(err):  # TorchRL's distance_loss on unequal shapes
+                raise
+            raise ValueError(
+                f"The critic's {self.tensor_keys.value!r} does not have the shape of "
+                f"{self.tensor_keys.value_target!r} ({err}). Make the critic write one value "
+                f"per step, shaped like the reward ([*B, 1])."
+            ) from err
 
     def _entropy(self, dist) -> torch.Tensor:
         try:
@@ -456,6 +585,50 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = _sum_td_features(entropy)
         return entropy
+
+
+def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tensor:
+    """A per-step quantity as ``[*batch_size, ..., 1]`` (one column per step)."""
+    if value.shape == batch_size:
+        return value.unsqueeze(-1)
+    if value.shape[: len(batch_size)] == batch_size and value.shape[len(batch_size) :][-1:] == (1,):
+        return value
+    raise ValueError(
+        f"{key!r} has shape {tuple(value.shape)}, but the batch is {tuple(batch_size)}: "
+        f"expected {(*batch_size, 1)} (or {tuple(batch_size)}), one value per step."
+    )
+
+
+def _check_support(dist, action: torch.Tensor, key, declared_bounds: bool) -> None:
+    """Refuses stored actions the policy cannot have taken.
+
+    ``log_prob`` does not: a categorical policy truncates ``1.7`` to ``1`` and a bounded
+    continuous policy scores an action beyond its bounds as if it were on them.
+    """
+    low, high = getattr(dist, "low", None), getattr(dist, "high", None)
+    if isinstance(dist, _ONE_HOT_DISTRIBUTIONS):
+        # TorchRL's one-hot categorical reports Categorical's integer support.
+        inside = ((action == 0) | (action == 1)).all(-1) & (action.sum(-1) == 1)
+        expected = "one-hot rows (a single 1, zeros elsewhere)"
+    elif isinstance(low, torch.Tensor) and isinstance(high, torch.Tensor):
+        if not declared_bounds:
+            return
+        inside = (action >= low) & (action <= high)
+        expected = f"inside the policy's bounds [{low.min().item():g}, {high.max().item():g}]"
+    else:
+        try:
+            inside = dist.support.check(action)
+        except (NotImplementedError, TypeError, AttributeError, RuntimeError):
+            return  # no usable support: nothing to check against
+        expected = f"in the policy's support ({dist.support})"
+    if not bool(inside.all()):
+        bad = action.reshape(-1, *action.shape[inside.ndim :])[~inside.reshape(-1)]
+        raise ValueError(
+            f"{int((~inside).sum())} stored action(s) at {key!r} are not {expected}: for "
+            f"example {bad[0].tolist()}. log pi would be meaningless. Store the actions the "
+            f"policy sampled (integer indices for a categorical policy, one-hot rows for "
+            f"a one-hot one, values within the action bounds for a continuous one)."
+        )
 
 
 def _per_step(values: torch.Tensor, shape: torch.Size, what: str) -> torch.Tensor:

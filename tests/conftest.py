@@ -33,11 +33,15 @@ def make_one_hot_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticA
 
 
 def make_gaussian_actor(
-    n_obs: int = N_OBS, n_act: int = N_ACT, distribution_class=TanhNormal
+    n_obs: int = N_OBS,
+    n_act: int = N_ACT,
+    distribution_class=TanhNormal,
+    observation_key: str = "observation",
 ) -> ProbabilisticActor:
+    """A Gaussian policy that, like TorchRL's test actors, declares no action bounds."""
     net = nn.Sequential(nn.Linear(n_obs, 2 * n_act), NormalParamExtractor())
     return ProbabilisticActor(
-        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        TensorDictModule(net, [observation_key], ["loc", "scale"]),
         in_keys=["loc", "scale"],
         distribution_class=distribution_class,
         return_log_prob=True,

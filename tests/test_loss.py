@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import (
@@ -12,6 +13,9 @@ from conftest import (
     make_gaussian_actor,
     make_one_hot_actor,
 )
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torchrl.data import Bounded
+from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives.value import GAE
 
 from rl_pg import DiscountedReturn, ReinforceLoss, RewardToGo
@@ -268,11 +272,11 @@ class TestReinforceLossErrors:
             ReinforceLoss(categorical_actor, baseline="critic")
 
     def test_negative_critic_coeff(self, categorical_actor, critic):
-        with pytest.raises(ValueError, match="critic_coeff must be a number >= 0"):
+        with pytest.raises(ValueError, match="critic_coeff must be a finite number >= 0"):
             ReinforceLoss(categorical_actor, critic, critic_coeff=-1.0)
 
     def test_negative_entropy_coeff(self, categorical_actor):
-        with pytest.raises(ValueError, match="entropy_coeff must be a number >= 0"):
+        with pytest.raises(ValueError, match="entropy_coeff must be a finite number >= 0"):
             ReinforceLoss(categorical_actor, entropy_coeff=-0.1)
 
     def test_missing_actor(self):
@@ -314,5 +318,179 @@ class TestReinforceLossErrors:
     def test_returns_shape_mismatch(self, categorical_actor, categorical_batch):
         # Two reward channels give two returns per step, but the policy scores one action.
         categorical_batch["next", "reward"] = torch.randn(3, 7, 2)
-        with pytest.raises(ValueError, match=r"log-probabilities have shape \(3, 7, 1\)"):
+        with pytest.raises(ValueError, match=r"'value_target' has shape \(3, 7, 2\)"):
             ReinforceLoss(categorical_actor)(categorical_batch)
+
+
+def _bounded_actor(low, high):
+    """A TanhNormal policy that declares its bounds through a Bounded spec."""
+    low, high = torch.as_tensor(low), torch.as_tensor(high)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 2 * low.numel()), NormalParamExtractor())
+    spec = Bounded(low, high, shape=low.shape)
+    return ProbabilisticActor(
+        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high},
+    )
+
+
+class TestReinforceLossBadInput:
+    """Malformed data or settings raise an error that names them, never a wrong loss."""
+
+    @pytest.mark.parametrize(
+        ("kwargs", "match"),
+        [
+            ({"entropy_coeff": float("inf")}, "entropy_coeff must be a finite number >= 0"),
+            ({"entropy_coeff": "0.1"}, "entropy_coeff must be a real number"),
+            ({"critic_coeff": float("nan")}, "critic_coeff must be a finite number >= 0"),
+            ({"baseline": "ema", "baseline_rate": 0.0}, r"baseline_rate must be .* > 0"),
+            ({"baseline": "ema", "baseline_rate": 1.5}, r"baseline_rate must be .* <= 1"),
+            ({"loss_critic_type": "huber"}, "loss_critic_type must be one of"),
+            ({"reduction": "max"}, "reduction must be one of"),
+            ({"clip_value": -0.5}, r"clip_value must be a finite number > 0"),
+            ({"clip_value": float("nan")}, r"clip_value must be a finite number > 0"),
+        ],
+    )
+    def test_bad_setting(self, categorical_actor, critic, kwargs, match):
+        with pytest.raises((ValueError, TypeError), match=match):
+            ReinforceLoss(categorical_actor, critic, **kwargs)
+
+    @pytest.mark.parametrize("name", ["functional", "delay_value", "normalize_advantage"])
+    def test_flags_must_be_booleans(self, categorical_actor, name):
+        with pytest.raises(TypeError, match=f"{name} must be True or False"):
+            ReinforceLoss(categorical_actor, **{name: "no"})
+
+    def test_numpy_numbers_are_numbers(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor, entropy_coeff=np.float32(0.01))
+        assert loss.entropy_coeff == pytest.approx(0.01)
+        assert torch.isfinite(loss(categorical_batch)["loss_entropy"])
+
+    def test_actor_without_a_distribution(self):
+        with pytest.raises(TypeError, match="must be a probabilistic policy with get_dist"):
+            ReinforceLoss(torch.nn.Linear(3, 2))
+
+    def test_critic_that_is_not_a_tensordict_module(self, categorical_actor):
+        with pytest.raises(TypeError, match="critic_network must be a TensorDictModule"):
+            ReinforceLoss(categorical_actor, torch.nn.Linear(3, 1))
+
+    def test_batch_of_zero_rows(self, categorical_actor, categorical_batch):
+        with pytest.raises(ValueError, match=r"empty batch \(batch_size=\(0, 7\)\)"):
+            ReinforceLoss(categorical_actor)(categorical_batch[:0])
+
+    def test_every_step_masked(self, categorical_actor, categorical_batch):
+        categorical_batch["collector", "mask"] = torch.zeros(3, 7, dtype=torch.bool)
+        with pytest.raises(ValueError, match="Every step of the batch is masked out"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_fractional_action_for_a_categorical_policy(self, categorical_actor, categorical_batch):
+        categorical_batch["action"] = categorical_batch["action"].float() + 0.5
+        with pytest.raises(ValueError, match="not in the policy's support"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_integral_float_action_is_scored(self, categorical_actor, categorical_batch):
+        as_int = ReinforceLoss(categorical_actor)(categorical_batch.clone())
+        categorical_batch["action"] = categorical_batch["action"].float()
+        as_float = ReinforceLoss(categorical_actor)(categorical_batch)
+        torch.testing.assert_close(as_float["loss_actor"], as_int["loss_actor"])
+
+    @pytest.mark.parametrize("bad", [-1, N_ACT])
+    def test_categorical_action_out_of_range(self, categorical_actor, categorical_batch, bad):
+        categorical_batch["action"][0, 0] = bad
+        with pytest.raises(ValueError, match=f"for example {bad}"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    @pytest.mark.parametrize("row", [[0, 0, 0, 0], [1, 1, 0, 0], [0.5, 0.5, 0, 0]])
+    def test_invalid_one_hot_action(self, row):
+        torch.manual_seed(0)
+        actor = make_one_hot_actor()
+        action = torch.nn.functional.one_hot(torch.randint(N_ACT, (3, 7)), N_ACT).float()
+        action[1, 2] = torch.tensor(row, dtype=torch.float)
+        with pytest.raises(ValueError, match="1 stored action"):
+            ReinforceLoss(actor)(make_batch(action))
+
+    @pytest.mark.parametrize(
+        ("low", "high", "action"),
+        [([-2.0], [2.0], [2.5]), ([-1.0, 0.0], [1.0, 5.0], [0.5, -0.1])],
+    )
+    def test_action_outside_declared_bounds(self, low, high, action):
+        torch.manual_seed(0)
+        actions = torch.zeros(3, 7, len(low)).clamp(torch.tensor(low), torch.tensor(high))
+        actions[2, 6] = torch.tensor(action)
+        with pytest.raises(ValueError, match=r"1 stored action.* not inside the policy's bounds"):
+            ReinforceLoss(_bounded_actor(low, high))(make_batch(actions))
+
+    def test_actions_on_the_declared_bounds_are_scored(self):
+        torch.manual_seed(0)
+        actions = torch.tensor([-2.0, 2.0]).repeat(3, 4)[:, :7, None]
+        out = ReinforceLoss(_bounded_actor([-2.0], [2.0]))(make_batch(actions))
+        assert torch.isfinite(out["loss_actor"])
+
+    def test_nan_observation(self, categorical_actor, categorical_batch):
+        categorical_batch["observation"][1, 1, 0] = float("nan")
+        with pytest.raises(ValueError, match=r"input .observation. holds 1 NaN/inf value"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    @pytest.mark.parametrize("key", ["value_target", "advantage"])
+    def test_non_finite_precomputed_returns(
+        self, categorical_actor, critic, categorical_batch, key
+    ):
+        GAE(gamma=0.9, lmbda=0.9, value_network=critic)(categorical_batch)
+        categorical_batch[key][0, 3] = float("nan")
+        loss = ReinforceLoss(
+            categorical_actor, critic, baseline="critic" if key == "advantage" else "running_mean"
+        )
+        with pytest.raises(ValueError, match=f"'{key}' holds .*non-finite"):
+            loss(categorical_batch)
+        if loss.baseline_module is not None:  # nothing was taken into the baseline
+            assert loss.baseline_module.count == 0
+
+    def test_precomputed_returns_of_the_wrong_shape(self, categorical_actor, categorical_batch):
+        categorical_batch["value_target"] = torch.zeros(3, 7, 2)
+        with pytest.raises(ValueError, match=r"'value_target' has shape \(3, 7, 2\)"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_precomputed_returns_without_the_trailing_dim(
+        self, categorical_actor, categorical_batch
+    ):
+        with_dim = ReinforceLoss(categorical_actor)(categorical_batch.clone())
+        categorical_batch["value_target"] = reward_to_go(
+            categorical_batch["next", "reward"], categorical_batch["next", "done"], 0.99
+        ).squeeze(-1)
+        without = ReinforceLoss(categorical_actor)(categorical_batch)
+        torch.testing.assert_close(without["loss_actor"], with_dim["loss_actor"])
+
+    def test_critic_output_that_broadcasts(self, categorical_actor, categorical_batch):
+        flat = TensorDictModule(
+            _SumObservation(), in_keys=["observation"], out_keys=["state_value"]
+        )
+        loss = ReinforceLoss(categorical_actor, flat, baseline="running_mean")
+        categorical_batch["value_target"] = torch.zeros(3, 7, 1)
+        with pytest.raises(
+            ValueError, match=r"critic's 'state_value' does not have the shape of 'value_target'"
+        ):
+            loss(categorical_batch)
+
+
+class _SumObservation(torch.nn.Module):
+    """A 'critic' that forgets the trailing value dimension."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.ones(()))
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.weight * observation.sum(-1)
+
+
+def test_invalid_distribution_parameters_name_the_input(categorical_actor, categorical_batch):
+    # TorchRL turns argument validation off; a user who turns it back on gets the same
+    # diagnosis from the distribution's own check.
+    categorical_batch["observation"][0, 0, 0] = float("inf")
+    torch.distributions.Distribution.set_default_validate_args(True)
+    try:
+        with pytest.raises(ValueError, match=r"invalid distribution .* input 'observation'"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+    finally:
+        torch.distributions.Distribution.set_default_validate_args(False)

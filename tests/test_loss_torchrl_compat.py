@@ -1,12 +1,22 @@
 """rl_pg.ReinforceLoss as a drop-in for torchrl.objectives.ReinforceLoss.
 
-The scenarios of TorchRL 0.14.1's own ReinforceLoss tests (value networks and
-estimators, delayed values, functional or not, keys, separate losses, calls without
-a TensorDict, reductions, value clipping) run against both classes, and on the same
-modules and data both give the same numbers.
+Every path that TorchRL 0.14's own ``TestReinforce`` (pytorch/rl,
+``test/objectives/test_ppo.py``) exercises runs here against both classes: value
+networks and estimators given or made by the loss, delayed values, functional or not,
+parameter resets, default and renamed keys (before and after the estimator is made),
+separate losses, keyword calls without a TensorDict (``dispatch``) and
+``select_out_keys``, reductions and value clipping. TorchRL's data conventions are kept
+on purpose: ``randn`` actions under a ``TanhNormal`` whose bounds the actor never
+declares. On the same modules and data both classes give the same numbers.
 """
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import pytest
 import torch
@@ -20,7 +30,8 @@ from tensordict.nn import (
     TensorDictModule,
     TensorDictSequential,
 )
-from torchrl.modules import MLP, TanhNormal
+from torch import nn
+from torchrl.modules import MLP, TanhNormal, ValueOperator
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.value import GAE, TD1Estimator, TDLambdaEstimator
 
@@ -54,7 +65,9 @@ def _flat_batch(seed: int = 1) -> TensorDict:
                 "done": torch.zeros(BATCH, 1, dtype=torch.bool),
                 "terminated": torch.zeros(BATCH, 1, dtype=torch.bool),
             },
-            "action": torch.rand(BATCH, N_ACT, generator=generator) * 1.8 - 0.9,
+            # Outside TanhNormal's [-1, 1] at times, as in TorchRL's tests: the actor
+            # declares no bounds (unbounded spec), so the loss must score them.
+            "action": torch.randn(BATCH, N_ACT, generator=generator),
         },
         [BATCH],
         names=["time"],
@@ -89,7 +102,7 @@ def _shared_trunk_setup(seed: int = 0):
     data = TensorDict(
         {
             "obs": torch.randn(*shape, N_OBS),
-            "action": torch.rand(*shape, N_ACT) * 1.8 - 0.9,
+            "action": torch.randn(*shape, N_ACT),
             "next": {
                 "obs": torch.randn(*shape, N_OBS),
                 "reward": torch.randn(*shape, 1),
@@ -110,6 +123,16 @@ ESTIMATORS = [
     ValueEstimators.TDLambda,
     None,
 ]
+
+
+RENAMED = {
+    "advantage": "advantage_test",
+    "value_target": "value_target_test",
+    "value": "state_value_test",
+    "reward": "reward_test",
+    "done": ("done", "test"),
+    "terminated": ("terminated", "test"),
+}
 
 
 class TestTorchRLScenarios:
@@ -150,32 +173,86 @@ class TestTorchRLScenarios:
         with pytest.raises(RuntimeError, match="used in the graph"):
             torch.autograd.grad(out["loss_value"], actor_params, retain_graph=True)
 
+    def test_reset_parameters_recursive(self, loss_class):
+        actor, critic = _modules()
+        loss_fn = loss_class(actor, critic)
+        params = loss_fn.named_parameters()
+        with torch.no_grad():
+            for _, param in params:
+                param += 1000
+        shifted = {name: param.clone() for name, param in loss_fn.named_parameters()}
+        loss_fn.reset_parameters_recursive()
+        for name, param in loss_fn.named_parameters():
+            assert (param != shifted[name]).any(), name
+
+    def test_default_keys(self, loss_class):
+        actor, critic = _modules()
+        keys = loss_class(actor, critic).tensor_keys
+        assert (keys.advantage, keys.value_target, keys.value) == (
+            "advantage",
+            "value_target",
+            "state_value",
+        )
+        assert (keys.sample_log_prob, keys.action) == ("action_log_prob", "action")
+        assert (keys.reward, keys.done, keys.terminated) == ("reward", "done", "terminated")
+
+    def test_unknown_key_is_refused(self, loss_class):
+        actor, critic = _modules()
+        with pytest.raises(ValueError, match="not an accepted tensordict key"):
+            loss_class(actor, critic).set_keys(unknown_key="x")
+
+    @pytest.mark.parametrize("one_at_a_time", [True, False])
+    def test_any_key_can_be_renamed_before_returns_are_needed(self, loss_class, one_at_a_time):
+        # Renaming value to a key the critic does not write is accepted until the loss
+        # needs returns (TorchRL makes its estimator only then).
+        actor, critic = _modules()
+        loss_fn = loss_class(actor, critic)
+        names = ("advantage", "value_target", "value", "sample_log_prob")
+        names += ("reward", "done", "terminated")
+        if one_at_a_time:
+            for name in names:
+                loss_fn.set_keys(**{name: "test1"})
+                assert getattr(loss_fn.tensor_keys, name) == "test1"
+        else:
+            loss_fn.set_keys(**dict.fromkeys(names, "test1"))
+        assert all(getattr(loss_fn.tensor_keys, name) == "test1" for name in names)
+
+    def test_a_value_key_the_critic_does_not_write_fails_when_returns_are_needed(self, loss_class):
+        actor, critic = _modules()
+        loss_fn = loss_class(actor, critic)
+        loss_fn.set_keys(value="test1")
+        with pytest.raises(KeyError, match="test1"):
+            loss_fn(_flat_batch())
+
+    def test_renaming_the_value_key_back_repairs_the_loss(self, loss_class):
+        actor, critic = _modules()
+        loss_fn = loss_class(actor, critic)
+        loss_fn.set_keys(value="test1")
+        loss_fn.set_keys(value="state_value")
+        assert torch.isfinite(loss_fn(_flat_batch())["loss_actor"])
+
     @pytest.mark.parametrize("td_est", ESTIMATORS[:-1])
-    def test_keys_reach_the_value_estimator(self, loss_class, td_est):
+    def test_renamed_keys_reach_the_estimator_made_after(self, loss_class, td_est):
+        torch.manual_seed(0)
+        actor = make_gaussian_actor(N_OBS, N_ACT)
+        critic = ValueOperator(nn.Linear(N_OBS, 1), ["observation"], ["state_value_test"])
+        loss_fn = loss_class(actor, critic)
+        loss_fn.set_keys(**RENAMED)
+        loss_fn.make_value_estimator(td_est)
+        for name, key in RENAMED.items():
+            assert getattr(loss_fn.value_estimator.tensor_keys, name) == key
+
+    @pytest.mark.parametrize("td_est", ESTIMATORS[:-1])
+    def test_renamed_keys_reach_the_estimator_made_before(self, loss_class, td_est):
+        # The value key must name what the critic writes when the estimator is made, so
+        # only the other keys can move afterwards.
         actor, critic = _modules()
         loss_fn = loss_class(actor, critic)
         loss_fn.make_value_estimator(td_est)
-        mapping = {
-            "advantage": "advantage_test",
-            "value_target": "value_target_test",
-            "reward": "reward_test",
-            "done": ("done", "test"),
-            "terminated": ("terminated", "test"),
-        }
-        loss_fn.set_keys(**mapping)
-        for name, key in mapping.items():
+        renamed = {k: v for k, v in RENAMED.items() if k != "value"}
+        loss_fn.set_keys(**renamed)
+        for name, key in renamed.items():
             assert getattr(loss_fn.value_estimator.tensor_keys, name) == key
-        defaults = {
-            "advantage": "advantage",
-            "value_target": "value_target",
-            "value": "state_value",
-            "sample_log_prob": "action_log_prob",
-            "reward": "reward",
-            "done": "done",
-            "terminated": "terminated",
-        }
-        for name, key in defaults.items():
-            assert getattr(loss_class(actor, critic).tensor_keys, name) == key
 
     @pytest.mark.parametrize("separate_losses", [False, True])
     def test_separate_losses(self, loss_class, separate_losses):
@@ -190,20 +267,28 @@ class TestTorchRLScenarios:
         assert all(g is not None and (g != 0).any() for g in critic_grads[n_common:])
 
     @pytest.mark.parametrize("action_key", ["action", "action2"])
+    @pytest.mark.parametrize("observation_key", ["observation", "observation2"])
     @pytest.mark.parametrize("reward_key", ["reward", "reward2"])
     @pytest.mark.parametrize("done_key", ["done", "done2"])
-    def test_call_without_tensordict(self, loss_class, action_key, reward_key, done_key):
-        actor, critic = _modules()
+    @pytest.mark.parametrize("terminated_key", ["terminated", "terminated2"])
+    def test_call_without_tensordict(
+        self, loss_class, action_key, observation_key, reward_key, done_key, terminated_key
+    ):
+        torch.manual_seed(0)
+        actor = make_gaussian_actor(N_OBS, N_ACT, observation_key=observation_key)
+        critic = ValueOperator(nn.Linear(N_OBS, 1), in_keys=[observation_key])
         loss_fn = loss_class(actor_network=actor, critic_network=critic)
-        loss_fn.set_keys(reward=reward_key, done=done_key, action=action_key)
+        loss_fn.set_keys(
+            reward=reward_key, done=done_key, action=action_key, terminated=terminated_key
+        )
         data = _flat_batch()
         kwargs = {
             action_key: data["action"],
-            "observation": data["observation"],
+            observation_key: data["observation"],
             f"next_{reward_key}": data["next", "reward"],
             f"next_{done_key}": data["next", "done"],
-            "next_terminated": data["next", "terminated"],
-            "next_observation": data["next", "observation"],
+            f"next_{terminated_key}": data["next", "terminated"],
+            f"next_{observation_key}": data["next", "observation"],
         }
         loss_actor, loss_value = loss_fn(**kwargs)
         out = loss_fn(TensorDict(kwargs, [BATCH]).unflatten_keys("_"))
@@ -211,6 +296,35 @@ class TestTorchRLScenarios:
         torch.testing.assert_close(out["loss_value"], loss_value)
         loss_fn.select_out_keys("loss_actor")
         assert loss_fn(**kwargs) == out["loss_actor"]
+
+    @pytest.mark.parametrize("name", list(IMPLEMENTATIONS))
+    def test_select_out_keys_in_a_fresh_interpreter(self, name):
+        # tensordict turns a class-level ``out_keys`` list into a property only when that
+        # class is first instantiated: this must work before TorchRL's class ever is.
+        script = textwrap.dedent(
+            f"""
+            import torch
+            from conftest import make_critic, make_gaussian_actor
+            from test_loss_torchrl_compat import IMPLEMENTATIONS, _flat_batch
+            loss_fn = IMPLEMENTATIONS[{name!r}](make_gaussian_actor(3, 5), make_critic(3))
+            loss_fn.select_out_keys("loss_actor")
+            data = _flat_batch()
+            out = loss_fn(
+                action=data["action"], observation=data["observation"],
+                next_reward=data["next", "reward"], next_done=data["next", "done"],
+                next_terminated=data["next", "terminated"],
+                next_observation=data["next", "observation"],
+            )
+            assert isinstance(out, torch.Tensor) and out.shape == (), out
+            """
+        )
+        tests_dir = str(Path(__file__).parent)
+        subprocess.run(
+            [sys.executable, "-c", script],
+            check=True,
+            cwd=tests_dir,
+            env={**os.environ, "PYTHONPATH": tests_dir},
+        )
 
     @pytest.mark.parametrize("reduction", [None, "none", "mean", "sum"])
     def test_reduction(self, loss_class, reduction):
@@ -224,8 +338,15 @@ class TestTorchRLScenarios:
     def test_value_clipping(self, loss_class, clip_value):
         actor, critic, _, data = _shared_trunk_setup()
         GAE(gamma=0.9, lmbda=0.9, value_network=critic)(data)
-        out = loss_class(actor, critic, clip_value=clip_value)(data)
+        loss_fn = loss_class(actor, critic, clip_value=clip_value)
+        value = data.pop("state_value")
+        if clip_value is not None:
+            with pytest.raises(KeyError, match=r"clip_value is set to .* state_value was not"):
+                loss_fn(data)
+        data["state_value"] = value
+        out = loss_fn(data)
         assert ("value_clip_fraction" in out.keys()) == (clip_value is not None)
+        assert "loss_value" in out.keys()
 
     def test_value_clipping_rejects_a_bool(self, loss_class):
         actor, critic = _modules()
