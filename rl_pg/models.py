@@ -19,10 +19,18 @@ from torchrl.modules import (
     ValueOperator,
 )
 
+from rl_pg._checks import check_int
+
 __all__ = ["mlp_actor", "mlp_actor_critic", "mlp_critic"]
 
 
 def _trunk(env: EnvBase, out_features: int, hidden: Sequence[int], activation, key: str):
+    hidden = _check_hidden(hidden)
+    if key not in env.observation_spec.keys(True, True):
+        raise KeyError(
+            f"The environment has no observation {key!r}; its observations are "
+            f"{list(env.observation_spec.keys(True, True))}. Pass observation_key=..."
+        )
     spec = env.observation_spec[key]
     obs_shape = spec.shape[len(env.batch_size) :]
     layers: list[nn.Module] = []
@@ -49,21 +57,30 @@ def mlp_actor(
     """An MLP policy for ``env``'s action space.
 
     A categorical (index) action gets a softmax policy, a one-hot action a one-hot
-    categorical, a bounded continuous action a ``TanhNormal`` inside the bounds, an
-    unbounded one an independent Normal. Observations with several dimensions are
-    flattened.
+    categorical, a bounded continuous action a ``TanhNormal`` inside its per-dimension
+    bounds (whatever they are, e.g. ``[-2, 2]`` for Pendulum), an unbounded one an
+    independent Normal. Observations with several dimensions are flattened.
 
     Keyword Args:
         hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
         activation (type): activation class. Defaults to ``nn.Tanh``.
         observation_key (str): the observation entry. Defaults to ``"observation"``.
 
+    Raises:
+        ValueError: for a hidden width < 1, an action space bounded in some dimensions
+            only, or batched environments whose action bounds differ.
+        KeyError: when the environment has no ``observation_key``.
+
     Examples:
-        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.envs import GridWorldEnv, gym_env
         >>> from rl_pg.models import mlp_actor
         >>> actor = mlp_actor(GridWorldEnv(batch_size=3), hidden=(32,))
         >>> actor(GridWorldEnv(batch_size=3).reset())["action"].shape
         torch.Size([3])
+        >>> pendulums = gym_env("Pendulum-v1", num_envs=4)  # torque in [-2, 2]
+        >>> action = mlp_actor(pendulums)(pendulums.reset())["action"]
+        >>> action.shape, bool(action.abs().max() <= 2)
+        (torch.Size([4, 1]), True)
     """
     spec = env.action_spec
     n_act = spec.shape[-1] if spec.shape[len(env.batch_size) :] else 1
@@ -85,9 +102,10 @@ def mlp_actor(
     )
     kwargs = {}
     distribution = IndependentNormal
-    if isinstance(spec, Bounded):
+    bounds = _action_bounds(spec, n_act) if isinstance(spec, Bounded) else None
+    if bounds is not None:
         distribution = TanhNormal
-        kwargs = {"low": spec.space.low, "high": spec.space.high}
+        kwargs = {"low": bounds[0], "high": bounds[1]}
     return ProbabilisticActor(
         TensorDictModule(net, [observation_key], ["loc", "scale"]),
         in_keys=["loc", "scale"],
@@ -95,6 +113,40 @@ def mlp_actor(
         distribution_class=distribution,
         distribution_kwargs=kwargs,
     )
+
+
+def _action_bounds(spec: Bounded, n_act: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Per-dimension ``(low, high)`` of one environment's action, or None if unbounded.
+
+    A batched environment repeats its bounds along its batch dimensions; the policy's
+    distribution needs them once, shaped like one action.
+    """
+    low = spec.space.low.reshape(-1, n_act)
+    high = spec.space.high.reshape(-1, n_act)
+    if not ((low == low[0]).all() and (high == high[0]).all()):
+        raise ValueError(
+            "The environments of this batch have different action bounds; mlp_actor builds "
+            "one policy for all of them. Rescale their actions to common bounds first."
+        )
+    low, high = low[0], high[0]
+    finite = torch.isfinite(low) & torch.isfinite(high)
+    if not finite.any():
+        return None  # a Box(-inf, inf): a plain Gaussian
+    if not finite.all():
+        raise ValueError(
+            f"The action space is bounded in some dimensions and not in others (low="
+            f"{low.tolist()}, high={high.tolist()}): give every dimension finite bounds "
+            f"(e.g. with TorchRL's ClipTransform) or none."
+        )
+    return low, high
+
+
+def _check_hidden(hidden: Sequence[int]) -> tuple[int, ...]:
+    if isinstance(hidden, (int, str)) or not isinstance(hidden, Sequence):
+        raise TypeError(
+            f"hidden must be a sequence of layer widths such as (64, 64), got {hidden!r}."
+        )
+    return tuple(check_int(f"hidden[{i}]", width, low=1) for i, width in enumerate(hidden))
 
 
 def mlp_critic(

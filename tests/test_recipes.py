@@ -29,6 +29,11 @@ RECIPES = {
         cartpole,
         {"total_frames": 600, "eval_interval": 600, "batch_mode": "episodes", "num_envs": 1},
     ),
+    # Continuous torque in [-2, 2], 32 pendulums: the bounds are per dimension, not ±1.
+    "cartpole-pendulum": (
+        cartpole,
+        {"total_frames": 600, "eval_interval": 600, "env_id": "Pendulum-v1", "threshold": None},
+    ),
     "lunarlander": (lunarlander, {"total_frames": 1_500, "eval_interval": 1_500}),
     "lunarlander-continuous": (
         lunarlander,

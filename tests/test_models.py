@@ -1,0 +1,112 @@
+"""rl_pg.models: policies and critics sized and bounded by the environment's specs."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import GymWrapper
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import IndependentNormal, TanhNormal
+
+from rl_pg import ReinforceLoss
+from rl_pg.envs import GridWorldEnv, gym_env
+from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
+
+
+class _BoxEnv(gym.Env):
+    """One observation, a Box action with the given bounds; reward = first action value."""
+
+    def __init__(self, low, high):
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.action_space = gym.spaces.Box(
+            np.asarray(low, np.float32), np.asarray(high, np.float32), dtype=np.float32
+        )
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(2, np.float32), float(action[0]), False, False, {}
+
+
+def _box_env(low, high, num_envs=None):
+    if num_envs is None:
+        return GymWrapper(_BoxEnv(low, high))
+    vector = gym.vector.SyncVectorEnv(
+        [lambda: _BoxEnv(low, high)] * num_envs,
+        autoreset_mode=gym.vector.AutoresetMode.DISABLED,
+    )
+    return GymWrapper(vector)
+
+
+def _sampled_actions(actor, env, steps=64):
+    torch.manual_seed(0)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        return env.rollout(steps, actor)
+
+
+class TestMlpActor:
+    @pytest.mark.parametrize("num_envs", [None, 4])
+    def test_pendulum_torques_span_its_bounds(self, num_envs):
+        env = gym_env("Pendulum-v1", num_envs=num_envs)
+        actor = mlp_actor(env)
+        rollout = _sampled_actions(actor, env)
+        action = rollout["action"]
+        assert action.abs().max() <= 2.0
+        assert action.abs().max() > 1.0  # not squashed into [-1, 1]
+        loss = ReinforceLoss(actor)(rollout)
+        assert torch.isfinite(loss["loss_actor"])
+
+    @pytest.mark.parametrize("num_envs", [None, 3])
+    def test_unequal_bounds_per_dimension(self, num_envs):
+        low, high = [-1.0, 0.0], [1.0, 5.0]
+        env = _box_env(low, high, num_envs)
+        actor = mlp_actor(env, hidden=(8,))
+        rollout = _sampled_actions(actor, env)
+        action = rollout["action"].reshape(-1, 2)
+        assert (action >= torch.tensor(low)).all() and (action <= torch.tensor(high)).all()
+        assert action[:, 1].max() > 1.0 and action[:, 1].min() >= 0.0
+        with torch.no_grad():
+            dist = actor.get_dist(rollout)
+        assert isinstance(dist, TanhNormal)
+        torch.testing.assert_close(dist.low, torch.tensor(low))
+        torch.testing.assert_close(dist.high, torch.tensor(high))
+        assert torch.isfinite(ReinforceLoss(actor)(rollout)["loss_actor"])
+
+    def test_unbounded_box_gets_a_plain_gaussian(self):
+        env = _box_env([-np.inf, -np.inf], [np.inf, np.inf])
+        actor = mlp_actor(env, hidden=(8,))
+        rollout = _sampled_actions(actor, env, steps=4)
+        assert isinstance(actor.get_dist(rollout), IndependentNormal)
+
+    def test_partly_bounded_box(self):
+        env = _box_env([-1.0, -np.inf], [1.0, np.inf])
+        with pytest.raises(ValueError, match="bounded in some dimensions and not in others"):
+            mlp_actor(env)
+
+    @pytest.mark.parametrize(
+        ("hidden", "error", "match"),
+        [
+            ((0, 64), ValueError, r"hidden\[0\] must be an integer >= 1, got 0"),
+            ((64, -3), ValueError, r"hidden\[1\] must be an integer >= 1"),
+            ((64.5,), TypeError, r"hidden\[0\] must be an integer"),
+            (64, TypeError, "hidden must be a sequence of layer widths"),
+        ],
+    )
+    def test_bad_hidden_widths(self, hidden, error, match):
+        with pytest.raises(error, match=match):
+            mlp_actor(GridWorldEnv(), hidden=hidden)
+        with pytest.raises(error, match=match):
+            mlp_critic(GridWorldEnv(), hidden=hidden)
+
+    def test_no_hidden_layer_is_a_linear_policy(self):
+        actor, critic = mlp_actor_critic(GridWorldEnv(), hidden=())
+        assert sum(p.numel() for p in actor.parameters()) == 16 * 4 + 4
+        assert sum(p.numel() for p in critic.parameters()) == 16 + 1
+
+    def test_missing_observation_key(self):
+        with pytest.raises(KeyError, match="no observation 'pixels'"):
+            mlp_actor(GridWorldEnv(), observation_key="pixels")
