@@ -16,6 +16,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from rl_pg._checks import check_real, check_tensor
+
 __all__ = ["BASELINES", "BatchMean", "ExponentialMovingAverage", "RunningMean", "make_baseline"]
 
 
@@ -93,9 +95,7 @@ class ExponentialMovingAverage(nn.Module):
 
     def __init__(self, *, rate: float = 0.01) -> None:
         super().__init__()
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate <= 1:
-            raise ValueError(f"rate must be a number in (0, 1], got {rate!r}.")
-        self.rate = float(rate)
+        self.rate = check_real("rate", rate, low=0, low_open=True, high=1)
         self.register_buffer("_value", torch.zeros((), dtype=torch.float64))
 
     @property
@@ -144,5 +144,14 @@ def make_baseline(name: str, *, rate: float = 0.01) -> nn.Module:
 
 
 def _check_returns(returns: torch.Tensor) -> None:
+    check_tensor("returns", returns, hint="Pass the episode returns as a tensor.")
+    if not returns.is_floating_point():
+        raise TypeError(f"returns must be a floating-point tensor, got dtype {returns.dtype}.")
     if returns.numel() == 0:
         raise ValueError("A baseline needs at least one episode return, got an empty tensor.")
+    if not bool(torch.isfinite(returns).all()):
+        # Taken in, a single NaN would be the baseline of every later batch.
+        raise ValueError(
+            f"returns holds {int((~torch.isfinite(returns)).sum())} non-finite value(s); the "
+            f"baseline was left as it was. Check the rewards that produced them."
+        )

@@ -12,10 +12,11 @@ from contextlib import nullcontext
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, dispatch
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, dispatch
 from torchrl.objectives.utils import hold_out_net, register_value_estimator
 from torchrl.objectives.value import ValueEstimatorBase
 
+from rl_pg._checks import check_bool, check_int, check_real
 from rl_pg.functional import discounted_return, reward_to_go
 
 __all__ = ["DiscountedReturn", "RewardToGo"]
@@ -36,25 +37,26 @@ class _MonteCarloReturn(ValueEstimatorBase):
         device: torch.device | None = None,
         deactivate_vmap: bool = False,
     ) -> None:
+        if value_network is not None and not isinstance(value_network, TensorDictModuleBase):
+            raise TypeError(
+                f"value_network must be a TensorDictModule writing the state value (e.g. "
+                f"torchrl.modules.ValueOperator), got {type(value_network).__name__}."
+            )
+        if isinstance(gamma, torch.Tensor) and gamma.numel() != 1:
+            raise ValueError(
+                f"gamma must be a number or a one-element tensor, got shape "
+                f"{tuple(gamma.shape)}. For per-step discounts call rl_pg.functional."
+            )
+        gamma = check_real("gamma", gamma, low=0, high=1)
+        time_dim = check_int("time_dim", time_dim, optional=True)
         super().__init__(
             value_network=value_network,
-            differentiable=differentiable,
+            differentiable=check_bool("differentiable", differentiable),
             device=device,
-            deactivate_vmap=deactivate_vmap,
+            deactivate_vmap=check_bool("deactivate_vmap", deactivate_vmap),
         )
-        if isinstance(gamma, torch.Tensor):
-            if gamma.numel() != 1:
-                raise ValueError(
-                    f"gamma must be a number or a one-element tensor, got shape "
-                    f"{tuple(gamma.shape)}. For per-step discounts call rl_pg.functional."
-                )
-            gamma = gamma.item()
-        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0 <= gamma <= 1:
-            raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
         # float64 so that .item() gives back the number the user wrote.
-        self.register_buffer(
-            "gamma", torch.tensor(float(gamma), dtype=torch.float64, device=self._device)
-        )
+        self.register_buffer("gamma", torch.tensor(gamma, dtype=torch.float64, device=self._device))
         self.time_dim = time_dim
 
     @property
@@ -192,6 +194,8 @@ class RewardToGo(_MonteCarloReturn):
             Defaults to ``False``.
 
     Raises:
+        TypeError: for a ``gamma`` that is not a real number, a ``time_dim`` that is not
+            an integer, or a ``value_network`` that is not a TensorDict module.
         ValueError: for ``gamma`` outside ``[0, 1]``, data without a time dimension, and
             the bad inputs listed in [`reward_to_go`][rl_pg.functional.reward_to_go].
         KeyError: when a key it reads is missing (the message names it).

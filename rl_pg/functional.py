@@ -18,8 +18,11 @@ bootstrapped: a cut or truncated episode simply stops collecting reward there.
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
+from rl_pg._checks import check_real
 from rl_pg._scan import backward_scan
 
 __all__ = ["discounted_return", "reward_to_go"]
@@ -62,8 +65,12 @@ def reward_to_go(
         A tensor of the shape and dtype of ``reward``.
 
     Raises:
-        ValueError: on an empty batch, mismatched shapes, ``gamma`` outside ``[0, 1]``,
-            an out-of-range ``time_dim``, or non-finite ``reward`` / ``next_value``.
+        TypeError: for a ``reward`` that is not a floating-point tensor, a ``time_dim``
+            that is not an integer, or a ``gamma`` that is not a real number.
+        ValueError: on an empty batch, mismatched shapes or devices, ``gamma`` outside
+            ``[0, 1]``, an out-of-range ``time_dim``, ``done`` / ``terminated`` holding
+            values other than 0 and 1, or non-finite ``reward`` / ``next_value`` where
+            they are read.
 
     Examples:
         >>> import torch
@@ -129,7 +136,7 @@ def discounted_return(
 
 
 def _returns(reward, done, gamma, time_dim, terminated, next_value, *, whole_episode):
-    _check_inputs(reward, done, gamma, time_dim, terminated, next_value)
+    gamma = _check_inputs(reward, done, gamma, time_dim, terminated, next_value)
     shape = reward.shape
     time_dim = time_dim % reward.ndim
 
@@ -141,17 +148,16 @@ def _returns(reward, done, gamma, time_dim, terminated, next_value, *, whole_epi
 
     if isinstance(gamma, torch.Tensor):
         gamma = rows(torch.broadcast_to(gamma, shape))
-    done = rows(_as_bool(done))
     out, finite = backward_scan(
         rows(reward),
-        done,
+        rows(_as_bool(done)),
         None if terminated is None else rows(_as_bool(terminated)),
         rows(next_value),
         gamma,
         whole_episode=whole_episode,
     )
     if not finite:
-        _raise_non_finite(reward, terminated, next_value)
+        _raise_non_finite(reward, done, terminated, next_value, time_dim)
     moved = list(shape)
     moved.append(moved.pop(time_dim))
     return out.view(moved).movedim(-1, time_dim)
@@ -162,11 +168,18 @@ def _as_bool(mask: torch.Tensor) -> torch.Tensor:
 
 
 def _check_inputs(reward, done, gamma, time_dim, terminated, next_value):
+    """Validates the arguments of both return functions; returns ``gamma`` as a float or
+    a floating-point tensor."""
     if not isinstance(reward, torch.Tensor) or not reward.is_floating_point():
         raise TypeError(
             f"reward must be a floating-point tensor, got {type(reward).__name__}"
             f"{'' if not isinstance(reward, torch.Tensor) else ' of dtype ' + str(reward.dtype)}."
             " Cast it with reward.float()."
+        )
+    if isinstance(time_dim, bool) or not isinstance(time_dim, numbers.Integral):
+        raise TypeError(
+            f"time_dim must be an integer, got {time_dim!r} ({type(time_dim).__name__}). "
+            "Rewards are [*B, T, 1] with time_dim=-2, or [*B, T] with time_dim=-1."
         )
     if reward.ndim == 0 or not -reward.ndim <= time_dim < reward.ndim:
         raise ValueError(
@@ -177,15 +190,59 @@ def _check_inputs(reward, done, gamma, time_dim, terminated, next_value):
         raise ValueError(
             f"Cannot compute returns of an empty batch (reward shape {tuple(reward.shape)})."
         )
-    for name, tensor in (("done", done), ("terminated", terminated), ("next_value", next_value)):
-        if tensor is None:
-            continue
-        if not isinstance(tensor, torch.Tensor) or tensor.shape != reward.shape:
-            got = tuple(tensor.shape) if isinstance(tensor, torch.Tensor) else type(tensor).__name__
-            raise ValueError(
-                f"{name} must have the shape of reward {tuple(reward.shape)}, got {got}."
+    _check_mask("done", done, reward)
+    if terminated is not None:
+        _check_mask("terminated", terminated, reward)
+    if next_value is not None:
+        _check_like_reward("next_value", next_value, reward)
+        if not next_value.is_floating_point():
+            raise TypeError(
+                f"next_value must be a floating-point tensor, got dtype {next_value.dtype}."
             )
-    if isinstance(gamma, torch.Tensor):
+    return _check_gamma(gamma, reward)
+
+
+def _check_like_reward(name: str, tensor, reward: torch.Tensor) -> None:
+    if not isinstance(tensor, torch.Tensor):
+        raise TypeError(
+            f"{name} must be a tensor shaped like reward {tuple(reward.shape)}, got "
+            f"{type(tensor).__name__}."
+        )
+    if tensor.shape != reward.shape:
+        raise ValueError(
+            f"{name} must have the shape of reward {tuple(reward.shape)}, got "
+            f"{tuple(tensor.shape)}."
+        )
+    if tensor.device != reward.device:
+        raise ValueError(
+            f"{name} is on {tensor.device} but reward is on {reward.device}: move them to "
+            f"one device."
+        )
+
+
+def _check_mask(name: str, mask, reward: torch.Tensor) -> None:
+    """A boolean mask, or numbers that are all exactly 0 or 1 (never 0.3 or NaN)."""
+    _check_like_reward(name, mask, reward)
+    if mask.dtype == torch.bool:
+        return
+    if mask.dtype.is_complex or not bool(((mask == 0) | (mask == 1)).all()):
+        bad = mask[(mask != 0) & (mask != 1)] if not mask.dtype.is_complex else mask
+        raise ValueError(
+            f"{name} must be boolean (or hold only 0 and 1), got dtype {mask.dtype} with "
+            f"value {bad.reshape(-1)[0].item()!r}. Episode ends are yes/no: pass "
+            f"{name}.bool() if its non-zero values mean True."
+        )
+
+
+def _check_gamma(gamma, reward: torch.Tensor) -> float | torch.Tensor:
+    if isinstance(gamma, torch.Tensor) and gamma.numel() > 1:
+        if gamma.dtype == torch.bool or gamma.dtype.is_complex:
+            raise TypeError(f"gamma must hold real numbers, got dtype {gamma.dtype}.")
+        if gamma.device != reward.device:
+            raise ValueError(
+                f"gamma is on {gamma.device} but reward is on {reward.device}: move them to "
+                f"one device."
+            )
         try:
             broadcast = torch.broadcast_shapes(gamma.shape, reward.shape)
         except RuntimeError:
@@ -196,15 +253,14 @@ def _check_inputs(reward, done, gamma, time_dim, terminated, next_value):
                 f"{tuple(reward.shape)}. Pass a number or a tensor such as [*B, 1, 1]."
             )
         if not bool(((gamma >= 0) & (gamma <= 1)).all()):
-            raise ValueError(
-                f"gamma must lie in [0, 1], got values from {gamma.min().item()} to "
-                f"{gamma.max().item()}."
-            )
-    elif isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0 <= gamma <= 1:
-        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}.")
+            bad = gamma[~((gamma >= 0) & (gamma <= 1))].reshape(-1)[0].item()
+            raise ValueError(f"gamma must lie in [0, 1], got a value of {bad!r}.")
+        return gamma if gamma.is_floating_point() else gamma.to(reward.dtype)
+    return check_real("gamma", gamma, low=0, high=1)
 
 
-def _raise_non_finite(reward, terminated, next_value):
+def _raise_non_finite(reward, done, terminated, next_value, time_dim):
+    """Names the input that made the returns non-finite."""
     bad = ~torch.isfinite(reward)
     if bad.any():
         first = tuple(bad.nonzero()[0].tolist())
@@ -213,12 +269,20 @@ def _raise_non_finite(reward, terminated, next_value):
             " returns would be NaN. Check the environment's reward or its wrappers."
         )
     if next_value is not None:
-        bad = ~torch.isfinite(next_value)
+        # next_value is read where an episode is truncated or cut by the row's end.
+        ended = _as_bool(done).clone()
+        ended.narrow(time_dim, ended.shape[time_dim] - 1, 1).fill_(True)
         if terminated is not None:
-            bad &= ~_as_bool(terminated)
-        first = tuple(bad.nonzero()[0].tolist()) if bad.any() else None
-        raise ValueError(
-            f"next_value holds non-finite value(s) at steps that bootstrap (the first at"
-            f" index {first}). Check the value network's output."
-        )
-    raise ValueError("The returns overflowed: rewards or gamma are too large for the dtype.")
+            ended |= _as_bool(terminated)
+        terminal = _as_bool(done if terminated is None else terminated)
+        bad = ~torch.isfinite(next_value) & ended & ~terminal
+        if bad.any():
+            first = tuple(bad.nonzero()[0].tolist())
+            raise ValueError(
+                f"next_value holds {int(bad.sum())} non-finite value(s) at steps that "
+                f"bootstrap (the first at index {first}). Check the value network's output."
+            )
+    raise ValueError(
+        "The returns overflowed to inf: the rewards are too large for the dtype "
+        f"({reward.dtype}). Scale the rewards down or use float64."
+    )

@@ -44,9 +44,14 @@ class TestExponentialMovingAverage:
             expected = 0.9 * expected + 0.1 * value
         assert baseline.value.item() == pytest.approx(expected, rel=1e-6)
 
-    @pytest.mark.parametrize("rate", [0.0, 1.5, -0.1, True])
+    @pytest.mark.parametrize("rate", [0.0, 1.5, -0.1, float("nan")])
     def test_rate_outside_unit_interval(self, rate):
-        with pytest.raises(ValueError, match=r"rate must be a number in \(0, 1\]"):
+        with pytest.raises(ValueError, match=r"rate must be a finite number > 0 and <= 1"):
+            ExponentialMovingAverage(rate=rate)
+
+    @pytest.mark.parametrize("rate", [True, "0.1", None])
+    def test_rate_that_is_not_a_number(self, rate):
+        with pytest.raises(TypeError, match="rate must be a real number"):
             ExponentialMovingAverage(rate=rate)
 
 
@@ -58,3 +63,25 @@ class TestMakeBaseline:
     def test_empty_returns(self):
         with pytest.raises(ValueError, match="at least one episode return"):
             make_baseline("running_mean")(torch.zeros(0))
+
+    @pytest.mark.parametrize("name", ["batch_mean", "running_mean", "ema"])
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite_returns_leave_the_state_as_it_was(self, name, bad):
+        baseline = make_baseline(name)
+        baseline(torch.tensor([1.0, 3.0]))
+        state = {k: v.clone() for k, v in baseline.state_dict().items()}
+        with pytest.raises(ValueError, match="returns holds 1 non-finite value"):
+            baseline(torch.tensor([2.0, bad]))
+        for key, value in baseline.state_dict().items():
+            torch.testing.assert_close(value, state[key])
+
+    @pytest.mark.parametrize(
+        ("returns", "error", "match"),
+        [
+            ([1.0, 2.0], TypeError, "returns must be a torch.Tensor"),
+            (torch.tensor([1, 2]), TypeError, "returns must be a floating-point tensor"),
+        ],
+    )
+    def test_returns_that_are_not_a_float_tensor(self, returns, error, match):
+        with pytest.raises(error, match=match):
+            make_baseline("running_mean")(returns)

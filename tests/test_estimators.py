@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import N_ACT, make_batch, make_critic
@@ -89,10 +90,29 @@ class TestMonteCarloEstimators:
     def test_gamma_is_in_state_dict(self, cls, fn):
         assert cls(gamma=0.5).state_dict()["gamma"].item() == 0.5
 
-    @pytest.mark.parametrize("gamma", [-0.5, 1.2, "0.9"])
+    @pytest.mark.parametrize("gamma", [-0.5, 1.2, float("nan")])
     def test_gamma_outside_unit_interval(self, cls, fn, gamma):
-        with pytest.raises(ValueError, match=r"gamma must be a number in \[0, 1\]"):
+        with pytest.raises(ValueError, match=r"gamma must be a finite number >= 0 and <= 1"):
             cls(gamma=gamma)
+
+    @pytest.mark.parametrize("gamma", ["0.9", None, True])
+    def test_gamma_that_is_not_a_number(self, cls, fn, gamma):
+        with pytest.raises(TypeError, match="gamma must be a real number"):
+            cls(gamma=gamma)
+
+    @pytest.mark.parametrize("gamma", [np.float32(0.9), torch.tensor(0.9)])
+    def test_gamma_as_a_numpy_or_torch_scalar(self, cls, fn, gamma, batch):
+        expected = cls(gamma=0.9)(batch.clone())["value_target"]
+        torch.testing.assert_close(cls(gamma=gamma)(batch)["value_target"], expected)
+
+    @pytest.mark.parametrize("time_dim", [1.0, "time", True])
+    def test_time_dim_that_is_not_an_integer(self, cls, fn, time_dim):
+        with pytest.raises(TypeError, match="time_dim must be an integer or None"):
+            cls(gamma=0.9, time_dim=time_dim)
+
+    def test_value_network_that_is_not_a_tensordict_module(self, cls, fn):
+        with pytest.raises(TypeError, match="value_network must be a TensorDictModule"):
+            cls(gamma=0.9, value_network=torch.nn.Linear(3, 1))
 
     def test_gamma_tensor_with_many_values(self, cls, fn):
         with pytest.raises(ValueError, match="one-element tensor"):

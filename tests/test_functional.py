@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -191,14 +192,30 @@ class TestBadInput:
                 next_value=torch.zeros(4, 6, 1),
             )
 
-    @pytest.mark.parametrize("gamma", [-0.1, 1.5, float("nan"), "0.9", True])
+    @pytest.mark.parametrize("gamma", [-0.1, 1.5, float("nan"), float("inf")])
     def test_gamma_outside_unit_interval(self, fn, gamma):
-        with pytest.raises(ValueError, match=r"gamma must be a number in \[0, 1\]"):
+        with pytest.raises(ValueError, match=r"gamma must be a finite number >= 0 and <= 1"):
             fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), gamma)
 
-    def test_gamma_tensor_outside_unit_interval(self, fn):
-        with pytest.raises(ValueError, match=r"gamma must lie in \[0, 1\]"):
-            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), torch.tensor(1.01))
+    @pytest.mark.parametrize("gamma", ["0.9", True, None, [0.9]])
+    def test_gamma_that_is_not_a_number(self, fn, gamma):
+        with pytest.raises(TypeError, match="gamma must be a real number"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), gamma)
+
+    @pytest.mark.parametrize(
+        "gamma", [np.float32(0.9), np.float64(0.9), torch.tensor(0.9), np.array(0.9)]
+    )
+    def test_gamma_as_a_numpy_or_torch_scalar(self, fn, gamma):
+        reward = torch.ones(2, 3, 1)
+        done = torch.zeros(2, 3, 1, dtype=torch.bool)
+        torch.testing.assert_close(fn(reward, done, gamma), fn(reward, done, 0.9))
+
+    @pytest.mark.parametrize("bad", [1.01, float("nan")])
+    def test_gamma_tensor_outside_unit_interval(self, fn, bad):
+        gamma = torch.full((2, 1, 1), 0.5)
+        gamma[1] = bad
+        with pytest.raises(ValueError, match=r"gamma must lie in \[0, 1\], got a value of"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), gamma)
 
     def test_gamma_tensor_that_does_not_broadcast(self, fn):
         with pytest.raises(ValueError, match="does not broadcast"):
@@ -211,16 +228,91 @@ class TestBadInput:
         with pytest.raises(ValueError, match=r"reward holds 1 non-finite value\(s\) .*\(1, 2, 0\)"):
             fn(reward, torch.zeros(2, 3, 1, dtype=torch.bool), 0.9)
 
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+    @pytest.mark.parametrize("with_next_value", [False, True])
+    def test_non_finite_reward_in_a_row_of_one_step(self, fn, bad, with_next_value):
+        # The last step of a row is computed apart from the others: it is checked too.
+        reward = torch.tensor([[[1.0]], [[bad]]])
+        done = torch.tensor([[[False]], [[True]]])
+        next_value = torch.zeros_like(reward) if with_next_value else None
+        with pytest.raises(ValueError, match=r"reward holds 1 non-finite value\(s\)"):
+            fn(reward, done, 0.9, next_value=next_value)
+
+    @pytest.mark.parametrize("last_done", [False, True])
+    def test_non_finite_reward_on_the_last_step_with_a_bootstrap(self, fn, last_done):
+        reward = torch.ones(2, 4, 1)
+        reward[0, 3, 0] = float("inf")
+        done = torch.zeros(2, 4, 1, dtype=torch.bool)
+        done[:, 2] = True  # the last step is an episode of its own: nothing carries inf back
+        done[:, 3] = last_done
+        with pytest.raises(ValueError, match=r"reward holds 1 non-finite .*\(0, 3, 0\)"):
+            fn(reward, done, 0.9, next_value=torch.zeros(2, 4, 1))
+
     def test_non_finite_next_value_where_it_bootstraps(self, fn):
         next_value = torch.zeros(2, 3, 1)
         next_value[0, 2, 0] = float("nan")
-        with pytest.raises(ValueError, match="next_value holds non-finite"):
+        with pytest.raises(
+            ValueError, match=r"next_value holds 1 non-finite value\(s\) .*\(0, 2, 0\)"
+        ):
             fn(
                 torch.zeros(2, 3, 1),
                 torch.zeros(2, 3, 1, dtype=torch.bool),
                 0.9,
                 next_value=next_value,
             )
+
+    def test_non_finite_next_value_where_it_is_not_read(self, fn):
+        # Mid-episode and at terminated steps V(s') is never used (TorchRL leaves NaN there).
+        next_value = torch.full((1, 4, 1), float("nan"))
+        next_value[0, 3] = 2.0
+        done = torch.tensor([[[False], [True], [False], [False]]])
+        result = fn(torch.ones(1, 4, 1), done, 0.5, next_value=next_value)
+        assert torch.isfinite(result).all()
+
+    @pytest.mark.parametrize("name", ["done", "terminated"])
+    @pytest.mark.parametrize("bad", [0.3, float("nan"), 2.0, -1.0])
+    def test_mask_that_is_not_zero_or_one(self, fn, name, bad):
+        mask = torch.zeros(2, 3, 1)
+        mask[1, 1] = bad
+        masks = {"done": torch.zeros(2, 3, 1, dtype=torch.bool), "terminated": None}
+        masks[name] = mask
+        with pytest.raises(ValueError, match=f"{name} must be boolean \\(or hold only 0 and 1\\)"):
+            fn(torch.ones(2, 3, 1), masks["done"], 0.9, terminated=masks["terminated"])
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.int64, torch.uint8])
+    def test_zero_one_masks_of_any_dtype(self, fn, dtype):
+        done = torch.tensor([[[0], [1], [0]]])
+        expected = fn(torch.ones(1, 3, 1), done.bool(), 0.5)
+        torch.testing.assert_close(fn(torch.ones(1, 3, 1), done.to(dtype), 0.5), expected)
+
+    @pytest.mark.parametrize("time_dim", [None, 1.0, "-2", True])
+    def test_time_dim_that_is_not_an_integer(self, fn, time_dim):
+        with pytest.raises(TypeError, match="time_dim must be an integer"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), 0.9, time_dim=time_dim)
+
+    def test_time_dim_as_a_numpy_integer(self, fn):
+        reward, done = torch.ones(2, 3), torch.zeros(2, 3, dtype=torch.bool)
+        torch.testing.assert_close(
+            fn(reward, done, 0.9, time_dim=np.int64(-1)), fn(reward, done, 0.9, time_dim=-1)
+        )
+
+    def test_done_that_is_not_a_tensor(self, fn):
+        with pytest.raises(TypeError, match=r"done must be a tensor shaped like reward"):
+            fn(torch.zeros(1, 3), [[0, 0, 1]], 0.9, time_dim=-1)
+
+    def test_integer_next_value(self, fn):
+        with pytest.raises(TypeError, match="next_value must be a floating-point tensor"):
+            fn(
+                torch.zeros(1, 3),
+                torch.zeros(1, 3, dtype=torch.bool),
+                0.9,
+                time_dim=-1,
+                next_value=torch.zeros(1, 3, dtype=torch.long),
+            )
+
+    def test_overflow(self, fn):
+        with pytest.raises(ValueError, match="The returns overflowed to inf"):
+            fn(torch.full((1, 3), 3e38), torch.zeros(1, 3, dtype=torch.bool), 1.0, time_dim=-1)
 
     def test_time_dim_out_of_range(self, fn):
         with pytest.raises(ValueError, match="time_dim=-2 is out of range"):
