@@ -10,6 +10,8 @@ from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, MultiOneHot, OneHot
 from torchrl.envs.transforms import Transform
 
+from rl_pg._checks import check_bool, check_int, check_tensor
+
 __all__ = ["DiscretizeAction"]
 
 _MODES = ("joint", "per_dim")
@@ -46,10 +48,13 @@ class DiscretizeAction(Transform):
 
     Raises:
         ValueError: for counts < 1, both or neither of ``counts`` / ``actions``, an
-            unknown ``mode``, ``per_dim`` with a table; once the environment's spec is
-            known, for infinite bounds, a table of the wrong width or outside the bounds,
-            or ``counts`` of the wrong length; and for out-of-range indices.
-        TypeError: when the action spec is not a bounded continuous spec.
+            unknown ``mode``, ``per_dim`` with a table, a table holding NaN or inf; once
+            the environment's spec is known, for infinite bounds, a table of the wrong
+            width or outside the bounds, or ``counts`` of the wrong length; and when
+            mapping, for out-of-range or fractional indices, rows that are not exactly
+            one-hot, and non-finite continuous actions.
+        TypeError: for a non-integer count, a non-boolean ``one_hot``, a malformed
+            ``action_key``, or when the action spec is not a bounded continuous spec.
 
     Examples:
         >>> import torch
@@ -86,20 +91,37 @@ class DiscretizeAction(Transform):
                 "mode='per_dim' discretises each dimension: it needs counts=, not actions=."
             )
         if counts is not None:
-            is_sequence = isinstance(counts, Sequence)
-            counts_list = list(counts) if is_sequence else [counts]
-            if not counts_list or any(
-                isinstance(c, bool) or not isinstance(c, int) or c < 1 for c in counts_list
-            ):
-                raise ValueError(f"counts must be integers >= 1, got {counts!r}.")
-            counts = counts_list
+            scalar = isinstance(counts, str) or getattr(counts, "ndim", 1) == 0
+            counts_list = list(counts) if hasattr(counts, "__iter__") and not scalar else [counts]
+            if not counts_list:
+                raise ValueError("counts must hold at least one integer >= 1, got an empty list.")
+            counts = [check_int(f"counts[{i}]", c, low=1) for i, c in enumerate(counts_list)]
         if actions is not None:
-            actions = torch.as_tensor(actions, dtype=torch.float32)
-            if actions.ndim != 2 or actions.shape[0] == 0:
+            try:
+                actions = torch.as_tensor(actions, dtype=torch.float32)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(
+                    f"actions must be an [N, action_dim] table of numbers, got {actions!r}."
+                ) from err
+            if actions.ndim != 2 or actions.shape[0] == 0 or actions.shape[1] == 0:
                 raise ValueError(
                     f"actions must be a non-empty [N, action_dim] table, got shape "
                     f"{tuple(actions.shape)}."
                 )
+            if not bool(torch.isfinite(actions).all()):
+                row = int((~torch.isfinite(actions)).any(1).nonzero()[0])
+                raise ValueError(
+                    f"actions row {row} {actions[row].tolist()} is not finite: every action "
+                    f"vector must be a real point of the action space."
+                )
+        one_hot = check_bool("one_hot", one_hot)
+        if not isinstance(action_key, (str, tuple)) or (
+            isinstance(action_key, tuple)
+            and not (action_key and all(isinstance(k, str) for k in action_key))
+        ):
+            raise TypeError(
+                f"action_key must be a string or a tuple of strings, got {action_key!r}."
+            )
         super().__init__(in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.action_key = action_key
         self.counts = counts
@@ -230,19 +252,34 @@ class DiscretizeAction(Transform):
                     [ 2.]])
         """
         self._ensure_built()
+        check_tensor("action", action, hint="Pass the policy's discrete action tensor.")
         if self.mode == "joint":
-            index = _argmax(action) if self.one_hot else action
-            self._check_range(index, self.table.shape[0])
-            return self.table[index.long()]
+            n = self.table.shape[0]
+            index = _one_hot_index(action, n) if self.one_hot else _as_index(action)
+            self._check_range(index, n)
+            return self.table[index]
+        sizes = [v.numel() for v in self.values]
         if self.one_hot:
-            chunks = action.split([v.numel() for v in self.values], dim=-1)
-            index = torch.stack([_argmax(chunk) for chunk in chunks], -1)
+            if action.ndim == 0 or action.shape[-1] != sum(sizes):
+                raise ValueError(
+                    f"Per-dimension one-hot actions have {sum(sizes)} columns ({sizes} per "
+                    f"dimension), got shape {tuple(action.shape)}."
+                )
+            chunks = action.split(sizes, dim=-1)
+            index = torch.stack(
+                [_one_hot_index(c, n) for c, n in zip(chunks, sizes, strict=True)], -1
+            )
         else:
-            index = action
+            index = _as_index(action)
+            if index.ndim == 0 or index.shape[-1] != len(sizes):
+                raise ValueError(
+                    f"Per-dimension actions hold one index per dimension ([*B, {len(sizes)}]), "
+                    f"got shape {tuple(action.shape)}."
+                )
         columns = []
         for k, values in enumerate(self.values):
             self._check_range(index[..., k], values.numel())
-            columns.append(values.to(self.table.device)[index[..., k].long()])
+            columns.append(values.to(self.table.device)[index[..., k]])
         return torch.stack(columns, -1)
 
     def to_index(self, action: torch.Tensor) -> torch.Tensor:
@@ -258,9 +295,14 @@ class DiscretizeAction(Transform):
             ``[*B]`` indices in joint mode, ``[*B, d]`` per dimension.
         """
         self._ensure_built()
+        check_tensor("action", action, hint="Pass continuous actions as a tensor.")
         if action.shape[-1:] != torch.Size([self.n_dims]):
             raise ValueError(
                 f"to_index expects actions of shape [*B, {self.n_dims}], got {tuple(action.shape)}."
+            )
+        if action.is_complex() or not bool(torch.isfinite(action).all()):
+            raise ValueError(
+                "to_index got non-finite actions: NaN or inf has no nearest discrete action."
             )
         scale = (self.high - self.low).clamp_min(1e-12)
         if self.mode == "joint":
@@ -290,6 +332,30 @@ class DiscretizeAction(Transform):
         )
 
 
-def _argmax(one_hot: torch.Tensor) -> torch.Tensor:
-    # One-hot specs sample booleans, which argmax does not take.
-    return one_hot.to(torch.uint8).argmax(-1)
+def _as_index(action: torch.Tensor) -> torch.Tensor:
+    """Integer indices; floats only when they are whole numbers (never truncated)."""
+    if action.dtype == torch.bool or action.is_complex():
+        raise TypeError(f"Discrete actions must be integer indices, got dtype {action.dtype}.")
+    if action.is_floating_point():
+        whole = torch.isfinite(action) & (action == action.round())
+        if not bool(whole.all()):
+            raise ValueError(
+                f"Discrete actions must be whole numbers, got {action[~whole][0].item()!r}: an "
+                f"index is never rounded. Pass the policy's integer action."
+            )
+    return action.long()
+
+
+def _one_hot_index(one_hot: torch.Tensor, n: int) -> torch.Tensor:
+    """The index of each one-hot row; rows that are not exactly one-hot are refused."""
+    if one_hot.ndim == 0 or one_hot.shape[-1] != n:
+        raise ValueError(f"One-hot actions have {n} columns, got shape {tuple(one_hot.shape)}.")
+    # One-hot specs sample booleans, which comparisons and argmax treat as 0/1.
+    values = one_hot.to(torch.float64) if one_hot.dtype == torch.bool else one_hot
+    valid = ((values == 0) | (values == 1)).all(-1) & (values.sum(-1) == 1)
+    if not bool(valid.all()):
+        row = values[~valid][0]
+        raise ValueError(
+            f"One-hot actions must hold a single 1 and zeros elsewhere, got the row {row.tolist()}."
+        )
+    return values.argmax(-1)

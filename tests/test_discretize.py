@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -198,10 +199,108 @@ def _one_hot(index, counts, mode):
 
 
 class TestDiscretizeActionErrors:
-    @pytest.mark.parametrize("counts", [0, (3, 0), (2, -1), (), 2.5, True])
-    def test_counts_below_one(self, counts):
-        with pytest.raises(ValueError, match="counts must be integers >= 1"):
+    @pytest.mark.parametrize(
+        ("counts", "match"),
+        [
+            (0, r"counts\[0\] must be an integer >= 1"),
+            ((3, 0), r"counts\[1\] must be"),
+            ((2, -1), r"counts\[1\] must be"),
+            ((), "at least one integer"),
+        ],
+    )
+    def test_counts_below_one(self, counts, match):
+        with pytest.raises(ValueError, match=match):
             DiscretizeAction(counts=counts)
+
+    @pytest.mark.parametrize("counts", [2.5, True, "3", (3, 2.0)])
+    def test_counts_that_are_not_integers(self, counts):
+        with pytest.raises(TypeError, match=r"counts\[\d\] must be an integer"):
+            DiscretizeAction(counts=counts)
+
+    def test_numpy_counts(self):
+        transform = DiscretizeAction(counts=np.array([3, 2]))
+        _bound(transform)
+        assert transform.table.shape == (6, 2)
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_table_that_is_not_finite(self, bad):
+        with pytest.raises(ValueError, match=r"actions row 1 .* is not finite"):
+            DiscretizeAction(actions=[[0.0, 0.0], [bad, 0.5]])
+
+    def test_table_of_strings(self):
+        with pytest.raises(TypeError, match=r"actions must be an \[N, action_dim\] table"):
+            DiscretizeAction(actions=[["left", "right"]])
+
+    @pytest.mark.parametrize(
+        ("kwargs", "match"),
+        [
+            ({"one_hot": 1}, "one_hot must be True or False"),
+            ({"action_key": 3}, "action_key must be a string or a tuple of strings"),
+            ({"action_key": ()}, "action_key must be a string or a tuple of strings"),
+        ],
+    )
+    def test_bad_options(self, kwargs, match):
+        with pytest.raises(TypeError, match=match):
+            DiscretizeAction(counts=3, **kwargs)
+
+    @pytest.mark.parametrize("index", [torch.tensor([1.5]), torch.tensor([float("nan")])])
+    def test_fractional_index(self, index):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(ValueError, match="Discrete actions must be whole numbers"):
+            transform.to_continuous(index)
+
+    def test_whole_float_index(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        torch.testing.assert_close(
+            transform.to_continuous(torch.tensor([4.0])), transform.to_continuous(torch.tensor([4]))
+        )
+
+    def test_boolean_index(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(TypeError, match=r"must be integer indices, got dtype torch\.bool"):
+            transform.to_continuous(torch.tensor([True]))
+
+    @pytest.mark.parametrize(
+        "row", [[0, 0, 0, 0], [1, 1, 0, 0], [0.5, 0.5, 0, 0], [2, 0, 0, 0], [-1, 1, 1, 0]]
+    )
+    def test_row_that_is_not_one_hot(self, row):
+        transform = DiscretizeAction(counts=(2, 2), one_hot=True)
+        _bound(transform)
+        with pytest.raises(ValueError, match="must hold a single 1 and zeros elsewhere"):
+            transform.to_continuous(torch.tensor([row], dtype=torch.float32))
+
+    def test_one_hot_of_the_wrong_width(self):
+        transform = DiscretizeAction(counts=(2, 2), one_hot=True)
+        _bound(transform)
+        with pytest.raises(ValueError, match=r"One-hot actions have 4 columns, got shape \(1, 3\)"):
+            transform.to_continuous(torch.tensor([[0, 1, 0]], dtype=torch.bool))
+
+    def test_per_dim_row_that_is_not_one_hot(self):
+        transform = DiscretizeAction(counts=(2, 3), mode="per_dim", one_hot=True)
+        _bound(transform)
+        with pytest.raises(ValueError, match="single 1 and zeros elsewhere"):
+            transform.to_continuous(torch.tensor([[1, 0, 0, 0, 0]], dtype=torch.bool))
+
+    def test_per_dim_index_of_the_wrong_width(self):
+        transform = DiscretizeAction(counts=(2, 3), mode="per_dim")
+        _bound(transform)
+        with pytest.raises(ValueError, match=r"one index per dimension \(\[\*B, 2\]\)"):
+            transform.to_continuous(torch.tensor([[1, 0, 2]]))
+
+    def test_non_finite_continuous_action(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(ValueError, match="to_index got non-finite actions"):
+            transform.to_index(torch.tensor([[0.0, float("nan")]]))
+
+    def test_mapping_something_that_is_not_a_tensor(self):
+        transform = DiscretizeAction(counts=3)
+        _bound(transform)
+        with pytest.raises(TypeError, match=r"action must be a torch\.Tensor"):
+            transform.to_continuous([0, 1])
 
     def test_neither_counts_nor_actions(self):
         with pytest.raises(ValueError, match=r"exactly one of counts= .* or actions="):
