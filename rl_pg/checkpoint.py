@@ -1,31 +1,104 @@
-"""Checkpoints that are written atomically and fail loudly when they cannot be used."""
+"""Checkpoints that are written atomically, carry a checksum, and fail loudly when they
+cannot be used.
+
+A checkpoint file is a short header followed by the ``torch.save`` bytes of the state::
+
+    b"RLPGCKPT" | format (4 bytes, little endian) | SHA-256 of the payload | payload
+
+[`load_checkpoint`][rl_pg.checkpoint.load_checkpoint] recomputes the digest before it
+unpickles anything, so a file damaged on disk (a flipped byte, a truncated copy) is an
+error instead of weights that load and play wrong.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import pickle
 import tempfile
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["FORMAT", "CheckpointError", "load_checkpoint", "save_checkpoint"]
+__all__ = [
+    "FORMAT",
+    "CheckpointError",
+    "clean_temporary_files",
+    "load_checkpoint",
+    "save_checkpoint",
+    "write_atomically",
+]
 
-FORMAT = 1
+FORMAT = 2
 """Version of the checkpoint layout; bumped when it changes incompatibly."""
+_MAGIC = b"RLPGCKPT"
+_HEADER = len(_MAGIC) + 4 + hashlib.sha256().digest_size
+_TEMPORARY_SUFFIX = ".rl_pg-tmp"
 
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, corrupted, or belongs to another run configuration."""
 
 
-def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
-    """Writes ``state`` to ``path`` atomically: a temporary file, fsync, then a rename.
+def write_atomically(path: str | Path, data: bytes | str) -> Path:
+    """Replaces ``path`` by ``data`` so that a reader, or a process killed half-way,
+    sees the old file or the new one, never a torn one.
 
-    A reader (or a run killed half-way through the write) sees either the previous
-    checkpoint or the new one, never a torn file.
+    The bytes go to a temporary file in the same directory, are flushed to disk, then
+    renamed over ``path`` (a rename within a file system is atomic).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.checkpoint import write_atomically
+        >>> path = write_atomically(Path(tempfile.mkdtemp()) / "summary.json", "{}")
+        >>> path.read_text()
+        '{}'
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(data, str):
+        data = data.encode()
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=_TEMPORARY_SUFFIX)
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(data)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    if hasattr(os, "O_DIRECTORY"):  # make the rename itself durable (POSIX)
+        directory = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+    return path
+
+
+def clean_temporary_files(directory: str | Path) -> list[Path]:
+    """Deletes what writes killed half-way left in ``directory`` (recursively).
+
+    Only call this while no other process writes there (e.g. under a run's lock).
+
+    Returns:
+        The files removed.
+    """
+    removed = []
+    for tmp in Path(directory).rglob(f".*{_TEMPORARY_SUFFIX}"):
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
+    """Writes ``state`` to ``path`` atomically, with a checksum of its contents.
 
     Examples:
         >>> import tempfile, torch
@@ -36,48 +109,84 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
         >>> load_checkpoint(path)["frames"]
         10
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as file:
-            torch.save({**state, "format": FORMAT}, file)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)  # make the rename itself durable
-    finally:
-        os.close(directory)
-    return path
+    buffer = io.BytesIO()
+    torch.save({**state, "format": FORMAT}, buffer)
+    payload = buffer.getvalue()
+    header = _MAGIC + FORMAT.to_bytes(4, "little") + hashlib.sha256(payload).digest()
+    return write_atomically(path, header + payload)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Reads a checkpoint written by [`save_checkpoint`][rl_pg.checkpoint.save_checkpoint].
+    """Reads and verifies a checkpoint written by
+    [`save_checkpoint`][rl_pg.checkpoint.save_checkpoint].
 
     Raises:
-        CheckpointError: when the file is missing or cannot be read; the file is left
-            untouched.
+        CheckpointError: when the file is missing, is not an rl_pg checkpoint, has
+            another format, or its contents do not match its checksum; the file is
+            left untouched.
+
+    Examples:
+        >>> import tempfile, torch
+        >>> from pathlib import Path
+        >>> from rl_pg.checkpoint import load_checkpoint, save_checkpoint
+        >>> path = save_checkpoint({"w": torch.zeros(4)}, Path(tempfile.mkdtemp()) / "c.pt")
+        >>> data = bytearray(path.read_bytes())
+        >>> data[-20] ^= 0xFF  # one damaged byte
+        >>> _ = path.write_bytes(bytes(data))
+        >>> load_checkpoint(path)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        rl_pg.checkpoint.CheckpointError: The checkpoint ... is corrupted: ...
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"No checkpoint at {path}.")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as err:
+    data = path.read_bytes()
+    if not data.startswith(_MAGIC):
+        return _load_unverified(path)
+    if len(data) < _HEADER:
+        _raise_corrupted(path, "the file is shorter than its header")
+    version = int.from_bytes(data[len(_MAGIC) : len(_MAGIC) + 4], "little")
+    if version != FORMAT:
         raise CheckpointError(
-            f"The checkpoint {path} is corrupted and cannot be read ({err}). It was left as "
-            f"it is; restore it from a backup, or start a new run in another --run-dir."
-        ) from err
-    if not isinstance(state, dict) or "format" not in state:
-        raise CheckpointError(f"{path} is not an rl_pg checkpoint.")
-    if state["format"] != FORMAT:
+            f"{path} has checkpoint format {version}, this rl_pg reads format {FORMAT}. "
+            f"Resume it with the rl_pg version that wrote it."
+        )
+    digest, payload = data[len(_MAGIC) + 4 : _HEADER], data[_HEADER:]
+    if hashlib.sha256(payload).digest() != digest:
+        _raise_corrupted(path, "its contents do not match the checksum written with them")
+    return _unpickle(path, io.BytesIO(payload))
+
+
+def _load_unverified(path: Path) -> dict[str, Any]:
+    """Format 1 (before checksums): a bare ``torch.save`` of the state."""
+    state = _unpickle(path, path)
+    if state.get("format") != 1:
         raise CheckpointError(
             f"{path} has checkpoint format {state['format']}, this rl_pg reads format "
             f"{FORMAT}. Resume it with the rl_pg version that wrote it."
         )
+    warnings.warn(
+        f"{path} was written before checkpoints carried a checksum (format 1): it loads, "
+        f"but its integrity cannot be verified. It is rewritten in format {FORMAT} at the "
+        f"next checkpoint of a resumed run.",
+        stacklevel=3,
+    )
     return state
+
+
+def _unpickle(path: Path, source) -> dict[str, Any]:
+    try:
+        state = torch.load(source, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as err:
+        _raise_corrupted(path, f"it cannot be read ({err})", err)
+    if not isinstance(state, dict) or "format" not in state:
+        raise CheckpointError(f"{path} is not an rl_pg checkpoint.")
+    return state
+
+
+def _raise_corrupted(path: Path, why: str, cause: BaseException | None = None):
+    raise CheckpointError(
+        f"The checkpoint {path} is corrupted: {why}. It was left as it is; restore it "
+        f"from a backup, or start a new run in another --run-dir."
+    ) from cause

@@ -117,6 +117,8 @@ class _MonteCarloReturn(ValueEstimatorBase):
                     detach_next=True,
                     vmap_randomness=self.vmap_randomness,
                 )
+        if value is not None:
+            self._check_value_shape(value, tensordict)
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
             value_target = self.value_estimate(tensordict, next_value=next_value)
             advantage = value_target if value is None else value_target - value
@@ -149,6 +151,16 @@ class _MonteCarloReturn(ValueEstimatorBase):
             terminated=terminated,
             next_value=next_value,
         )
+
+    def _check_value_shape(self, value: torch.Tensor, tensordict: TensorDictBase) -> None:
+        reward = self._read(tensordict, ("next", self.tensor_keys.reward))
+        if value.shape != reward.shape:
+            raise ValueError(
+                f"The value network writes {self.tensor_keys.value!r} of shape "
+                f"{tuple(value.shape)}, but the rewards are {tuple(reward.shape)}: it must "
+                f"write one value per step, shaped like the reward (e.g. a final layer "
+                f"with out_features=1, without squeezing it)."
+            )
 
     @staticmethod
     def _read(tensordict: TensorDictBase, key) -> torch.Tensor:

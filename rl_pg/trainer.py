@@ -21,6 +21,7 @@ time and resumed ends exactly as the uninterrupted run with the same seed would.
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import os
@@ -43,10 +44,16 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
 from tqdm import tqdm
 
-from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rl_pg.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+    write_atomically,
+)
 from rl_pg.evaluation import evaluate
 from rl_pg.functional import discounted_return
 from rl_pg.loss import ReinforceLoss
+from rl_pg.run_dir import RunDirectory
 
 __all__ = ["TrainConfig", "TrainingDiverged", "load_models", "read_run", "train"]
 
@@ -190,8 +197,11 @@ def train(
         The summary written to ``run_dir/summary.json``.
 
     Raises:
-        CheckpointError: a fresh run in a directory that has a checkpoint, or a resume
-            from a missing, corrupted or incompatible one (nothing is overwritten).
+        CheckpointError: a fresh run in a directory that already holds a run, a resume
+            from a missing, corrupted or incompatible checkpoint, or one whose budget
+            (``total_frames`` / ``total_updates``) is already spent (nothing is
+            overwritten).
+        RunDirBusy: another process is running in ``run_dir``.
         TrainingDiverged: the loss or gradient became non-finite.
         ValueError: an invalid configuration (the message names the field).
 
@@ -217,86 +227,91 @@ def train(
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)
     checkpoint_path = run_dir / CHECKPOINT
-    saved = _open_run_dir(cfg, recipe, run_dir, checkpoint_path)
-    _seed_everything(cfg.seed)
+    # Held until the run ends, however it ends: one run per directory at a time.
+    with RunDirectory(run_dir) as directory:
+        saved = _open_run_dir(cfg, recipe, directory, checkpoint_path)
+        if saved is not None:
+            directory.keep()
+        _seed_everything(cfg.seed)
 
-    env = make_env()
-    actor, critic = make_models(env)
-    loss = _make_loss(cfg, actor, critic)
-    _warm_up(loss, env)
-    optimizer = _make_optimizer(cfg, loss)
-    state = _State()
-    if saved is not None:
-        state = _restore(saved, loss, optimizer, checkpoint_path)
-    eval_env = (make_eval_env or make_env)()
-    collector, sync_weights = _make_collector(cfg, env, make_env, actor, state)
-    logger = _make_logger(cfg, run_dir, state)
+        env = make_env()
+        actor, critic = make_models(env)
+        loss = _make_loss(cfg, actor, critic)
+        _warm_up(loss, env)
+        optimizer = _make_optimizer(cfg, loss)
+        state = _State()
+        if saved is not None:
+            state = _restore(saved, loss, optimizer, checkpoint_path)
+        eval_env = (make_eval_env or make_env)()
+        collector, sync_weights = _make_collector(cfg, env, make_env, actor, state)
+        logger = _make_logger(cfg, run_dir, state)
 
-    progress = tqdm(
-        total=cfg.total_frames,
-        initial=state.frames,
-        unit="frames",
-        disable=None if cfg.progress else True,  # None: shown on terminals only
-    )
-    next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
-    collector_frames = 0
-    episode_returns = _EpisodeReturns(carry=cfg.batch_mode == "segments")
-    try:
-        start = time.perf_counter()
-        for batch in collector:
-            metrics = _update(cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames))
-            episode_returns.add(batch)
-            state.updates += 1
-            collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
-            state.frames += spent
-            if sync_weights is not None:
-                sync_weights()
-            elif cfg.batch_mode == "episodes":
-                _restart_episodes(collector, cfg.seed, state.updates)
-            if state.updates % cfg.log_interval == 0:
-                metrics["train/episode_return"] = episode_returns.pop_mean()
-                for name, value in metrics.items():
-                    if math.isfinite(value):
-                        logger.log_scalar(name, value, step=state.frames)
-                        state.record(name, state.frames, value)
-                progress.set_postfix(
-                    train=f"{metrics['train/episode_return']:.2f}",
-                    eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
-                    refresh=False,
-                )
-            progress.update(spent)
-            done = state.frames >= cfg.total_frames or (
-                cfg.total_updates is not None and state.updates >= cfg.total_updates
-            )
-            if state.frames >= next_eval or done:
-                state.train_time += time.perf_counter() - start
-                next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
-                _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
-                solved = cfg.threshold is not None and (
-                    state.last_eval["eval/mean_return"] >= cfg.threshold
-                )
-                if solved and state.solved_at_frames is None:
-                    state.solved_at_frames = state.frames
-                done = done or (solved and cfg.stop_when_solved)
-                start = time.perf_counter()
-            if done or state.updates % cfg.checkpoint_interval == 0:
-                state.train_time += time.perf_counter() - start
-                _save(cfg, recipe, loss, optimizer, state, checkpoint_path)
-                start = time.perf_counter()
-                if cfg.batch_mode == "segments" and cfg.workers == 1 and not cfg.ray:
-                    # A resumed run restarts its environments here; so does this one.
+        progress = tqdm(
+            total=cfg.total_frames,
+            initial=state.frames,
+            unit="frames",
+            disable=None if cfg.progress else True,  # None: shown on terminals only
+        )
+        next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
+        collector_frames = 0
+        episode_returns = _EpisodeReturns(carry=cfg.batch_mode == "segments")
+        try:
+            start = time.perf_counter()
+            for batch in collector:
+                metrics = _update(cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames))
+                episode_returns.add(batch)
+                state.updates += 1
+                collector_frames, spent = _frames_spent(cfg, collector, batch, collector_frames)
+                state.frames += spent
+                if sync_weights is not None:
+                    sync_weights()
+                elif cfg.batch_mode == "episodes":
                     _restart_episodes(collector, cfg.seed, state.updates)
-                    episode_returns.reset()
-            if done:
-                break
-    finally:
-        progress.close()
-        collector.shutdown()
-        eval_env.close()
-    summary = _summary(cfg, recipe, state, run_dir)
-    (run_dir / SUMMARY).write_text(json.dumps(summary, indent=2))
-    _plot(state, cfg.threshold, run_dir / CURVE, recipe)
-    return summary
+                if state.updates % cfg.log_interval == 0:
+                    metrics["train/episode_return"] = episode_returns.pop_mean()
+                    for name, value in metrics.items():
+                        if math.isfinite(value):
+                            logger.log_scalar(name, value, step=state.frames)
+                            state.record(name, state.frames, value)
+                    progress.set_postfix(
+                        train=f"{metrics['train/episode_return']:.2f}",
+                        eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
+                        refresh=False,
+                    )
+                progress.update(spent)
+                done = state.frames >= cfg.total_frames or (
+                    cfg.total_updates is not None and state.updates >= cfg.total_updates
+                )
+                if state.frames >= next_eval or done:
+                    state.train_time += time.perf_counter() - start
+                    next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
+                    _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
+                    solved = cfg.threshold is not None and (
+                        state.last_eval["eval/mean_return"] >= cfg.threshold
+                    )
+                    if solved and state.solved_at_frames is None:
+                        state.solved_at_frames = state.frames
+                    done = done or (solved and cfg.stop_when_solved)
+                    start = time.perf_counter()
+                if done or state.updates % cfg.checkpoint_interval == 0:
+                    state.train_time += time.perf_counter() - start
+                    _save(cfg, recipe, loss, optimizer, state, checkpoint_path)
+                    directory.keep()
+                    start = time.perf_counter()
+                    if cfg.batch_mode == "segments" and cfg.workers == 1 and not cfg.ray:
+                        # A resumed run restarts its environments here; so does this one.
+                        _restart_episodes(collector, cfg.seed, state.updates)
+                        episode_returns.reset()
+                if done:
+                    break
+        finally:
+            progress.close()
+            collector.shutdown()
+            eval_env.close()
+        summary = _summary(cfg, recipe, state, run_dir)
+        write_atomically(run_dir / SUMMARY, json.dumps(summary, indent=2))
+        _plot(state, cfg.threshold, run_dir / CURVE, recipe)
+        return summary
 
 
 # ----------------------------------------------------------------- building ---
@@ -341,7 +356,8 @@ def _validate(cfg: TrainConfig) -> None:
         )
 
 
-def _open_run_dir(cfg, recipe, run_dir: Path, checkpoint_path: Path) -> dict | None:
+def _open_run_dir(cfg, recipe, directory: RunDirectory, checkpoint_path: Path) -> dict | None:
+    run_dir = directory.path
     if cfg.resume:
         saved = load_checkpoint(checkpoint_path)
         if saved.get("recipe") != recipe:
@@ -361,14 +377,37 @@ def _open_run_dir(cfg, recipe, run_dir: Path, checkpoint_path: Path) -> dict | N
                 f"Cannot resume {checkpoint_path} with a different configuration ({details}). "
                 f"Only {sorted(_RESUMABLE_FIELDS)} may change on resume."
             )
+        _check_budget_left(cfg, saved["state"], run_dir)
         return saved
     if checkpoint_path.exists():
         raise CheckpointError(
             f"{run_dir} already holds a checkpoint; pass --resume to continue it, or choose "
             f"another --run-dir. Nothing was overwritten."
         )
-    run_dir.mkdir(parents=True, exist_ok=True)
+    if directory.contents():
+        # A run that died before its first checkpoint: its logs would interleave with ours.
+        raise CheckpointError(
+            f"{run_dir} holds {directory.contents()} but no checkpoint (a run that stopped "
+            f"before its first checkpoint?). Delete it or choose another --run-dir; nothing "
+            f"was overwritten."
+        )
     return None
+
+
+def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
+    """A resumed run must have something left to do: it never trains past its budget."""
+    if state["frames"] >= cfg.total_frames:
+        raise CheckpointError(
+            f"The run in {run_dir} has already trained {state['frames']} frames, and "
+            f"total_frames={cfg.total_frames} asks for no more. Raise --total-frames above "
+            f"{state['frames']} to continue it."
+        )
+    if cfg.total_updates is not None and state["updates"] >= cfg.total_updates:
+        raise CheckpointError(
+            f"The run in {run_dir} has already made {state['updates']} updates, and "
+            f"total_updates={cfg.total_updates} asks for no more. Raise --total-updates "
+            f"above {state['updates']} to continue it."
+        )
 
 
 def _new_run_dir(recipe: str, seed: int) -> Path:
@@ -494,12 +533,27 @@ class _Loggers:
 
 
 def _trim_csv_logs(log_dir: Path, frames: int) -> None:
-    """Drops the rows a killed run logged after its last checkpoint (they are redone)."""
+    """Drops the rows a killed run logged after its last checkpoint (they are redone).
+
+    Each file is replaced atomically: a run killed while trimming leaves the file as
+    it was, and the next resume trims it again. A row cut short by the kill (no
+    newline, or not two numbers) is dropped with the rest.
+    """
     for path in log_dir.glob("csv/scalars/**/*.csv"):
-        rows = [row for row in path.read_text().splitlines() if row]
-        kept = [row for row in rows if int(float(row.split(",")[0])) <= frames]
-        if len(kept) != len(rows):
-            path.write_text("".join(f"{row}\n" for row in kept))
+        text = path.read_text()
+        rows = text.split("\n")[:-1]  # what follows the last newline is a torn row
+        kept = [row for row in rows if (step := _csv_step(row)) is not None and step <= frames]
+        if len(kept) != len(rows) or not text.endswith("\n"):
+            write_atomically(path, "".join(f"{row}\n" for row in kept))
+
+
+def _csv_step(row: str) -> float | None:
+    fields = row.split(",")
+    try:
+        step, value = (float(field) for field in fields) if len(fields) == 2 else (None, None)
+    except ValueError:
+        return None
+    return step if value is not None else None
 
 
 # -------------------------------------------------------------------- steps ---
@@ -759,5 +813,7 @@ def _plot(state: _State, threshold: float | None, path: Path, title: str) -> Non
     ax.set(xlabel="frames", ylabel="episode return", title=title)
     ax.legend(loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=100)
     plt.close(fig)
+    write_atomically(path, image.getvalue())

@@ -5,7 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rl_pg.checkpoint import (
+    CheckpointError,
+    clean_temporary_files,
+    load_checkpoint,
+    save_checkpoint,
+    write_atomically,
+)
 
 
 class TestCheckpoint:
@@ -25,13 +31,59 @@ class TestCheckpoint:
         assert load_checkpoint(path)["a"] == 1
         assert [p.name for p in tmp_path.iterdir()] == ["c.pt"]
 
-    def test_corrupted(self, tmp_path):
+    def test_truncated(self, tmp_path):
         path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 2])
-        with pytest.raises(CheckpointError, match="is corrupted and cannot be read"):
+        with pytest.raises(CheckpointError, match="is corrupted: its contents do not match"):
             load_checkpoint(path)
         assert path.read_bytes() == data[: len(data) // 2]  # left as it was
+
+    @pytest.mark.parametrize("where", ["start of the weights", "middle", "last byte"])
+    def test_sixteen_overwritten_bytes_in_the_payload(self, tmp_path, where):
+        # The weights deserialise fine when overwritten: only the checksum notices.
+        path = save_checkpoint({"weights": torch.arange(1000.0)}, tmp_path / "c.pt")
+        data = bytearray(path.read_bytes())
+        weights_at = data.find(torch.arange(1000.0).numpy().tobytes()[:64])
+        offset = {"start of the weights": weights_at, "middle": len(data) // 2}.get(
+            where, len(data) - 16
+        )
+        data[offset : offset + 16] = bytes(16)
+        path.write_bytes(bytes(data))
+        with pytest.raises(CheckpointError, match="do not match the checksum"):
+            load_checkpoint(path)
+
+    def test_damaged_header(self, tmp_path):
+        path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
+        data = bytearray(path.read_bytes())
+        data[12:20] = bytes(8)  # inside the stored digest
+        path.write_bytes(bytes(data))
+        with pytest.raises(CheckpointError, match="do not match the checksum"):
+            load_checkpoint(path)
+
+    def test_file_shorter_than_its_header(self, tmp_path):
+        path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
+        path.write_bytes(path.read_bytes()[:20])
+        with pytest.raises(CheckpointError, match="shorter than its header"):
+            load_checkpoint(path)
+
+    def test_checkpoint_of_another_format_version(self, tmp_path):
+        path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
+        data = bytearray(path.read_bytes())
+        data[8:12] = (7).to_bytes(4, "little")
+        path.write_bytes(bytes(data))
+        with pytest.raises(CheckpointError, match="has checkpoint format 7, this rl_pg reads"):
+            load_checkpoint(path)
+
+    def test_checkpoint_written_before_checksums_loads_with_a_warning(self, tmp_path):
+        torch.save({"format": 1, "a": 1}, tmp_path / "old.pt")
+        with pytest.warns(UserWarning, match="before checkpoints carried a checksum"):
+            assert load_checkpoint(tmp_path / "old.pt")["a"] == 1
+
+    def test_garbage(self, tmp_path):
+        (tmp_path / "c.pt").write_bytes(b"not a checkpoint at all")
+        with pytest.raises(CheckpointError, match="is corrupted: it cannot be read"):
+            load_checkpoint(tmp_path / "c.pt")
 
     def test_missing(self, tmp_path):
         with pytest.raises(CheckpointError, match="No checkpoint at"):
@@ -46,3 +98,20 @@ class TestCheckpoint:
         torch.save({"format": 99}, tmp_path / "future.pt")
         with pytest.raises(CheckpointError, match="has checkpoint format 99"):
             load_checkpoint(tmp_path / "future.pt")
+
+
+class TestTemporaryFiles:
+    def test_a_killed_write_leaves_only_a_temporary_file_that_is_cleaned(self, tmp_path):
+        save_checkpoint({"a": 1}, tmp_path / "c.pt")
+        (tmp_path / ".c.pt.abc123.rl_pg-tmp").write_bytes(b"half a checkpoint")
+        (tmp_path / "logs").mkdir()
+        (tmp_path / "logs" / ".x.csv.q1.rl_pg-tmp").write_text("1,2\n")
+        removed = clean_temporary_files(tmp_path)
+        assert sorted(p.name for p in removed) == [".c.pt.abc123.rl_pg-tmp", ".x.csv.q1.rl_pg-tmp"]
+        assert sorted(p.name for p in tmp_path.rglob("*")) == ["c.pt", "logs"]
+
+    def test_write_atomically_replaces_the_whole_file(self, tmp_path):
+        path = write_atomically(tmp_path / "a.txt", "first, longer text")
+        write_atomically(path, b"second")
+        assert path.read_bytes() == b"second"
+        assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import N_ACT, make_batch, make_critic
+from tensordict.nn import TensorDictModule
 
 from rl_pg import DiscountedReturn, RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
@@ -109,6 +110,13 @@ class TestMonteCarloEstimators:
     def test_time_dim_that_is_not_an_integer(self, cls, fn, time_dim):
         with pytest.raises(TypeError, match="time_dim must be an integer or None"):
             cls(gamma=0.9, time_dim=time_dim)
+
+    def test_value_network_output_without_the_value_dimension(self, cls, fn, batch):
+        squeezed = TensorDictModule(
+            lambda obs: obs.sum(-1), in_keys=["observation"], out_keys=["state_value"]
+        )
+        with pytest.raises(ValueError, match=r"writes 'state_value' of shape \(3, 9\)"):
+            cls(gamma=0.9, value_network=squeezed)(batch)
 
     def test_value_network_that_is_not_a_tensordict_module(self, cls, fn):
         with pytest.raises(TypeError, match="value_network must be a TensorDictModule"):

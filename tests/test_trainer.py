@@ -16,13 +16,15 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor, mlp_critic
-from rl_pg.trainer import TrainConfig, TrainingDiverged, _EpisodeReturns, train
+from rl_pg.run_dir import RunDirBusy
+from rl_pg.trainer import TrainConfig, TrainingDiverged, _EpisodeReturns, read_run, train
 
 
 def make_grid():
@@ -276,3 +278,139 @@ def test_training_episode_returns_are_summed_across_segments():
         tracker.add(batch)
     assert tracker.pop_mean() == pytest.approx(sum(expected) / len(expected), rel=1e-5)
     assert math.isnan(tracker.pop_mean())  # nothing ended since the last call
+
+
+_HOLD_THE_LOCK = textwrap.dedent(
+    """
+    import sys, time
+    from rl_pg.run_dir import RunDirectory
+    with RunDirectory({run!r}):
+        print("locked", flush=True)
+        time.sleep(60)
+    """
+)
+
+
+class TestNothingIsLost:
+    def test_a_second_run_on_the_same_directory_is_refused(self, tmp_path):
+        run = tmp_path / "run"
+        holder = subprocess.Popen(
+            [sys.executable, "-c", _HOLD_THE_LOCK.format(run=str(run))],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert holder.stdout.readline().strip() == "locked"
+            with pytest.raises(
+                RunDirBusy, match=f"in use by another run \\(process {holder.pid}\\)"
+            ):
+                _train(_cfg(tmp_path))
+            assert not (run / "checkpoint.pt").exists()
+        finally:
+            holder.kill()
+            holder.wait()
+        # The holder died without unlocking: the kernel released its lock.
+        assert _train(_cfg(tmp_path))["updates"] == 6
+
+    def test_fresh_run_beside_the_leftovers_of_a_dead_one_is_refused(self, tmp_path):
+        logs = tmp_path / "run" / "logs" / "csv" / "scalars" / "train"
+        logs.mkdir(parents=True)
+        (logs / "episode_return.csv").write_text("64,1.0\n")
+        with pytest.raises(CheckpointError, match=r"holds \['logs'\] but no checkpoint"):
+            _train(_cfg(tmp_path))
+        assert (logs / "episode_return.csv").read_text() == "64,1.0\n"
+
+    def test_a_run_that_fails_while_starting_leaves_no_directory(self, tmp_path):
+        def broken_models(env):
+            raise RuntimeError("no GPU here")
+
+        with pytest.raises(RuntimeError, match="no GPU here"):
+            train(_cfg(tmp_path), recipe="grid", make_env=make_grid, make_models=broken_models)
+        assert not (tmp_path / "run").exists()
+
+    def test_a_run_that_fails_at_its_first_update_leaves_no_directory(self, tmp_path):
+        def models_without_trailing_value_dim(env):
+            actor, _ = make_grid_models(env)
+            flat = TensorDictModule(_Flatten(), ["observation"], ["state_value"])
+            return actor, flat
+
+        with pytest.raises(ValueError, match=r"writes 'state_value' of shape \(8, 2\)"):
+            train(
+                _cfg(tmp_path),
+                recipe="grid",
+                make_env=make_grid,
+                make_models=models_without_trailing_value_dim,
+            )
+        assert not (tmp_path / "run").exists()
+        assert _train(_cfg(tmp_path))["updates"] == 6  # the directory can be used at once
+
+    def test_stale_temporary_files_are_removed(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        stale = tmp_path / "run" / ".checkpoint.pt.x1y2.rl_pg-tmp"
+        stale.write_bytes(b"half a checkpoint")
+        _train(_cfg(tmp_path, total_updates=4, resume=True))
+        assert not stale.exists()
+
+    @pytest.mark.parametrize(
+        ("override", "match"),
+        [
+            ({"total_updates": 4}, "already made 4 updates, and total_updates=4"),
+            ({"total_updates": None, "total_frames": 50}, "already trained .* total_frames=50"),
+        ],
+    )
+    def test_resume_with_no_budget_left_is_refused(self, tmp_path, override, match):
+        _train(_cfg(tmp_path, total_updates=4))
+        before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
+        with pytest.raises(CheckpointError, match=match):
+            _train(_cfg(tmp_path, resume=True, **override))
+        assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
+
+    def test_a_corrupted_checkpoint_is_never_resumed(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=2))
+        path = tmp_path / "run" / "checkpoint.pt"
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2 : len(data) // 2 + 16] = bytes(16)
+        path.write_bytes(bytes(data))
+        with pytest.raises(CheckpointError, match="do not match the checksum"):
+            _train(_cfg(tmp_path, total_updates=4, resume=True))
+        with pytest.raises(CheckpointError, match="do not match the checksum"):
+            read_run(tmp_path / "run")
+
+    def test_torn_and_extra_log_rows_are_trimmed_on_resume(self, tmp_path):
+        straight = _train(_cfg(tmp_path, run_dir=tmp_path / "straight", log_interval=1))
+        _train(_cfg(tmp_path, total_updates=4, log_interval=1))
+        csv = tmp_path / "run" / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+        # What a run killed after its checkpoint leaves: rows past it, a row cut short.
+        csv.write_text(csv.read_text() + "999999,0.5\n9999")
+        _train(_cfg(tmp_path, total_updates=6, resume=True, log_interval=1))
+        expected = tmp_path / "straight" / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+        assert csv.read_text() == expected.read_text()
+        assert straight["updates"] == 6
+
+    def test_a_run_killed_while_trimming_its_logs_leaves_them_whole(self, tmp_path, monkeypatch):
+        _train(_cfg(tmp_path, total_updates=4, log_interval=1))
+        csv = tmp_path / "run" / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+        untrimmed = csv.read_text() + "999999,0.5\n"
+        csv.write_text(untrimmed)
+
+        def killed(*args):  # the process dies just before the trimmed file replaces the old
+            raise KeyboardInterrupt
+
+        with monkeypatch.context() as patch:
+            patch.setattr(os, "replace", killed)
+            with pytest.raises(KeyboardInterrupt):
+                _train(_cfg(tmp_path, total_updates=6, resume=True, log_interval=1))
+        assert csv.read_text() == untrimmed  # whole, not half-written
+        _train(_cfg(tmp_path, total_updates=6, resume=True, log_interval=1))
+        assert "999999" not in csv.read_text()
+
+
+class _Flatten(nn.Module):
+    """A value head that drops the trailing value dimension ([B] instead of [B, 1])."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = nn.Linear(16, 1)
+
+    def forward(self, observation):
+        return self.linear(observation).squeeze(-1)
