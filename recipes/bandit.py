@@ -16,7 +16,7 @@ import json
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
@@ -26,22 +26,22 @@ from torchrl.envs import EnvBase
 from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, Range, TrainConfig, train
 
 
 @dataclass
 class Config(TrainConfig):
     """REINFORCE on a one-step bandit; policy Linear(1, 8)-tanh-Linear(8, A)."""
 
-    arms: int = 100
+    arms: Annotated[int, Range(low=2)] = 100
     """Number of arms."""
-    samples_per_update: int = 1
+    samples_per_update: Count = 1
     """Arms pulled (one-step episodes) per update."""
     compare: bool = False
     """Run no baseline vs running-average baseline on n_seeds seeds and plot them."""
     compare_samples: bool = False
     """Run 1, 4 and 16 samples per update (with the baseline) and plot them."""
-    n_seeds: int = 5
+    n_seeds: Count = 5
     """Seeds per variant for the comparisons."""
     batch_mode: Literal["episodes", "segments"] = "segments"
     """Each update pulls samples_per_update arms at once (one-step segments)."""

@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 
 @dataclass
@@ -30,9 +30,9 @@ class Config(TrainConfig):
 
     env_id: str = "CartPole-v1"
     """Gymnasium environment id."""
-    hidden: int = 64
+    hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
-    num_envs: int = 32
+    num_envs: Count = 32
     """CartPoles stepped together as one batch (1: a single unbatched environment)."""
     total_frames: int = 300_000
     """Environment steps to train for (at most)."""

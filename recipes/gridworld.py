@@ -19,7 +19,7 @@ from torchrl.envs import EnvBase
 from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 # The SPEC's comparison; the tutorial could not combine reward-to-go with a baseline.
 VARIANTS = {
@@ -34,15 +34,15 @@ VARIANTS = {
 class Config(TrainConfig):
     """REINFORCE on a 4x4 gridworld (goal +1, pit -1, -0.1 per step), gamma = 1."""
 
-    hidden: int = 32
+    hidden: Count = 32
     """Width of the hidden layer (obs -> hidden -> 4, ReLU)."""
-    envs: int = 30
+    envs: Count = 30
     """Gridworld copies stepped together."""
-    max_steps: int = 100
+    max_steps: Count = 100
     """Episode truncation horizon."""
     compare: bool = False
     """Run every variant of the SPEC's comparison on n_seeds seeds and plot them."""
-    n_seeds: int = 5
+    n_seeds: Count = 5
     """Seeds per variant with --compare."""
     total_frames: int = 1_000_000
     """Environment steps to train for (at most)."""

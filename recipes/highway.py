@@ -20,7 +20,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.envs import driving_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 
 @dataclass
@@ -29,7 +29,7 @@ class Config(TrainConfig):
 
     env_id: str = "highway-fast-v0"
     """highway-env environment id."""
-    hidden: int = 128
+    hidden: Count = 128
     """Width of the hidden layer (Linear(obs, 128)-ReLU-Linear(128, 9))."""
     total_frames: int = 50_000
     """Agent steps to train for (at most)."""

@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 
 @dataclass
@@ -30,9 +30,9 @@ class Config(TrainConfig):
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))) with a Gaussian policy."""
-    num_envs: int = 8
+    num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
-    hidden: int = 128
+    hidden: Count = 128
     """Width of the two hidden layers of the actor and of the critic."""
     total_frames: int = 1_000_000
     """Environment steps to train for (at most)."""

@@ -25,7 +25,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.envs import driving_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 INSTALL_HINT = (
     "MetaDrive is not installed. It is an optional backend because it downloads its "
@@ -41,7 +41,7 @@ class Config(TrainConfig):
 
     env_id: str = "MetaDrive-validation-v0"
     """MetaDrive gymnasium id."""
-    hidden: int = 128
+    hidden: Count = 128
     """Width of the hidden layer (Linear(obs, 128)-ReLU-Linear(128, 9))."""
     total_frames: int = 2_000_000
     """Agent steps to train for (at most)."""

@@ -11,12 +11,13 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import torch
 import tyro
 
-from rl_pg.evaluation import play
-from rl_pg.trainer import load_models, read_run
+from rl_pg.evaluation import check_recording, play
+from rl_pg.trainer import Count, Positive, Range, check_fields, load_models, read_run
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -27,19 +28,24 @@ class Args:
 
     run: tyro.conf.Positional[Path]
     """Run directory (or checkpoint file) written by a recipe."""
-    episodes: int = 5
+    episodes: Count = 5
     """Episodes to play."""
     sample: bool = False
     """Sample actions from the policy instead of acting greedily."""
     gif: Path | None = None
-    """Record the episodes to this .gif (or .mp4) file; the environment must render."""
-    fps: int = 30
+    """Record the episodes to this .gif (or .mp4, with rl_pg[video]) file."""
+    fps: Positive = 30.0
     """Frames per second of the recording."""
-    seed: int = 0
+    seed: Annotated[int, Range(low=0, high=2**32 - 1)] = 0
     """Seed of the environment and of the sampled actions."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def main(args: Args) -> list[float]:
+    if args.gif is not None:
+        check_recording(args.gif)  # before the checkpoint is loaded and episodes played
     saved = read_run(args.run)
     recipe = importlib.import_module(saved["recipe"])
     fields = {f.name for f in dataclasses.fields(recipe.Config)}

@@ -26,16 +26,16 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 
 from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
-from rl_pg.trainer import TrainConfig, train
+from rl_pg.trainer import Count, TrainConfig, train
 
 
 @dataclass
 class Config(TrainConfig):
     """REINFORCE + learned baseline with bootstrapped 50-step segments on ALE Pong."""
 
-    num_envs: int = 16
+    num_envs: Count = 16
     """Pong games played at once, as one batch (split evenly over the workers)."""
-    hidden: int = 200
+    hidden: Count = 200
     """Width of the shared trunk."""
     total_frames: int = 2_000_000
     """Agent steps (each 4 Atari frames) to train for (at most)."""

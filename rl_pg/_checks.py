@@ -8,13 +8,26 @@ the wrong kind, ``ValueError`` for one of the right kind out of its range.
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import math
 import numbers
+import types
+import typing
+from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["check_bool", "check_int", "check_real", "check_tensor"]
+__all__ = [
+    "Range",
+    "check_batch_size",
+    "check_bool",
+    "check_fields",
+    "check_int",
+    "check_real",
+    "check_tensor",
+]
 
 
 def _received(value: Any) -> str:
@@ -119,7 +132,7 @@ def check_bool(name: str, value: Any) -> bool:
     """
     if isinstance(value, bool):
         return value
-    if type(value).__name__ == "bool_":  # numpy.bool_
+    if type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_"):
         return bool(value)
     raise TypeError(f"{name} must be True or False, got {_received(value)}.")
 
@@ -141,3 +154,134 @@ def check_tensor(name: str, value: Any, *, hint: str = "") -> torch.Tensor:
 
 def _hint(hint: str) -> str:
     return f" {hint}" if hint else ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """Bounds of a number field, declared with its type: ``Annotated[int, Range(low=1)]``.
+
+    [`check_fields`][rl_pg._checks.check_fields] enforces them; a subclass that
+    re-declares the field with a plain type keeps its base's bounds.
+    """
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+
+def check_fields(obj: Any) -> None:
+    """Checks every field of a dataclass instance against its annotation.
+
+    ``bool``, ``int``, ``float``, ``str``, ``Path``, ``Literal[...]`` and their
+    ``| None`` forms are checked, with the bounds of any [`Range`][rl_pg._checks.Range]
+    in an ``Annotated`` type. Numbers are stored back in canonical form (a numpy
+    ``float32`` becomes a ``float``, a string path a ``Path``). Errors name the field
+    and its command-line flag.
+
+    Examples:
+        >>> from dataclasses import make_dataclass
+        >>> from typing import Annotated
+        >>> from rl_pg._checks import Range, check_fields
+        >>> Config = make_dataclass("Config", [("hidden", Annotated[int, Range(low=1)], 64)])
+        >>> check_fields(Config(hidden=0))
+        Traceback (most recent call last):
+        ...
+        ValueError: hidden (--hidden) must be an integer >= 1, got 0 (int).
+    """
+    annotations = _field_annotations(type(obj))
+    for field in dataclasses.fields(obj):
+        base, bounds = annotations[field.name]
+        name = f"{field.name} (--{field.name.replace('_', '-')})"
+        setattr(obj, field.name, _check_value(name, getattr(obj, field.name), base, bounds))
+
+
+def _field_annotations(cls: type) -> dict[str, tuple[Any, list[Range]]]:
+    """``name -> (type of the most derived declaration, bounds from every declaration)``."""
+    out: dict[str, tuple[Any, list[Range]]] = {}
+    for klass in cls.__mro__:
+        if not dataclasses.is_dataclass(klass):
+            continue
+        hints = typing.get_type_hints(klass, include_extras=True)
+        for name in inspect.get_annotations(klass):
+            base, bounds = _split(hints[name])
+            if name in out:
+                out[name][1].extend(bounds)
+            else:
+                out[name] = (base, bounds)
+    return out
+
+
+def _split(hint: Any) -> tuple[Any, list[Range]]:
+    """``Annotated[float, Range(...)] | None`` -> ``(float | None, [Range(...)])``."""
+    if typing.get_origin(hint) is typing.Annotated:
+        base, *metadata = typing.get_args(hint)
+        return base, [m for m in metadata if isinstance(m, Range)]
+    if _is_union(hint):
+        parts = [_split(arg) for arg in typing.get_args(hint)]
+        return typing.Union[tuple(base for base, _ in parts)], [  # noqa: UP007
+            bound for _, bounds in parts for bound in bounds
+        ]
+    return hint, []
+
+
+def _check_value(name: str, value: Any, base: Any, bounds: list[Range]) -> Any:
+    options = typing.get_args(base) if _is_union(base) else (base,)
+    optional = type(None) in options
+    kinds = [kind for kind in options if kind is not type(None)]
+    if value is None:
+        if optional:
+            return None
+        raise TypeError(f"{name} must not be None.")
+    if len(kinds) != 1:
+        return value  # a union this checker does not interpret
+    kind = kinds[0]
+    if typing.get_origin(kind) is typing.Literal:
+        choices = typing.get_args(kind)
+        if value not in choices:
+            raise ValueError(f"{name} must be one of {choices}, got {value!r}.")
+        return value
+    if kind is bool:
+        return check_bool(name, value)
+    low = max((b for b in bounds if b.low is not None), key=lambda b: b.low, default=None)
+    high = min((b for b in bounds if b.high is not None), key=lambda b: b.high, default=None)
+    if kind is int:
+        number = check_int(
+            name, value, low=None if low is None else int(low.low) + int(low.low_open)
+        )
+        if high is not None and (number > high.high or (high.high_open and number == high.high)):
+            limit = int(high.high) - int(high.high_open)
+            raise ValueError(f"{name} must be an integer <= {limit}, got {number}.")
+        return number
+    if kind is float:
+        return check_real(
+            name,
+            value,
+            low=None if low is None else low.low,
+            high=None if high is None else high.high,
+            low_open=low is not None and low.low_open,
+            high_open=high is not None and high.high_open,
+        )
+    if kind is str and not isinstance(value, str):
+        raise TypeError(f"{name} must be a string, got {_received(value)}.")
+    if kind is Path:
+        if not isinstance(value, (str, Path)):
+            raise TypeError(f"{name} must be a path, got {_received(value)}.")
+        return Path(value)
+    return value
+
+
+def _is_union(tp: Any) -> bool:
+    return typing.get_origin(tp) in (typing.Union, types.UnionType)
+
+
+def check_batch_size(batch_size: Any) -> tuple[int, ...]:
+    """An environment batch size: an integer >= 1 or a sequence of them (``()``: no batch).
+
+    Examples:
+        >>> from rl_pg._checks import check_batch_size
+        >>> check_batch_size(8), check_batch_size((2, 3)), check_batch_size(())
+        ((8,), (2, 3), ())
+    """
+    sizes = [batch_size] if not hasattr(batch_size, "__iter__") else list(batch_size)
+    return tuple(check_int(f"batch_size[{i}]", size, low=1) for i, size in enumerate(sizes))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,7 +13,9 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-__all__ = ["evaluate", "first_episodes", "play"]
+from rl_pg._checks import check_bool, check_int, check_real
+
+__all__ = ["check_recording", "evaluate", "first_episodes", "play"]
 
 
 def first_episodes(rollout: TensorDictBase, flags: Sequence[str] = ()) -> dict[str, torch.Tensor]:
@@ -82,7 +85,8 @@ def evaluate(
         ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...}``.
 
     Raises:
-        ValueError: for ``episodes < 1``.
+        ValueError: for ``episodes < 1`` or ``max_steps < 1``.
+        TypeError: for a non-boolean ``deterministic`` or flags that are not strings.
 
     Examples:
         >>> import torch
@@ -100,8 +104,10 @@ def evaluate(
         >>> evaluate(actor, BanditEnv(num_arms=4, batch_size=8), episodes=8)["mean_return"]
         0.0
     """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}.")
+    episodes = check_int("episodes", episodes, low=1)
+    max_steps = check_int("max_steps", max_steps, low=1)
+    deterministic = check_bool("deterministic", deterministic)
+    flags = _check_flags(flags)
     n_envs = max(1, math.prod(env.batch_size))
     results: dict[str, list[torch.Tensor]] = {}
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -125,6 +131,12 @@ def evaluate(
         if flag in stats:
             out[f"{flag}_rate"] = stats[flag].mean().item()
     return out
+
+
+def _check_flags(flags: Sequence[str]) -> tuple[str, ...]:
+    if isinstance(flags, str) or not all(isinstance(flag, str) for flag in flags):
+        raise TypeError(f"flags must be a sequence of entry names, got {flags!r}.")
+    return tuple(flags)
 
 
 def _until_each_done(
@@ -179,7 +191,12 @@ def play(
         The return of every episode.
 
     Raises:
-        ValueError: when recording an environment that gives no ``"pixels"``.
+        ValueError: for ``episodes < 1``, ``fps <= 0``, or a recording that cannot be
+            made (an extension other than ``.gif`` / ``.mp4``, a folder that cannot be
+            created, an environment that gives no ``"pixels"``), checked before any
+            episode is played.
+        ModuleNotFoundError: an ``.mp4`` recording without ``imageio-ffmpeg``
+            (``pip install "rl_pg[video]"``).
 
     Examples:
         >>> import torch
@@ -192,6 +209,18 @@ def play(
         >>> len(play(mlp_actor(env), env, episodes=2, deterministic=False))
         2
     """
+    episodes = check_int("episodes", episodes, low=1)
+    max_steps = check_int("max_steps", max_steps, low=1)
+    deterministic = check_bool("deterministic", deterministic)
+    if record is not None:
+        # Everything that could make the recording fail is checked before playing.
+        fps = check_real("fps", fps, low=0, low_open=True)
+        record = check_recording(record)
+        if "pixels" not in env.observation_spec.keys():
+            raise ValueError(
+                "Recording needs frames under 'pixels': build the environment with "
+                "from_pixels=True, pixels_only=False (this one does not render)."
+            )
     returns, frames = [], []
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with set_exploration_type(exploration), torch.no_grad():
@@ -199,19 +228,53 @@ def play(
             rollout = env.rollout(max_steps, policy, break_when_any_done=True)
             returns.append(rollout["next", "reward"].sum().item())
             if record is not None:
-                pixels = rollout.get("pixels", None)
-                if pixels is None:
-                    raise ValueError(
-                        "Recording needs frames under 'pixels': build the environment with "
-                        "from_pixels=True, pixels_only=False (this one does not render)."
-                    )
-                frames.extend(pixels.numpy())
+                frames.extend(rollout["pixels"].numpy())
     if record is not None:
-        import imageio.v2 as imageio
-
-        Path(record).parent.mkdir(parents=True, exist_ok=True)
-        if str(record).endswith(".gif"):
-            imageio.mimsave(record, frames, duration=1000 / fps, loop=0)
-        else:
-            imageio.mimsave(record, frames, fps=fps)
+        _write_video(record, frames, fps)
     return returns
+
+
+_VIDEO_FORMATS = (".gif", ".mp4")
+
+
+def check_recording(path: str | Path) -> Path:
+    """Checks that a recording can be written to ``path``; creates its folder.
+
+    Raises:
+        ValueError: an extension other than ``.gif`` and ``.mp4``, or a folder that
+            cannot be created.
+        ModuleNotFoundError: ``.mp4`` without ``imageio-ffmpeg`` installed.
+
+    Examples:
+        >>> from rl_pg.evaluation import check_recording
+        >>> check_recording("episodes.avi")
+        Traceback (most recent call last):
+        ...
+        ValueError: Cannot record to episodes.avi: the file name must end in .gif or .mp4.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in _VIDEO_FORMATS:
+        raise ValueError(
+            f"Cannot record to {path}: the file name must end in {' or '.join(_VIDEO_FORMATS)}."
+        )
+    if path.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ModuleNotFoundError(
+            f"Recording {path} needs an MP4 encoder: pip install -c constraints.txt "
+            f'"rl_pg[video]" (imageio-ffmpeg, which ships ffmpeg), or record a .gif.'
+        )
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"Cannot record to {path}: its folder cannot be created ({err}).") from err
+    if path.is_dir():
+        raise ValueError(f"Cannot record to {path}: it is a folder; give a file name.")
+    return path
+
+
+def _write_video(path: Path, frames: list, fps: float) -> None:
+    import imageio.v2 as imageio
+
+    if path.suffix.lower() == ".gif":
+        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps)

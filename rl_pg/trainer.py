@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
@@ -44,6 +44,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
 from tqdm import tqdm
 
+from rl_pg._checks import Range, check_fields
 from rl_pg.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -55,7 +56,18 @@ from rl_pg.functional import discounted_return
 from rl_pg.loss import ReinforceLoss
 from rl_pg.run_dir import RunDirectory
 
-__all__ = ["TrainConfig", "TrainingDiverged", "load_models", "read_run", "train"]
+__all__ = [
+    "Count",
+    "NonNegative",
+    "Positive",
+    "Range",
+    "TrainConfig",
+    "TrainingDiverged",
+    "check_fields",
+    "load_models",
+    "read_run",
+    "train",
+]
 
 CHECKPOINT = "checkpoint.pt"
 SUMMARY = "summary.json"
@@ -76,6 +88,14 @@ _RESUMABLE_FIELDS = frozenset(
 )
 
 
+Count = Annotated[int, Range(low=1)]
+"""An integer >= 1 (a config field type: the bound is checked when a config is made)."""
+Positive = Annotated[float, Range(low=0, low_open=True)]
+"""A finite number > 0."""
+NonNegative = Annotated[float, Range(low=0)]
+"""A finite number >= 0."""
+
+
 class TrainingDiverged(RuntimeError):
     """The loss or its gradient became non-finite; the last good checkpoint is kept."""
 
@@ -84,58 +104,58 @@ class TrainingDiverged(RuntimeError):
 class TrainConfig:
     """Settings of the training loop shared by every recipe."""
 
-    seed: int = 0
+    seed: Annotated[int, Range(low=0, high=2**32 - 1)] = 0
     """Seed of torch, numpy, random and the environments."""
-    total_frames: int = 100_000
+    total_frames: Count = 100_000
     """Environment steps to train for (at most)."""
-    total_updates: int | None = None
+    total_updates: Count | None = None
     """Updates to train for (at most; None: no limit)."""
     run_dir: Path | None = None
     """Where checkpoints, logs and the summary go (default: runs/<recipe>-seed<seed>-<time>)."""
     resume: bool = False
     """Continue the run in run_dir from its checkpoint."""
-    workers: int = 1
+    workers: Count = 1
     """Collector processes; more than 1 uses TorchRL's multi-process collector."""
     ray: bool = False
     """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
-    threads: int | None = 1
+    threads: Count | None = 1
     """torch threads of this process: small models update fastest on one, and a second
     thread only contends with the environment on a busy machine (None: torch's default)."""
     batch_mode: Literal["episodes", "segments"] = "episodes"
     """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
-    episodes_per_batch: int = 8
+    episodes_per_batch: Count = 8
     """Complete episodes per update (batch_mode='episodes')."""
-    segment_length: int = 50
+    segment_length: Count = 50
     """Steps per environment per update (batch_mode='segments')."""
     returns: Literal["reward_to_go", "discounted_return"] = "reward_to_go"
     """Return that weights log pi: reward-to-go (causality) or the whole-episode return."""
-    gamma: float = 0.99
+    gamma: Annotated[float, Range(0, 1)] = 0.99
     """Discount factor."""
     baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
     """What is subtracted from the return."""
-    baseline_rate: float = 0.01
+    baseline_rate: Annotated[float, Range(0, 1, low_open=True)] = 0.01
     """Rate of the 'ema' baseline."""
-    entropy_coeff: float = 0.0
+    entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
-    critic_coeff: float = 1.0
+    critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     normalize_advantage: bool = False
     """Standardise the policy weights over each batch."""
     optimizer: Literal["adam", "sgd"] = "adam"
     """Optimiser of actor and critic."""
-    lr: float = 1e-3
+    lr: Positive = 1e-3
     """Learning rate."""
     lr_schedule: Literal["constant", "linear"] = "constant"
     """'linear': decay the learning rate from lr at frame 0 to 0 at total_frames
     (set before each update from the frames seen so far, so a resumed run continues the
     same schedule; raising total_frames on resume stretches what is left of it)."""
-    weight_decay: float = 0.0
+    weight_decay: NonNegative = 0.0
     """L2 weight decay."""
-    max_grad_norm: float | None = None
+    max_grad_norm: Positive | None = None
     """Gradient-norm clipping (None: no clipping)."""
-    eval_interval: int = 10_000
+    eval_interval: Count = 10_000
     """Frames between evaluations."""
-    eval_episodes: int = 20
+    eval_episodes: Count = 20
     """Episodes per evaluation."""
     eval_greedy: bool = True
     """Evaluate greedily (argmax / mean action) rather than by sampling."""
@@ -143,14 +163,37 @@ class TrainConfig:
     """Evaluation mean return that counts as solved."""
     stop_when_solved: bool = True
     """Stop at the first evaluation that reaches the threshold."""
-    checkpoint_interval: int = 50
+    checkpoint_interval: Count = 50
     """Updates between checkpoints (one is always written at the end)."""
-    log_interval: int = 1
+    log_interval: Count = 1
     """Updates between training-metric log lines."""
     tensorboard: bool = False
     """Also log to TensorBoard (pip install tensorboard)."""
     progress: bool = True
     """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Checks every field (also those a recipe adds) against its type and bounds.
+
+        Runs when the config is made, so that the command line refuses a bad flag
+        before anything starts, and again in [`train`][rl_pg.trainer.train].
+
+        Raises:
+            ValueError: a value out of its range or choices; the message names the
+                field and its flag.
+            TypeError: a value of the wrong kind (from Python code).
+        """
+        check_fields(self)
+        if self.resume and self.run_dir is None:
+            raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
+        if self.ray and self.batch_mode != "segments":
+            raise ValueError(
+                "The Ray collector yields fixed-length batches: use --batch-mode segments with "
+                "--ray (whole-episode batches need the local or multi-process collectors)."
+            )
 
 
 @dataclass
@@ -222,7 +265,7 @@ def train(
         >>> summary["updates"], sorted(summary)[:4]
         (2, ['eval_mean_return', 'eval_std_return', 'frames', 'recipe'])
     """
-    _validate(cfg)
+    cfg.validate()  # again: fields may have been changed since the config was made
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)
@@ -315,47 +358,6 @@ def train(
 
 
 # ----------------------------------------------------------------- building ---
-def _validate(cfg: TrainConfig) -> None:
-    choices = {
-        "batch_mode": ("episodes", "segments"),
-        "returns": ("reward_to_go", "discounted_return"),
-        "optimizer": ("adam", "sgd"),
-        "lr_schedule": ("constant", "linear"),
-    }
-    for name, allowed in choices.items():
-        if getattr(cfg, name) not in allowed:
-            raise ValueError(f"{name} must be one of {allowed}, got {getattr(cfg, name)!r}.")
-    positive = (
-        "total_frames",
-        "workers",
-        "episodes_per_batch",
-        "segment_length",
-        "eval_interval",
-        "eval_episodes",
-        "checkpoint_interval",
-        "log_interval",
-    )
-    for name in positive:
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
-    if cfg.threads is not None and cfg.threads < 1:
-        raise ValueError(f"threads must be >= 1 or None, got {cfg.threads!r}.")
-    if cfg.total_updates is not None and cfg.total_updates < 1:
-        raise ValueError(f"total_updates must be >= 1 or None, got {cfg.total_updates!r}.")
-    if not 0 <= cfg.gamma <= 1:
-        raise ValueError(f"gamma must lie in [0, 1], got {cfg.gamma!r}.")
-    if cfg.lr <= 0:
-        raise ValueError(f"lr must be > 0, got {cfg.lr!r}.")
-    if cfg.resume and cfg.run_dir is None:
-        raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
-    if cfg.ray and cfg.batch_mode != "segments":
-        raise ValueError(
-            "The Ray collector yields fixed-length batches: use --batch-mode segments with "
-            "--ray (whole-episode batches need the local or multi-process collectors)."
-        )
-
-
 def _open_run_dir(cfg, recipe, directory: RunDirectory, checkpoint_path: Path) -> dict | None:
     run_dir = directory.path
     if cfg.resume:

@@ -88,3 +88,15 @@ def test_comparisons_with_sb3(script, tmp_path):
             run["0"]["train_wall_s"] > 0
             for run in json.loads((tmp_path / "s.json").read_text())["runs"].values()
         )
+
+
+def test_contention(tmp_path):
+    contention = _script("contention")
+    cfg = contention.Config(frames=512, busy=1, repeats=1, json_path=tmp_path / "c.json")
+    out = contention.main(cfg)
+    assert set(out["slowdown"]) == {
+        "rl_pg training loop (recipe)",
+        "rl_pg, kernel on every numba thread (before)",
+        "floor: SyncVectorEnv(32) + MLP",
+    }
+    assert out["rl_pg_slowdown_over_floor"] > 0

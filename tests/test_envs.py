@@ -38,9 +38,11 @@ class TestBanditEnv:
         rollout = BanditEnv(batch_size=4).rollout(3, break_when_any_done=False)
         assert rollout["next", "done"].all() and rollout["next", "terminated"].all()
 
-    @pytest.mark.parametrize("num_arms", [1, 2.5, True])
-    def test_bad_num_arms(self, num_arms):
-        with pytest.raises(ValueError, match="num_arms must be an integer >= 2"):
+    @pytest.mark.parametrize(
+        ("num_arms", "error"), [(1, ValueError), (2.5, TypeError), (True, TypeError)]
+    )
+    def test_bad_num_arms(self, num_arms, error):
+        with pytest.raises(error, match="num_arms must be an integer"):
             BanditEnv(num_arms=num_arms)
 
 
@@ -86,11 +88,19 @@ class TestGridWorldEnv:
             ({"size": 1}, "size must be an integer >= 2"),
             ({"goal": (4, 0)}, r"goal=\(4, 0\) is not a cell of a 4x4 grid"),
             ({"pit": (3, 0)}, "start, goal and pit must differ"),
-            ({"max_steps": 0}, "max_steps must be >= 1"),
+            ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+            ({"step_reward": float("nan")}, "step_reward must be a finite number"),
+            ({"start": (0,)}, r"start must be a \(row, column\) pair"),
+            ({"batch_size": 0}, r"batch_size\[0\] must be an integer >= 1"),
         ],
     )
     def test_bad_layouts(self, kwargs, message):
         with pytest.raises(ValueError, match=message):
+            GridWorldEnv(**kwargs)
+
+    @pytest.mark.parametrize("kwargs", [{"start": (0.5, 0)}, {"size": 4.0}, {"batch_size": (2.5,)}])
+    def test_layouts_of_the_wrong_kind(self, kwargs):
+        with pytest.raises(TypeError, match="must be an integer"):
             GridWorldEnv(**kwargs)
 
     def test_optimal_return_goes_around_the_pit(self):

@@ -62,5 +62,20 @@ class TestEvaluate:
         assert out["mean_length"] == 7 and out["mean_return"] == pytest.approx(-0.7)
 
     def test_at_least_one_episode(self):
-        with pytest.raises(ValueError, match="episodes must be >= 1"):
+        with pytest.raises(ValueError, match="episodes must be an integer >= 1"):
             evaluate(_fixed_actor(1, [0.0, 0.0]), BanditEnv(num_arms=2), episodes=0)
+
+    @pytest.mark.parametrize(
+        ("kwargs", "error", "match"),
+        [
+            ({"max_steps": 0}, ValueError, "max_steps must be an integer >= 1"),
+            ({"episodes": 2.0}, TypeError, "episodes must be an integer"),
+            ({"deterministic": "no"}, TypeError, "deterministic must be True or False"),
+            ({"flags": "crashed"}, TypeError, "flags must be a sequence of entry names"),
+        ],
+    )
+    def test_bad_arguments(self, kwargs, error, match):
+        with pytest.raises(error, match=match):
+            evaluate(
+                _fixed_actor(1, [0.0, 0.0]), BanditEnv(num_arms=2), **{"episodes": 1, **kwargs}
+            )

@@ -105,6 +105,45 @@ def test_play_uses_one_environment_of_a_batched_run(tmp_path, capsys):
     assert len(returns) == 3 and all(r >= 1 for r in returns)
 
 
+def test_play_records_an_mp4_into_a_missing_folder(tmp_path):
+    cartpole.main(cartpole.Config(run_dir=tmp_path / "run", total_frames=300, **TINY))
+    video = tmp_path / "videos" / "new" / "cartpole.mp4"
+    play.main(play.Args(run=tmp_path / "run", episodes=1, gif=video, fps=50))
+    assert video.stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"episodes": 0}, r"episodes \(--episodes\) must be an integer >= 1, got 0"),
+        ({"fps": 0}, r"fps \(--fps\) must be a finite number > 0, got 0"),
+        ({"fps": float("inf")}, r"fps \(--fps\) must be a finite number > 0"),
+    ],
+)
+def test_play_refuses_bad_arguments(tmp_path, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        play.Args(run=tmp_path, **kwargs)
+
+
+@pytest.mark.parametrize("name", ["out.avi", "out", "out.gif.txt"])
+def test_play_refuses_an_unknown_recording_format_before_playing(tmp_path, name):
+    # The run does not even exist: the recording is checked first, not after the episodes.
+    with pytest.raises(ValueError, match=r"must end in \.gif or \.mp4"):
+        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / name))
+
+
+def test_play_refuses_a_recording_over_a_folder(tmp_path):
+    (tmp_path / "x.gif").mkdir()
+    with pytest.raises(ValueError, match="it is a folder"):
+        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.gif"))
+
+
+def test_mp4_without_an_encoder_says_how_to_install_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ModuleNotFoundError, match=r"rl_pg\[video\]"):
+        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.mp4"))
+
+
 def test_play_refuses_to_record_what_does_not_render(tmp_path):
     gridworld.main(gridworld.Config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):

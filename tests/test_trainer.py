@@ -13,6 +13,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -185,19 +186,45 @@ class TestTrain:
     @pytest.mark.parametrize(
         ("override", "message"),
         [
-            ({"batch_mode": "steps"}, "batch_mode must be one of"),
-            ({"lr_schedule": "cosine"}, "lr_schedule must be one of"),
-            ({"episodes_per_batch": 0}, "episodes_per_batch must be an integer >= 1"),
-            ({"gamma": 1.5}, r"gamma must lie in \[0, 1\]"),
-            ({"lr": 0.0}, "lr must be > 0"),
-            ({"threads": 0}, "threads must be >= 1 or None"),
+            ({"batch_mode": "steps"}, r"batch_mode \(--batch-mode\) must be one of"),
+            ({"lr_schedule": "cosine"}, "lr_schedule .* must be one of"),
+            ({"episodes_per_batch": 0}, "episodes_per_batch .* must be an integer >= 1"),
+            ({"gamma": 1.5}, r"gamma \(--gamma\) must be a finite number >= 0 and <= 1"),
+            ({"lr": 0.0}, r"lr \(--lr\) must be a finite number > 0"),
+            ({"lr": float("nan")}, r"lr \(--lr\) must be a finite number > 0"),
+            ({"max_grad_norm": -1.0}, r"max_grad_norm \(--max-grad-norm\) .* > 0, got -1"),
+            ({"weight_decay": -0.1}, "weight_decay .* >= 0"),
+            ({"entropy_coeff": float("inf")}, "entropy_coeff .* finite number >= 0"),
+            ({"threshold": float("nan")}, "threshold .* must be a finite number"),
+            ({"threads": 0}, r"threads \(--threads\) must be an integer >= 1"),
+            ({"seed": -1}, r"seed \(--seed\) must be an integer >= 0"),
+            ({"total_updates": 0}, "total_updates .* must be an integer >= 1"),
             ({"ray": True}, "use --batch-mode segments with --ray"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
         ],
     )
     def test_bad_configuration(self, tmp_path, override, message):
         with pytest.raises(ValueError, match=message):
-            _train(_cfg(tmp_path, **override))
+            _cfg(tmp_path, **override)
+
+    def test_a_config_changed_after_it_was_made_is_checked_again(self, tmp_path):
+        cfg = _cfg(tmp_path)
+        cfg.max_grad_norm = -1.0  # would turn every update into gradient ascent
+        with pytest.raises(ValueError, match=r"max_grad_norm .* > 0"):
+            _train(cfg)
+        assert not (tmp_path / "run").exists()
+
+    @pytest.mark.parametrize(
+        ("override", "match"),
+        [({"eval_greedy": "yes"}, "must be True or False"), ({"total_frames": 1e5}, "integer")],
+    )
+    def test_values_of_the_wrong_kind(self, tmp_path, override, match):
+        with pytest.raises(TypeError, match=match):
+            _cfg(tmp_path, **override)
+
+    def test_numpy_numbers_are_accepted(self, tmp_path):
+        cfg = _cfg(tmp_path, lr=np.float32(0.02), gamma=np.float64(1.0), total_updates=np.int64(2))
+        assert (type(cfg.lr), type(cfg.gamma), type(cfg.total_updates)) == (float, float, int)
 
 
 class _NanGradient(nn.Module):

@@ -7,6 +7,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import check_batch_size, check_int
+
 __all__ = ["BanditEnv"]
 
 
@@ -42,9 +44,8 @@ class BanditEnv(EnvBase):
         batch_size: int | tuple[int, ...] = (),
         device: torch.device | str | None = "cpu",
     ) -> None:
-        if isinstance(num_arms, bool) or not isinstance(num_arms, int) or num_arms < 2:
-            raise ValueError(f"num_arms must be an integer >= 2, got {num_arms!r}.")
-        batch_size = torch.Size([batch_size] if isinstance(batch_size, int) else batch_size)
+        num_arms = check_int("num_arms", num_arms, low=2)
+        batch_size = torch.Size(check_batch_size(batch_size))
         super().__init__(batch_size=batch_size, device=device)
         self.num_arms = num_arms
         rewards = torch.zeros(num_arms, device=self.device)

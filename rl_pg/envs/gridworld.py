@@ -9,6 +9,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import check_batch_size, check_int, check_real
+
 __all__ = ["GridWorldEnv"]
 
 # up, down, left, right as (row, column) moves
@@ -65,16 +67,21 @@ class GridWorldEnv(EnvBase):
         batch_size: int | tuple[int, ...] = (),
         device: torch.device | str | None = "cpu",
     ) -> None:
-        if isinstance(size, bool) or not isinstance(size, int) or size < 2:
-            raise ValueError(f"size must be an integer >= 2, got {size!r}.")
+        size = check_int("size", size, low=2)
+        cells = {}
         for name, cell in (("start", start), ("goal", goal), ("pit", pit)):
-            if len(cell) != 2 or not all(0 <= c < size for c in cell):
+            if not hasattr(cell, "__len__") or len(cell) != 2:
+                raise ValueError(f"{name} must be a (row, column) pair, got {cell!r}.")
+            cell = tuple(check_int(f"{name}[{i}]", c) for i, c in enumerate(cell))
+            if not all(0 <= c < size for c in cell):
                 raise ValueError(f"{name}={cell!r} is not a cell of a {size}x{size} grid.")
-        if len({tuple(start), tuple(goal), tuple(pit)}) != 3:
+            cells[name] = cell
+        start, goal, pit = cells["start"], cells["goal"], cells["pit"]
+        if len({start, goal, pit}) != 3:
             raise ValueError(f"start, goal and pit must differ, got {start}, {goal}, {pit}.")
-        if max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
-        batch_size = torch.Size([batch_size] if isinstance(batch_size, int) else batch_size)
+        step_reward = check_real("step_reward", step_reward)
+        max_steps = check_int("max_steps", max_steps, low=1)
+        batch_size = torch.Size(check_batch_size(batch_size))
         super().__init__(batch_size=batch_size, device=device)
         self.size, self.max_steps = size, max_steps
         self.start, self.goal, self.pit = (r * size + c for r, c in (start, goal, pit))
