@@ -321,3 +321,131 @@ class TestBadInput:
     def test_integer_reward(self, fn):
         with pytest.raises(TypeError, match="reward must be a floating-point tensor"):
             fn(torch.zeros(2, 3, 1, dtype=torch.long), torch.zeros(2, 3, 1, dtype=torch.bool), 0.9)
+
+
+# ---------------------------------------------------------------------------------------
+# Malformed inputs: a correct result or an error that names what was wrong, never a
+# non-finite (or silently wrong) result from inputs that look fine.
+
+_CORRUPTIONS = (
+    "nan_reward",
+    "inf_reward",
+    "int_reward",
+    "fractional_done",
+    "nan_done",
+    "zero_one_float_done",
+    "zero_one_int_done",
+    "done_shape",
+    "fractional_terminated",
+    "bad_gamma",
+    "numpy_gamma",
+    "tensor_gamma",
+    "bad_time_dim",
+    "nan_next_value_read",
+    "nan_next_value_unread",
+    "int_next_value",
+)
+_VALID = {"zero_one_float_done", "zero_one_int_done", "numpy_gamma", "tensor_gamma"}
+_VALID |= {"nan_next_value_unread"}
+_NAMES = {  # the argument an error must name for each corruption
+    "nan_reward": "reward",
+    "inf_reward": "reward",
+    "int_reward": "reward",
+    "fractional_done": "done",
+    "nan_done": "done",
+    "done_shape": "done",
+    "fractional_terminated": "terminated",
+    "bad_gamma": "gamma",
+    "bad_time_dim": "time_dim",
+    "nan_next_value_read": "next_value",
+    "int_next_value": "next_value",
+}
+
+
+@st.composite
+def malformed_problems(draw):
+    rows, n_steps = draw(st.integers(1, 4)), draw(st.integers(1, 12))
+    generator = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    reward = torch.randn(rows, n_steps, generator=generator)
+    done = torch.rand(rows, n_steps, generator=generator) < 0.3
+    terminated = done & (torch.rand(rows, n_steps, generator=generator) < 0.5)
+    next_value = torch.randn(rows, n_steps, generator=generator)
+    kwargs = {"time_dim": -1, "terminated": terminated, "next_value": next_value}
+    gamma = draw(st.sampled_from([0.0, 0.9, 1.0]))
+    corruptions = draw(st.lists(st.sampled_from(_CORRUPTIONS), max_size=3, unique=True))
+    at = (draw(st.integers(0, rows - 1)), draw(st.integers(0, n_steps - 1)))
+    # Where V(s') is read: an episode's truncation or the row's end, unless terminated.
+    read = (done | (torch.arange(n_steps) == n_steps - 1)) & ~terminated
+    unread = ~read
+
+    def next_is_float():
+        return kwargs["next_value"].is_floating_point()
+
+    applied = []
+    for corruption in corruptions:
+        if corruption == "nan_reward" and reward.is_floating_point():
+            reward[at] = float("nan")
+        elif corruption == "inf_reward" and reward.is_floating_point():
+            reward[at] = draw(st.sampled_from([float("inf"), -float("inf")]))
+        elif corruption == "int_reward":
+            reward = reward.round().long()
+        elif corruption in ("fractional_done", "nan_done"):
+            done = done.float()
+            done[at] = 0.3 if corruption == "fractional_done" else float("nan")
+        elif corruption == "zero_one_float_done" and done.dtype == torch.bool:
+            done = done.float()
+        elif corruption == "zero_one_int_done" and done.dtype == torch.bool:
+            done = done.to(torch.uint8)
+        elif corruption == "done_shape":
+            done = done.unsqueeze(-1)
+        elif corruption == "fractional_terminated":
+            kwargs["terminated"] = terminated.float()
+            kwargs["terminated"][at] = 0.5
+        elif corruption == "bad_gamma":
+            bad = [float("nan"), -0.1, 1.5, float("inf"), "0.9", None, True]
+            gamma = draw(st.sampled_from(bad))
+        elif corruption == "numpy_gamma" and isinstance(gamma, float):
+            gamma = np.float32(gamma)
+        elif corruption == "tensor_gamma" and isinstance(gamma, float):
+            gamma = torch.tensor(gamma)
+        elif corruption == "bad_time_dim":
+            kwargs["time_dim"] = draw(st.sampled_from([None, 1.0, True, 2, -3]))
+        elif corruption == "nan_next_value_read" and read.any() and next_is_float():
+            kwargs["next_value"][tuple(read.nonzero()[0])] = float("nan")
+        elif corruption == "nan_next_value_unread" and unread.any() and next_is_float():
+            kwargs["next_value"][tuple(unread.nonzero()[0])] = float("nan")
+        elif corruption == "int_next_value":
+            kwargs["next_value"] = kwargs["next_value"].round().long()
+        else:
+            continue  # does not apply to this problem
+        applied.append(corruption)
+    return reward, done, gamma, kwargs, applied
+
+
+@settings(max_examples=400, deadline=None)
+@given(problem=malformed_problems(), whole_episode=st.booleans())
+def test_malformed_inputs_give_a_correct_result_or_a_clear_error(problem, whole_episode):
+    reward, done, gamma, kwargs, corruptions = problem
+    fn = discounted_return if whole_episode else reward_to_go
+    invalid = [c for c in corruptions if c not in _VALID]
+    try:
+        result = fn(reward, done, gamma, **kwargs)
+    except (TypeError, ValueError) as err:
+        assert invalid, f"valid inputs {corruptions} were refused: {err}"
+        names = {_NAMES[c] for c in invalid}
+        assert any(name in str(err) for name in names), (names, str(err))
+        return
+    assert not invalid, f"{invalid} went through and gave {result}"
+    assert torch.isfinite(result).all()
+    as_list = lambda x: x.double().reshape(reward.shape).tolist()  # noqa: E731
+    n_rows, n_steps = reward.shape
+    expected = reference_returns(
+        as_list(reward),
+        as_list(done.bool()),
+        as_list(kwargs["terminated"].bool()),
+        as_list(torch.nan_to_num(kwargs["next_value"], nan=0.0)),
+        torch.full((n_rows, n_steps), float(gamma), dtype=torch.float64).tolist(),
+        whole_episode,
+    )
+    expected = torch.tensor(expected, dtype=torch.float64)
+    torch.testing.assert_close(result.double(), expected, rtol=1e-4, atol=1e-4)

@@ -13,6 +13,8 @@ from conftest import (
     make_gaussian_actor,
     make_one_hot_actor,
 )
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
@@ -494,3 +496,88 @@ def test_invalid_distribution_parameters_name_the_input(categorical_actor, categ
             ReinforceLoss(categorical_actor)(categorical_batch)
     finally:
         torch.distributions.Distribution.set_default_validate_args(False)
+
+
+# ---------------------------------------------------------------------------------------
+# Malformed batches: finite losses that match the hand-computed surrogate, or an error
+# that names what was wrong; never a non-finite or silently wrong loss.
+
+_LOSS_CORRUPTIONS = {  # corruption -> what the error must name (None: still valid)
+    "fractional_action": "action",
+    "action_out_of_range": "action",
+    "float_whole_action": None,
+    "nan_reward": "reward",
+    "fractional_done": "done",
+    "nan_observation": "observation",
+    "nan_value_target": "value_target",
+    "value_target_shape": "value_target",
+    "value_target_without_dim": None,
+    "empty_batch": "empty batch",
+    "all_masked": "masked",
+    "missing_action": "action",
+}
+
+
+@st.composite
+def malformed_batches(draw):
+    rows, steps = draw(st.integers(1, 3)), draw(st.integers(1, 6))
+    seed = draw(st.integers(0, 2**31 - 1))
+    generator = torch.Generator().manual_seed(seed)
+    batch = make_batch(torch.randint(N_ACT, (rows, steps), generator=generator), seed=seed)
+    with torch.no_grad():
+        batch["value_target"] = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.9)
+    at = (draw(st.integers(0, rows - 1)), draw(st.integers(0, steps - 1)))
+    names = draw(st.lists(st.sampled_from(sorted(_LOSS_CORRUPTIONS)), max_size=2, unique=True))
+    for name in names:
+        if name == "fractional_action":
+            batch["action"] = batch["action"].float()
+            batch["action"][at] = 1.5
+        elif name == "action_out_of_range":
+            batch["action"][at] = draw(st.sampled_from([-1, N_ACT]))
+        elif name == "float_whole_action":
+            batch["action"] = batch["action"].float()
+        elif name == "nan_reward":
+            batch["next", "reward"][at] = float("nan")
+        elif name == "fractional_done":
+            batch["next", "done"] = batch["next", "done"].float()
+            batch["next", "done"][at] = 0.5
+        elif name == "nan_observation":
+            batch["observation"][at] = float("nan")
+        elif name == "nan_value_target":
+            batch["value_target"][at] = float("nan")
+        elif name == "value_target_shape":
+            batch["value_target"] = batch["value_target"].expand(rows, steps, 2).clone()
+        elif name == "value_target_without_dim":
+            batch["value_target"] = batch["value_target"].squeeze(-1)
+        elif name == "all_masked":
+            batch["collector", "mask"] = torch.zeros(*batch.shape, dtype=torch.bool)
+    precomputed = {"nan_value_target", "value_target_shape", "value_target_without_dim"}
+    reads_the_data = {"nan_reward", "fractional_done"} & set(names)
+    if reads_the_data or (draw(st.booleans()) and not precomputed & set(names)):
+        del batch["value_target"]  # the loss's own estimator computes it from the data
+    if "missing_action" in names:
+        del batch["action"]
+    if "empty_batch" in names:
+        batch = batch[:0]
+    return batch, names
+
+
+@settings(max_examples=300, deadline=None)
+@given(problem=malformed_batches())
+def test_malformed_batches_give_a_correct_loss_or_a_clear_error(problem):
+    batch, names = problem
+    torch.manual_seed(0)
+    actor = make_categorical_actor()
+    loss = ReinforceLoss(actor)
+    loss.make_value_estimator("reward_to_go", gamma=0.9)
+    expected_names = {_LOSS_CORRUPTIONS[n] for n in names} - {None}
+    try:
+        out = loss(batch.clone())
+    except (ValueError, TypeError, KeyError) as err:
+        assert expected_names, f"valid batch ({names}) refused: {err}"
+        assert any(name in str(err) for name in expected_names), (names, str(err))
+        return
+    assert not expected_names, f"{names} went through: {out['loss_actor']}"
+    assert torch.isfinite(out["loss_actor"])
+    returns = reward_to_go(batch["next", "reward"], batch["next", "done"].bool(), 0.9)
+    torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
