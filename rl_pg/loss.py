@@ -271,6 +271,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
         # state_dict from the start, so a checkpoint loads into a freshly built loss.
         self._default_value_estimator()
 
+    def set_keys(self, **kwargs) -> None:
+        """Renames the entries the loss reads (TorchRL's ``set_keys``; ``None`` restores
+        a default). Unknown names raise ``ValueError``; a key that is neither a string
+        nor a tuple of strings raises ``TypeError``."""
+        for name, key in kwargs.items():
+            if key is not None and not _is_nested_key(key):
+                raise TypeError(
+                    f"set_keys({name}=...) needs a key: a string or a tuple of strings, got "
+                    f"{key!r}."
+                )
+        super().set_keys(**kwargs)
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         # TorchRL builds its estimator at the first forward, so set_keys never meets one
         # and a value key the critic does not write only fails when returns are needed.
@@ -331,12 +343,20 @@ class ReinforceLoss(TorchRLReinforceLoss):
         ):
             LossModule.make_value_estimator(self, value_type, **hyperparams)
         else:
-            dispatch_value_estimator(
-                self,
-                value_type,
-                supported=self.SUPPORTED_VALUE_ESTIMATORS,
-                **hyperparams,
-            )
+            try:
+                dispatch_value_estimator(
+                    self,
+                    value_type,
+                    supported=self.SUPPORTED_VALUE_ESTIMATORS,
+                    **hyperparams,
+                )
+            except KeyError as err:  # TorchRL's type for an unknown name; kept for callers
+                names = [getattr(v, "name", v).lower() for v in self.SUPPORTED_VALUE_ESTIMATORS]
+                raise KeyError(
+                    f"Unknown value estimator {value_type!r}: ReinforceLoss takes one of "
+                    f"{names}, a ValueEstimators member, or a ValueEstimatorBase class or "
+                    f"instance."
+                ) from err
         self._forward_value_estimator_keys()
         return self
 
@@ -449,10 +469,23 @@ class ReinforceLoss(TorchRLReinforceLoss):
         """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""
         for key in self._loss_mask_keys():
             mask = tensordict.get(key, None)
-            if mask is not None:
-                while mask.ndim < like.ndim:
-                    mask = mask.unsqueeze(-1)
-                return mask.expand_as(like)
+            if mask is None:
+                continue
+            if mask.dtype != torch.bool:
+                raise TypeError(
+                    f"The padding mask {key!r} must be boolean (True on the steps to learn "
+                    f"from), got dtype {mask.dtype}. Pass mask.bool()."
+                )
+            batch = tensordict.batch_size
+            if mask.shape[: len(batch)] != batch or mask[(0,) * len(batch)].numel() != 1:
+                raise ValueError(
+                    f"The padding mask {key!r} has shape {tuple(mask.shape)}; it needs one "
+                    f"value per step of the batch {tuple(batch)}."
+                )
+            mask = mask.reshape(batch)
+            while mask.ndim < like.ndim:
+                mask = mask.unsqueeze(-1)
+            return mask.expand_as(like)
         return None
 
     def _episode_returns(
@@ -585,6 +618,12 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = _sum_td_features(entropy)
         return entropy
+
+
+def _is_nested_key(key) -> bool:
+    if isinstance(key, str):
+        return True
+    return isinstance(key, tuple) and bool(key) and all(isinstance(k, str) for k in key)
 
 
 def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tensor:

@@ -45,6 +45,8 @@ class RunDirectory:
     Raises:
         RunDirBusy: on entry, when another process holds the directory (the message
             gives its process id).
+        NotADirectoryError: when ``path`` is a file.
+        OSError: when the directory cannot be created or written.
 
     Examples:
         >>> import tempfile
@@ -69,10 +71,19 @@ class RunDirectory:
         self._keep = False
 
     def __enter__(self) -> RunDirectory:
+        if self.path.exists() and not self.path.is_dir():
+            raise NotADirectoryError(
+                f"The run directory {self.path} is a file; choose another --run-dir."
+            )
         self._created = not self.path.exists()
-        self.path.mkdir(parents=True, exist_ok=True)
-        lock_path = self.path / LOCK_FILE
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise OSError(
+                f"Cannot use {self.path} as a run directory ({err.strerror}); choose a "
+                f"writable --run-dir."
+            ) from err
         try:
             _lock(fd)
         except OSError as err:

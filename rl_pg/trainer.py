@@ -278,7 +278,12 @@ def train(
         _seed_everything(cfg.seed)
 
         env = make_env()
-        actor, critic = make_models(env)
+        if not isinstance(env, EnvBase):
+            raise TypeError(
+                f"make_env must return a TorchRL environment (EnvBase), got "
+                f"{type(env).__name__}. Wrap gymnasium environments with rl_pg.envs.gym_env."
+            )
+        actor, critic = _models(make_models, env)
         loss = _make_loss(cfg, actor, critic)
         _warm_up(loss, env)
         optimizer = _make_optimizer(cfg, loss)
@@ -394,6 +399,16 @@ def _open_run_dir(cfg, recipe, directory: RunDirectory, checkpoint_path: Path) -
             f"was overwritten."
         )
     return None
+
+
+def _models(make_models, env: EnvBase):
+    models = make_models(env)
+    if not (isinstance(models, tuple) and len(models) == 2):
+        raise TypeError(
+            f"make_models must return (actor, critic or None), got {type(models).__name__}. "
+            f"Return (actor, None) to train without a critic."
+        )
+    return models
 
 
 def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
@@ -758,6 +773,11 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
         >>> float(sum(p.abs().sum() for p in actor.parameters()))
         0.0
     """
+    if not isinstance(saved, dict) or not isinstance(saved.get("loss"), dict):
+        raise CheckpointError(
+            "load_models needs a checkpoint as read_run(...) returns it (a dict with the "
+            "loss's weights under 'loss')."
+        )
     for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
         if module is None:
             continue

@@ -11,7 +11,7 @@ import torch
 from torchrl.collectors import Collector
 from torchrl.envs import check_env_specs
 
-from rl_pg.envs import gym_env
+from rl_pg.envs import InfoFlags, gym_env
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor
 
@@ -66,9 +66,7 @@ def test_collector_and_greedy_evaluation_on_a_batched_env():
     assert result["mean_length"] >= 8 and np.isfinite(result["mean_return"])
 
 
-def test_bad_arguments():
-    with pytest.raises(ValueError, match="num_envs must be >= 1"):
-        gym_env("CartPole-v1", num_envs=0)
+def test_render_needs_a_single_environment():
     with pytest.raises(ValueError, match="single environment"):
         gym_env("CartPole-v1", num_envs=2, render=True)
 
@@ -97,3 +95,14 @@ def test_single_and_batched_games_keep_gymnasium_frameskip():
         both = batched.step(both.set("action", torch.tensor([action, action])))["next"]
         assert np.array_equal(one["pixels"].numpy(), expected), step
         assert np.array_equal(both["observation"][0].numpy(), expected), step
+
+
+@pytest.mark.parametrize(("num_envs", "error"), [(0, ValueError), (2.5, TypeError)])
+def test_gym_env_refuses_a_bad_number_of_environments(num_envs, error):
+    with pytest.raises(error, match="num_envs must be an integer"):
+        gym_env("CartPole-v1", num_envs=num_envs)
+
+
+def test_info_flags_refuses_a_single_string():
+    with pytest.raises(TypeError, match=r"keys must be a sequence of info keys"):
+        InfoFlags("crashed")

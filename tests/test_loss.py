@@ -475,6 +475,33 @@ class TestReinforceLossBadInput:
             loss(categorical_batch)
 
 
+class TestReinforceLossKeysAndMasks:
+    @pytest.mark.parametrize("key", [3, ("next", 3), (), ["action"]])
+    def test_set_keys_refuses_what_is_not_a_key(self, categorical_actor, key):
+        with pytest.raises(TypeError, match=r"set_keys\(action=...\) needs a key"):
+            ReinforceLoss(categorical_actor).set_keys(action=key)
+
+    def test_set_keys_none_restores_the_default(self, categorical_actor):
+        loss = ReinforceLoss(categorical_actor)
+        loss.set_keys(action="act")
+        loss.set_keys(action=None)
+        assert loss.tensor_keys.action == "action"
+
+    def test_unknown_value_estimator(self, categorical_actor):
+        with pytest.raises(KeyError, match=r"Unknown value estimator 'bogus'.*'reward_to_go'"):
+            ReinforceLoss(categorical_actor).make_value_estimator("bogus")
+
+    def test_padding_mask_that_is_not_boolean(self, categorical_actor, categorical_batch):
+        categorical_batch["collector", "mask"] = torch.ones(3, 7)
+        with pytest.raises(TypeError, match=r"padding mask .* must be boolean"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+    def test_padding_mask_with_several_values_per_step(self, categorical_actor, categorical_batch):
+        categorical_batch["collector", "mask"] = torch.ones(3, 7, 2, dtype=torch.bool)
+        with pytest.raises(ValueError, match="needs one value per step of the batch"):
+            ReinforceLoss(categorical_actor)(categorical_batch)
+
+
 class _SumObservation(torch.nn.Module):
     """A 'critic' that forgets the trailing value dimension."""
 

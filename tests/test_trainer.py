@@ -25,7 +25,14 @@ from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor, mlp_critic
 from rl_pg.run_dir import RunDirBusy
-from rl_pg.trainer import TrainConfig, TrainingDiverged, _EpisodeReturns, read_run, train
+from rl_pg.trainer import (
+    TrainConfig,
+    TrainingDiverged,
+    _EpisodeReturns,
+    load_models,
+    read_run,
+    train,
+)
 
 
 def make_grid():
@@ -430,6 +437,32 @@ class TestNothingIsLost:
         assert csv.read_text() == untrimmed  # whole, not half-written
         _train(_cfg(tmp_path, total_updates=6, resume=True, log_interval=1))
         assert "999999" not in csv.read_text()
+
+
+class TestWhatTrainIsGiven:
+    def test_run_dir_that_is_a_file(self, tmp_path):
+        (tmp_path / "run").write_text("notes")
+        with pytest.raises(NotADirectoryError, match="is a file; choose another --run-dir"):
+            _train(_cfg(tmp_path))
+        assert (tmp_path / "run").read_text() == "notes"
+
+    def test_make_env_that_returns_no_environment(self, tmp_path):
+        with pytest.raises(TypeError, match="make_env must return a TorchRL environment"):
+            train(_cfg(tmp_path), recipe="grid", make_env=lambda: None, make_models=None)
+        assert not (tmp_path / "run").exists()
+
+    def test_make_models_that_returns_only_an_actor(self, tmp_path):
+        with pytest.raises(TypeError, match=r"make_models must return \(actor, critic or None\)"):
+            train(
+                _cfg(tmp_path),
+                recipe="grid",
+                make_env=make_grid,
+                make_models=lambda env: mlp_actor(env),
+            )
+
+    def test_load_models_needs_a_checkpoint(self):
+        with pytest.raises(CheckpointError, match="needs a checkpoint as read_run"):
+            load_models({"weights": 1}, mlp_actor(make_grid()))
 
 
 class _Flatten(nn.Module):

@@ -8,6 +8,7 @@ from typing import Any
 import gymnasium as gym
 from torchrl.envs import EnvBase, GymEnv, GymWrapper, TransformedEnv
 
+from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
 from rl_pg.envs.info import InfoFlags
 
@@ -54,8 +55,7 @@ def gym_env(
         return GymEnv(env_id, categorical_action_encoding=True, **kwargs)
     if render:
         raise ValueError("render=True needs a single environment: leave num_envs=None.")
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}.")
+    num_envs = check_int("num_envs", num_envs, low=1)
     vector_env = gym.make_vec(
         env_id,
         num_envs=num_envs,

@@ -32,6 +32,10 @@ class InfoFlags(BaseInfoDictReader):
     """
 
     def __init__(self, keys: Sequence[str]) -> None:
+        if isinstance(keys, str) or not all(isinstance(key, str) for key in keys):
+            raise TypeError(
+                f"keys must be a sequence of info keys such as ['crashed'], got {keys!r}."
+            )
         self.keys = list(keys)
         self._info_spec = Composite(
             {key: Categorical(2, shape=(1,), dtype=torch.bool) for key in self.keys}, shape=[]
