@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from rl_pg.trainer import TrainConfig
+from rl_pg.trainer import TrainConfig, scalar_log_rows
 
 __all__ = ["plot_curves", "read_curve", "run_variants"]
 
@@ -31,7 +31,7 @@ def read_curve(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray
     path = Path(run_dir) / "logs" / "csv" / "scalars" / f"{metric}.csv"
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: the run logged no {metric!r}.")
-    data = np.loadtxt(path, delimiter=",", ndmin=2)
+    data = np.array(scalar_log_rows(path.read_text()), dtype=np.float64).reshape(-1, 2)
     return data[:, 0], data[:, 1]
 
 

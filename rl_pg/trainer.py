@@ -66,6 +66,7 @@ __all__ = [
     "check_fields",
     "load_models",
     "read_run",
+    "scalar_log_rows",
     "train",
 ]
 
@@ -559,18 +560,33 @@ def _trim_csv_logs(log_dir: Path, frames: int) -> None:
     for path in log_dir.glob("csv/scalars/**/*.csv"):
         text = path.read_text()
         rows = text.split("\n")[:-1]  # what follows the last newline is a torn row
-        kept = [row for row in rows if (step := _csv_step(row)) is not None and step <= frames]
+        kept = [row for row in rows if (parsed := _parse_row(row)) and parsed[0] <= frames]
         if len(kept) != len(rows) or not text.endswith("\n"):
             write_atomically(path, "".join(f"{row}\n" for row in kept))
 
 
-def _csv_step(row: str) -> float | None:
+def scalar_log_rows(text: str) -> list[tuple[float, float]]:
+    """The complete ``step,value`` rows of a CSV scalar log.
+
+    What follows the last newline, or a row that is not two numbers, was cut short by
+    a killed run and is left out.
+
+    Examples:
+        >>> from rl_pg.trainer import scalar_log_rows
+        >>> scalar_log_rows("64,0.5\\n128,0.75\\n19")
+        [(64.0, 0.5), (128.0, 0.75)]
+    """
+    return [parsed for row in text.split("\n")[:-1] if (parsed := _parse_row(row))]
+
+
+def _parse_row(row: str) -> tuple[float, float] | None:
     fields = row.split(",")
+    if len(fields) != 2:
+        return None
     try:
-        step, value = (float(field) for field in fields) if len(fields) == 2 else (None, None)
+        return float(fields[0]), float(fields[1])
     except ValueError:
         return None
-    return step if value is not None else None
 
 
 # -------------------------------------------------------------------- steps ---

@@ -22,6 +22,7 @@ from torch import nn
 from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
+from rl_pg.comparison import read_curve
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor, mlp_critic
 from rl_pg.run_dir import RunDirBusy
@@ -474,3 +475,12 @@ class _Flatten(nn.Module):
 
     def forward(self, observation):
         return self.linear(observation).squeeze(-1)
+
+
+def test_curves_are_read_from_logs_cut_short_by_a_kill(tmp_path):
+    _train(_cfg(tmp_path, total_updates=2, log_interval=1))
+    csv = tmp_path / "run" / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+    complete = csv.read_text()
+    csv.write_text(complete + "1234,0.2")  # the last row lost its end
+    steps, values = read_curve(tmp_path / "run", "loss/actor")
+    assert len(steps) == len(values) == complete.count("\n")
