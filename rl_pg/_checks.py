@@ -70,13 +70,7 @@ def check_real(
     """
     if value is None and optional:
         return None
-    number = _scalar(value)
-    if isinstance(number, bool) or not isinstance(number, numbers.Real):
-        raise TypeError(
-            f"{name} must be a real number{' or None' if optional else ''}, got "
-            f"{_received(value)}.{_hint(hint)}"
-        )
-    number = float(number)
+    number = float(_number_of_kind(name, value, numbers.Real, "a real number", optional, hint))
     bounds = []
     if low is not None:
         bounds.append(f"{'>' if low_open else '>='} {low:g}")
@@ -107,17 +101,23 @@ def check_int(
     """
     if value is None and optional:
         return None
-    number = _scalar(value)
-    if isinstance(number, bool) or not isinstance(number, numbers.Integral):
-        raise TypeError(
-            f"{name} must be an integer{' or None' if optional else ''}, got "
-            f"{_received(value)}.{_hint(hint)}"
-        )
+    number = _number_of_kind(name, value, numbers.Integral, "an integer", optional, hint)
     if low is not None and number < low:
         raise ValueError(
             f"{name} must be an integer >= {low}, got {_received(value)}.{_hint(hint)}"
         )
     return int(number)
+
+
+def _number_of_kind(name, value, kind, what: str, optional: bool, hint: str):
+    """``value`` as a Python or numpy number of ``kind``; booleans are not numbers here."""
+    number = _scalar(value)
+    if isinstance(number, bool) or not isinstance(number, kind):
+        raise TypeError(
+            f"{name} must be {what}{' or None' if optional else ''}, got "
+            f"{_received(value)}.{_hint(hint)}"
+        )
+    return number
 
 
 def check_bool(name: str, value: Any) -> bool:
