@@ -25,6 +25,8 @@ __all__ = [
     "check_bool",
     "check_fields",
     "check_int",
+    "check_key",
+    "check_names",
     "check_real",
     "check_tensor",
 ]
@@ -135,6 +137,39 @@ def check_bool(name: str, value: Any) -> bool:
     if type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_"):
         return bool(value)
     raise TypeError(f"{name} must be True or False, got {_received(value)}.")
+
+
+def check_names(name: str, value: Any) -> tuple[str, ...]:
+    """A sequence of strings (entry or info names); a lone string is refused, not split.
+
+    Examples:
+        >>> from rl_pg._checks import check_names
+        >>> check_names("flags", "crashed")
+        Traceback (most recent call last):
+        ...
+        TypeError: flags must be a sequence of names such as ['crashed'], got 'crashed'.
+    """
+    if isinstance(value, str) or not hasattr(value, "__iter__"):
+        raise TypeError(f"{name} must be a sequence of names such as ['crashed'], got {value!r}.")
+    names = tuple(value)
+    if not all(isinstance(item, str) for item in names):
+        raise TypeError(f"{name} must be a sequence of names such as ['crashed'], got {value!r}.")
+    return names
+
+
+def check_key(name: str, value: Any) -> str | tuple[str, ...]:
+    """A TensorDict key: a string or a non-empty tuple of strings.
+
+    Examples:
+        >>> from rl_pg._checks import check_key
+        >>> check_key("in_key", ("next", "pixels"))
+        ('next', 'pixels')
+    """
+    if isinstance(value, str) or (
+        isinstance(value, tuple) and value and all(isinstance(k, str) for k in value)
+    ):
+        return value
+    raise TypeError(f"{name} must be a string or a tuple of strings, got {value!r}.")
 
 
 def check_tensor(name: str, value: Any, *, hint: str = "") -> torch.Tensor:

@@ -109,6 +109,8 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
         >>> load_checkpoint(path)["frames"]
         10
     """
+    if not isinstance(state, dict):
+        raise TypeError(f"save_checkpoint saves a dict of state, got {type(state).__name__}.")
     buffer = io.BytesIO()
     torch.save({**state, "format": FORMAT}, buffer)
     payload = buffer.getvalue()

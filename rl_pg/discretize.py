@@ -10,7 +10,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, MultiOneHot, OneHot
 from torchrl.envs.transforms import Transform
 
-from rl_pg._checks import check_bool, check_int, check_tensor
+from rl_pg._checks import check_bool, check_int, check_key, check_tensor
 
 __all__ = ["DiscretizeAction"]
 
@@ -115,13 +115,7 @@ class DiscretizeAction(Transform):
                     f"vector must be a real point of the action space."
                 )
         one_hot = check_bool("one_hot", one_hot)
-        if not isinstance(action_key, (str, tuple)) or (
-            isinstance(action_key, tuple)
-            and not (action_key and all(isinstance(k, str) for k in action_key))
-        ):
-            raise TypeError(
-                f"action_key must be a string or a tuple of strings, got {action_key!r}."
-            )
+        action_key = check_key("action_key", action_key)
         super().__init__(in_keys_inv=[action_key], out_keys_inv=[action_key])
         self.action_key = action_key
         self.counts = counts

@@ -13,7 +13,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from rl_pg._checks import check_bool, check_int, check_real
+from rl_pg._checks import check_bool, check_int, check_names, check_real
 
 __all__ = ["check_recording", "evaluate", "first_episodes", "play"]
 
@@ -107,7 +107,7 @@ def evaluate(
     episodes = check_int("episodes", episodes, low=1)
     max_steps = check_int("max_steps", max_steps, low=1)
     deterministic = check_bool("deterministic", deterministic)
-    flags = _check_flags(flags)
+    flags = check_names("flags", flags)
     n_envs = max(1, math.prod(env.batch_size))
     results: dict[str, list[torch.Tensor]] = {}
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -131,12 +131,6 @@ def evaluate(
         if flag in stats:
             out[f"{flag}_rate"] = stats[flag].mean().item()
     return out
-
-
-def _check_flags(flags: Sequence[str]) -> tuple[str, ...]:
-    if isinstance(flags, str) or not all(isinstance(flag, str) for flag in flags):
-        raise TypeError(f"flags must be a sequence of entry names, got {flags!r}.")
-    return tuple(flags)
 
 
 def _until_each_done(

@@ -7,6 +7,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite
 from torchrl.envs.transforms import Transform
 
+from rl_pg._checks import check_bool, check_key
+
 __all__ = ["FrameDifference"]
 
 
@@ -49,6 +51,9 @@ class FrameDifference(Transform):
         prev_key: str = "previous_frame",
         keep_pixels: bool = False,
     ) -> None:
+        in_key, out_key = check_key("in_key", in_key), check_key("out_key", out_key)
+        prev_key = check_key("prev_key", prev_key)
+        keep_pixels = check_bool("keep_pixels", keep_pixels)
         super().__init__(in_keys=[in_key], out_keys=[out_key, prev_key])
         self.in_key, self.out_key, self.prev_key = in_key, out_key, prev_key
         # Raw frames are dropped unless asked for, or overwritten when in_key == out_key.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import numbers
 
 import torch
 from tensordict import TensorDict, TensorDictBase, is_tensor_collection
@@ -25,7 +26,7 @@ from torchrl.objectives.utils import (
 )
 from torchrl.objectives.value import ValueEstimatorBase
 
-from rl_pg._checks import check_bool, check_real
+from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import _MonteCarloReturn
 
@@ -241,7 +242,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
 
         if clip_value is not None:
             if isinstance(clip_value, bool) or not (
-                isinstance(clip_value, (int, float))
+                isinstance(clip_value, numbers.Real)
                 or (isinstance(clip_value, torch.Tensor) and clip_value.numel() == 1)
             ):
                 # TorchRL's wording, which its own tests match.
@@ -276,11 +277,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
         a default). Unknown names raise ``ValueError``; a key that is neither a string
         nor a tuple of strings raises ``TypeError``."""
         for name, key in kwargs.items():
-            if key is not None and not _is_nested_key(key):
-                raise TypeError(
-                    f"set_keys({name}=...) needs a key: a string or a tuple of strings, got "
-                    f"{key!r}."
-                )
+            if key is not None:
+                check_key(f"set_keys({name}=...)", key)
         super().set_keys(**kwargs)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -618,12 +616,6 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = _sum_td_features(entropy)
         return entropy
-
-
-def _is_nested_key(key) -> bool:
-    if isinstance(key, str):
-        return True
-    return isinstance(key, tuple) and bool(key) and all(isinstance(k, str) for k in key)
 
 
 def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tensor:

@@ -142,7 +142,11 @@ def _action_bounds(spec: Bounded, n_act: int) -> tuple[torch.Tensor, torch.Tenso
 
 
 def _check_hidden(hidden: Sequence[int]) -> tuple[int, ...]:
-    if isinstance(hidden, (int, str)) or not isinstance(hidden, Sequence):
+    if (
+        isinstance(hidden, str)
+        or not hasattr(hidden, "__iter__")
+        or getattr(hidden, "ndim", 1) != 1
+    ):
         raise TypeError(
             f"hidden must be a sequence of layer widths such as (64, 64), got {hidden!r}."
         )

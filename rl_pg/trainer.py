@@ -44,7 +44,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
 from tqdm import tqdm
 
-from rl_pg._checks import Range, check_fields
+from rl_pg._checks import Range, check_fields, check_names
 from rl_pg.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -266,7 +266,10 @@ def train(
         >>> summary["updates"], sorted(summary)[:4]
         (2, ['eval_mean_return', 'eval_std_return', 'frames', 'recipe'])
     """
+    if not isinstance(cfg, TrainConfig):
+        raise TypeError(f"train needs a TrainConfig, got {type(cfg).__name__}.")
     cfg.validate()  # again: fields may have been changed since the config was made
+    eval_flags = check_names("eval_flags", eval_flags)
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else _new_run_dir(recipe, cfg.seed)

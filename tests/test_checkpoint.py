@@ -85,6 +85,11 @@ class TestCheckpoint:
         with pytest.raises(CheckpointError, match="is corrupted: it cannot be read"):
             load_checkpoint(tmp_path / "c.pt")
 
+    def test_state_that_is_not_a_dict(self, tmp_path):
+        with pytest.raises(TypeError, match="saves a dict of state, got list"):
+            save_checkpoint([1, 2], tmp_path / "c.pt")
+        assert not (tmp_path / "c.pt").exists()
+
     def test_missing(self, tmp_path):
         with pytest.raises(CheckpointError, match="No checkpoint at"):
             load_checkpoint(tmp_path / "none.pt")

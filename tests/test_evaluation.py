@@ -71,7 +71,7 @@ class TestEvaluate:
             ({"max_steps": 0}, ValueError, "max_steps must be an integer >= 1"),
             ({"episodes": 2.0}, TypeError, "episodes must be an integer"),
             ({"deterministic": "no"}, TypeError, "deterministic must be True or False"),
-            ({"flags": "crashed"}, TypeError, "flags must be a sequence of entry names"),
+            ({"flags": "crashed"}, TypeError, "flags must be a sequence of names"),
         ],
     )
     def test_bad_arguments(self, kwargs, error, match):

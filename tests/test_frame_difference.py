@@ -49,3 +49,16 @@ def test_bad_frames_and_options():
         FrameDifference.process(torch.zeros(84, 84, 3, dtype=torch.uint8))
     with pytest.raises(ValueError, match="keep_pixels=True needs an out_key"):
         FrameDifference(in_key="observation", keep_pixels=True)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"in_key": 3}, "in_key must be a string"),
+        ({"prev_key": ()}, "prev_key must be a string"),
+        ({"keep_pixels": "yes"}, "keep_pixels must be True or False"),
+    ],
+)
+def test_bad_arguments(kwargs, match):
+    with pytest.raises(TypeError, match=match):
+        FrameDifference(**kwargs)

@@ -104,5 +104,5 @@ def test_gym_env_refuses_a_bad_number_of_environments(num_envs, error):
 
 
 def test_info_flags_refuses_a_single_string():
-    with pytest.raises(TypeError, match=r"keys must be a sequence of info keys"):
+    with pytest.raises(TypeError, match=r"keys must be a sequence of names"):
         InfoFlags("crashed")

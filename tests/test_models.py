@@ -102,6 +102,10 @@ class TestMlpActor:
         with pytest.raises(error, match=match):
             mlp_critic(GridWorldEnv(), hidden=hidden)
 
+    def test_numpy_widths(self):
+        actor = mlp_actor(GridWorldEnv(), hidden=np.array([8, 8]))
+        assert sum(p.numel() for p in actor.parameters()) == (16 * 8 + 8) + (8 * 8 + 8) + 36
+
     def test_no_hidden_layer_is_a_linear_policy(self):
         actor, critic = mlp_actor_critic(GridWorldEnv(), hidden=())
         assert sum(p.numel() for p in actor.parameters()) == 16 * 4 + 4

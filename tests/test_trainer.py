@@ -461,6 +461,15 @@ class TestWhatTrainIsGiven:
                 make_models=lambda env: mlp_actor(env),
             )
 
+    def test_a_config_that_is_not_a_train_config(self, tmp_path):
+        with pytest.raises(TypeError, match="train needs a TrainConfig, got dict"):
+            train({"lr": 0.1}, recipe="grid", make_env=make_grid, make_models=make_grid_models)
+
+    def test_eval_flags_are_checked_before_training(self, tmp_path):
+        with pytest.raises(TypeError, match="eval_flags must be a sequence of names"):
+            _train(_cfg(tmp_path), eval_flags="crashed")
+        assert not (tmp_path / "run").exists()
+
     def test_load_models_needs_a_checkpoint(self):
         with pytest.raises(CheckpointError, match="needs a checkpoint as read_run"):
             load_models({"weights": 1}, mlp_actor(make_grid()))

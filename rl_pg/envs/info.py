@@ -10,6 +10,8 @@ from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite
 from torchrl.envs.gym_like import BaseInfoDictReader
 
+from rl_pg._checks import check_names
+
 __all__ = ["InfoFlags"]
 
 
@@ -32,11 +34,7 @@ class InfoFlags(BaseInfoDictReader):
     """
 
     def __init__(self, keys: Sequence[str]) -> None:
-        if isinstance(keys, str) or not all(isinstance(key, str) for key in keys):
-            raise TypeError(
-                f"keys must be a sequence of info keys such as ['crashed'], got {keys!r}."
-            )
-        self.keys = list(keys)
+        self.keys = list(check_names("keys", keys))
         self._info_spec = Composite(
             {key: Categorical(2, shape=(1,), dtype=torch.bool) for key in self.keys}, shape=[]
         )
