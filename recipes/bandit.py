@@ -23,6 +23,7 @@ import tyro
 from torch import nn
 from torchrl.envs import EnvBase
 
+from rl_pg.checkpoint import write_atomically
 from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
@@ -87,7 +88,7 @@ def main(cfg: Config) -> dict:
     )
     _, running_reward = _running_reward(summary["run_dir"], cfg)
     summary["final_running_reward"] = float(running_reward[-1])
-    (Path(summary["run_dir"]) / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_atomically(Path(summary["run_dir"]) / "summary.json", json.dumps(summary, indent=2))
     return summary
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from rl_pg.checkpoint import write_atomically
 from rl_pg.trainer import TrainConfig, scalar_log_rows
 
 __all__ = ["plot_curves", "read_curve", "run_variants"]
@@ -55,7 +57,7 @@ def run_variants(
                 cfg, **overrides, seed=seed, run_dir=root / name / f"seed{seed}", resume=False
             )
             results.setdefault(name, []).append(main(run_cfg))
-    (root / "comparison.json").write_text(json.dumps(results, indent=2))
+    write_atomically(root / "comparison.json", json.dumps(results, indent=2))
     return results
 
 
@@ -85,6 +87,8 @@ def plot_curves(
     ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.legend(loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=100)
     plt.close(fig)
+    write_atomically(path, image.getvalue())
     return path
