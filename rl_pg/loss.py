@@ -424,7 +424,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
             else self.tensor_keys.value_target
         )
         psi = tensordict.get(key, None)
-        if psi is None:
+        estimated_here = psi is None
+        if estimated_here:
             self._run_value_estimator(tensordict)
             psi = tensordict.get(key, None)
             if psi is None:
@@ -441,11 +442,22 @@ class ReinforceLoss(TorchRLReinforceLoss):
             )
         finite = torch.isfinite(psi) if valid is None else torch.isfinite(psi) | ~valid
         if not bool(finite.all()):
+            reward = tensordict.get(("next", self.tensor_keys.reward), None)
+            if isinstance(reward, torch.Tensor) and not bool(torch.isfinite(reward).all()):
+                cause = f"('next', {self.tensor_keys.reward!r}) holds NaN/inf: check the rewards."
+            elif estimated_here:
+                cause = (
+                    f"{type(self.value_estimator).__name__} computed it from finite rewards, so "
+                    f"the value network gave NaN/inf: check its inputs and learning rate."
+                )
+            else:
+                cause = (
+                    "It was in the batch already: recompute it, or delete the entry and let "
+                    "the loss's value estimator compute it."
+                )
             raise ValueError(
                 f"{key!r} holds {int((~finite).sum())} non-finite value(s): the policy "
-                f"gradient would be NaN. If you computed it yourself, check the rewards and "
-                f"the value network; or delete the entry and let the loss's value "
-                f"estimator compute it."
+                f"gradient would be NaN. {cause}"
             )
         diagnostics = {}
         if self.baseline_module is not None:

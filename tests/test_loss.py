@@ -452,6 +452,23 @@ class TestReinforceLossBadInput:
         if loss.baseline_module is not None:  # nothing was taken into the baseline
             assert loss.baseline_module.count == 0
 
+    def test_nan_reward_through_torchrl_s_estimator(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        categorical_batch["next", "reward"][2, 2] = float("nan")
+        loss = ReinforceLoss(categorical_actor, critic)  # GAE, which does not check rewards
+        with pytest.raises(
+            ValueError, match=r"'advantage' holds .* \('next', 'reward'\) holds NaN"
+        ):
+            loss(categorical_batch)
+
+    def test_nan_from_the_value_network(self, categorical_actor, categorical_batch):
+        critic = make_critic()
+        with torch.no_grad():
+            critic.module.bias.fill_(float("nan"))
+        with pytest.raises(ValueError, match="the value network gave NaN/inf"):
+            ReinforceLoss(categorical_actor, critic)(categorical_batch)
+
     def test_precomputed_returns_of_the_wrong_shape(self, categorical_actor, categorical_batch):
         categorical_batch["value_target"] = torch.zeros(3, 7, 2)
         with pytest.raises(ValueError, match=r"'value_target' has shape \(3, 7, 2\)"):
