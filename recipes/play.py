@@ -41,11 +41,11 @@ class Args:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if self.gif is not None:  # before the checkpoint is loaded and episodes played
+            self.gif = check_recording(self.gif)
 
 
 def main(args: Args) -> list[float]:
-    if args.gif is not None:
-        check_recording(args.gif)  # before the checkpoint is loaded and episodes played
     saved = read_run(args.run)
     recipe = importlib.import_module(saved["recipe"])
     fields = {f.name for f in dataclasses.fields(recipe.Config)}

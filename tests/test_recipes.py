@@ -129,19 +129,19 @@ def test_play_refuses_bad_arguments(tmp_path, kwargs, match):
 def test_play_refuses_an_unknown_recording_format_before_playing(tmp_path, name):
     # The run does not even exist: the recording is checked first, not after the episodes.
     with pytest.raises(ValueError, match=r"must end in \.gif or \.mp4"):
-        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / name))
+        play.Args(run=tmp_path / "no-run", gif=tmp_path / name)
 
 
 def test_play_refuses_a_recording_over_a_folder(tmp_path):
     (tmp_path / "x.gif").mkdir()
     with pytest.raises(ValueError, match="it is a folder"):
-        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.gif"))
+        play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.gif")
 
 
 def test_mp4_without_an_encoder_says_how_to_install_one(tmp_path, monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
     with pytest.raises(ModuleNotFoundError, match=r"rl_pg\[video\]"):
-        play.main(play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.mp4"))
+        play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.mp4")
 
 
 def test_play_refuses_to_record_what_does_not_render(tmp_path):
