@@ -49,7 +49,7 @@ class Config:
 
 
 class PythonGridWorld(gym.Env):
-    """The SPEC's 4x4 gridworld, one copy, the way gymnasium environments are written."""
+    """The 4x4 gridworld, one copy, the way gymnasium environments are written."""
 
     MOVES = ((-1, 0), (1, 0), (0, -1), (0, 1))
 

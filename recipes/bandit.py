@@ -1,4 +1,4 @@
-"""REINFORCE on the SPEC's 100-armed bandit: why a baseline matters.
+"""REINFORCE on a 100-armed bandit: why a baseline matters (docs/recipes/bandit.md).
 
 Arm 0 pays 1.0, arms 1-49 pay 0.9, the rest 0. Without a baseline every sampled arm
 is reinforced (all rewards are >= 0), so the policy often locks onto a 0.9 arm; with
@@ -51,9 +51,9 @@ class Config(TrainConfig):
     total_frames: int = 10_000_000
     """Environment steps to train for (at most)."""
     total_updates: int | None = 20_000
-    """Updates (the SPEC: 20 000 updates of one sample)."""
+    """Updates (the experiment: 20 000 updates of one sample)."""
     baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "running_mean"
-    """What is subtracted from the reward: 'none' or 'running_mean' for the SPEC."""
+    """What is subtracted from the reward: 'none' or 'running_mean' in the comparison."""
     lr: float = 1e-3
     """Learning rate."""
     eval_interval: int = 1_000
@@ -93,7 +93,7 @@ def main(cfg: Config) -> dict:
 
 
 def _running_reward(run_dir, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
-    """r <- 0.99 r + 0.01 reward, per update, as the tutorial plots it."""
+    """r <- 0.99 r + 0.01 reward, per update: the running reward the comparison plots."""
     frames, rewards = read_curve(run_dir, "train/episode_return")
     running, out = 0.0, []
     for reward in rewards:

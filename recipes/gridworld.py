@@ -1,4 +1,6 @@
-"""REINFORCE on the SPEC's 4x4 gridworld, and the comparison of its return estimators.
+"""REINFORCE on the 4x4 gridworld, and the comparison of its return estimators.
+
+The experiment is described in docs/recipes/gridworld.md.
 
 python recipes/gridworld.py                    # reward-to-go minus a learned V(s)
 python recipes/gridworld.py --compare          # no baseline / running mean /
@@ -21,7 +23,7 @@ from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor_critic
 from rl_pg.trainer import Count, TrainConfig, train
 
-# The SPEC's comparison; the tutorial could not combine reward-to-go with a baseline.
+# The comparison of docs/recipes/gridworld.md, plus reward-to-go minus a learned V(s).
 VARIANTS = {
     "no baseline": {"returns": "discounted_return", "baseline": "none"},
     "running-mean baseline": {"returns": "discounted_return", "baseline": "running_mean"},
@@ -41,13 +43,13 @@ class Config(TrainConfig):
     max_steps: Count = 100
     """Episode truncation horizon."""
     compare: bool = False
-    """Run every variant of the SPEC's comparison on n_seeds seeds and plot them."""
+    """Run every variant of the comparison on n_seeds seeds and plot them."""
     n_seeds: Count = 5
     """Seeds per variant with --compare."""
     total_frames: int = 1_000_000
     """Environment steps to train for (at most)."""
     total_updates: int | None = 30
-    """Updates to train for (the SPEC: 30 updates of 30 episodes)."""
+    """Updates to train for (the experiment: 30 updates of 30 episodes)."""
     episodes_per_batch: int = 30
     """Complete episodes per update."""
     gamma: float = 1.0

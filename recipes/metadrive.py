@@ -1,7 +1,7 @@
-"""The SPEC's original driving set-up on MetaDrive (optional backend).
+"""The original driving set-up on MetaDrive (optional backend; docs/recipes/metadrive.md).
 
 MetaDrive-validation-v0: a 259-dimensional observation in [0, 1] and a
-Box(-1, 1, (2,)) action, discretised into the SPEC's 9 joint actions; gamma 0.75,
+Box(-1, 1, (2,)) action, discretised into the 9 joint driving actions; gamma 0.75,
 entropy bonus 0.1, 200 episodes per update, Adam 1e-4, a checkpoint every 100
 updates. MetaDrive downloads its assets from the internet on first use, so it is not
 installed with rl_pg; this recipe stops with instructions when it is missing.
@@ -37,7 +37,7 @@ INSTALL_HINT = (
 
 @dataclass
 class Config(TrainConfig):
-    """REINFORCE on MetaDrive with the SPEC's driving hyper-parameters."""
+    """REINFORCE on MetaDrive with the driving experiment's hyper-parameters."""
 
     env_id: str = "MetaDrive-validation-v0"
     """MetaDrive gymnasium id."""
@@ -46,15 +46,15 @@ class Config(TrainConfig):
     total_frames: int = 2_000_000
     """Agent steps to train for (at most)."""
     episodes_per_batch: int = 200
-    """Complete episodes per update (SPEC)."""
+    """Complete episodes per update."""
     gamma: float = 0.75
-    """Discount factor (SPEC)."""
+    """Discount factor."""
     entropy_coeff: float = 0.1
-    """Entropy bonus weight (SPEC)."""
+    """Entropy bonus weight."""
     lr: float = 1e-4
-    """Learning rate (SPEC)."""
+    """Learning rate."""
     checkpoint_interval: int = 100
-    """Updates between checkpoints (SPEC)."""
+    """Updates between checkpoints."""
     eval_interval: int = 50_000
     """Agent steps between greedy evaluations."""
 

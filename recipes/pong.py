@@ -1,4 +1,4 @@
-"""REINFORCE with a learned baseline on Atari Pong, the SPEC's set-up (2.6).
+"""REINFORCE with a learned baseline on Atari Pong (the set-up of docs/recipes/pong.md).
 
 Frames go through ``FrameDifference`` (80x80 binarised differences, 6 400 inputs);
 a shared Linear(6400, 200)-ReLU trunk feeds a policy head (6 logits) and a value
@@ -54,7 +54,7 @@ class Config(TrainConfig):
     eval_episodes: int = 4
     """Greedy games per evaluation (a game lasts thousands of steps)."""
     threshold: float | None = 0.0
-    """Greedy mean score that counts as the issue's milestone (the SPEC solves at 20)."""
+    """Greedy mean score that counts as a milestone (the game is solved at 20)."""
     stop_when_solved: bool = False
     """Keep training past the milestone."""
     checkpoint_interval: int = 200
@@ -70,7 +70,7 @@ def _register_atari() -> None:
     gymnasium.register_envs(ale_py)
 
 
-ALE = {"frameskip": 4, "repeat_action_probability": 0.0}  # SPEC: skip 4, no sticky actions
+ALE = {"frameskip": 4, "repeat_action_probability": 0.0}  # skip 4 frames, no sticky actions
 
 
 def make_game(*, render: bool = False) -> EnvBase:

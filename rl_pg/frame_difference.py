@@ -1,4 +1,4 @@
-"""The Pong tutorial's pre-processing: binarised 80x80 frames, fed as differences."""
+"""Pong pre-processing: binarised 80x80 frames, fed as differences of frames."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Batched, torch-native environments for the tutorials' small problems."""
+"""Batched, torch-native environments for the small problems, and gymnasium helpers."""
 
 from rl_pg.envs.bandit import BanditEnv
 from rl_pg.envs.gridworld import GridWorldEnv

@@ -1,4 +1,4 @@
-"""The SPEC's one-step, many-armed bandit as a batched TorchRL environment."""
+"""A one-step, many-armed bandit as a batched TorchRL environment."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ class BanditEnv(EnvBase):
     """A one-step bandit: one constant state ``[1.0]``, ``num_arms`` actions.
 
     Arm 0 pays 1.0, arms ``1 .. num_arms/2 - 1`` pay 0.9, the others 0.0; every step
-    ends the episode. The trap the tutorial shows: many arms pay almost the best, so
+    ends the episode. The trap it shows: many arms pay almost the best, so
     a policy without a baseline often settles on a 0.9 arm.
 
     Keyword Args:

@@ -1,4 +1,4 @@
-"""The SPEC's 4x4 gridworld as a batched, torch-native TorchRL environment."""
+"""The 4x4 gridworld with a goal and a pit, as a batched, torch-native TorchRL environment."""
 
 from __future__ import annotations
 

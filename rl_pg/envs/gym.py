@@ -15,7 +15,7 @@ from rl_pg.envs.info import InfoFlags
 __all__ = ["DRIVING_ACTIONS", "driving_env", "gym_env"]
 
 DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
-"""The SPEC's 9 driving actions: (x, y), x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j."""
+"""The 9 driving actions: (x, y), x in {+1, 0, -1}, y in {+0.6, 0, -0.6}, index 3i + j."""
 
 
 def gym_env(
@@ -69,7 +69,7 @@ def gym_env(
 def driving_env(
     env_id: str, *, flags: Sequence[str] = (), render: bool = False, **kwargs: Any
 ) -> EnvBase:
-    """A driving simulator whose ``[acceleration, steering]`` action is one of the SPEC's 9.
+    """A driving simulator whose ``[acceleration, steering]`` action is one of ``DRIVING_ACTIONS``.
 
     Keyword Args:
         flags (sequence of str): boolean ``info`` entries to expose (e.g. ``"crashed"``).
