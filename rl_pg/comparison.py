@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -12,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from rl_pg.checkpoint import write_atomically
+from rl_pg.plots import png_figure
 from rl_pg.trainer import TrainConfig, scalar_log_rows
 
 __all__ = ["plot_curves", "read_curve", "run_variants"]
@@ -71,24 +71,14 @@ def plot_curves(
     hlines: Sequence[float] = (),
 ) -> Path:
     """One line per variant: the mean over seeds (on a common grid), shaded min to max."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, runs in curves.items():
-        grid = np.unique(np.concatenate([steps for steps, _ in runs]))
-        values = np.stack([np.interp(grid, steps, vals) for steps, vals in runs])
-        ax.plot(grid, values.mean(0), label=f"{name} ({len(runs)} seeds)")
-        ax.fill_between(grid, values.min(0), values.max(0), alpha=0.2)
-    for y in hlines:
-        ax.axhline(y, color="grey", linestyle=":")
-    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
-    ax.legend(loc="best")
-    fig.tight_layout()
-    image = io.BytesIO()
-    fig.savefig(image, format="png", dpi=100)
-    plt.close(fig)
-    write_atomically(path, image.getvalue())
+    with png_figure(path) as ax:
+        for name, runs in curves.items():
+            grid = np.unique(np.concatenate([steps for steps, _ in runs]))
+            values = np.stack([np.interp(grid, steps, vals) for steps, vals in runs])
+            ax.plot(grid, values.mean(0), label=f"{name} ({len(runs)} seeds)")
+            ax.fill_between(grid, values.min(0), values.max(0), alpha=0.2)
+        for y in hlines:
+            ax.axhline(y, color="grey", linestyle=":")
+        ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
+        ax.legend(loc="best")
     return path

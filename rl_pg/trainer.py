@@ -6,11 +6,11 @@ collect (a TorchRL collector) -> returns (the loss's value estimator) ->
 Two ways to batch experience:
 
 * ``batch_mode="episodes"``: ``episodes_per_batch`` complete episodes per update,
-  REINFORCE as the SPEC states it. With one worker the loop is strictly on-policy:
+  REINFORCE as the textbook states it. With one worker the loop is strictly on-policy:
   after each update the collector drops the episode in flight (whose first steps the
   previous policy chose); those frames still count as spent.
 * ``batch_mode="segments"``: ``segment_length`` steps from every environment per
-  update; unfinished episodes bootstrap from the critic (the SPEC's Pong set-up).
+  update; unfinished episodes bootstrap from the critic (the Pong recipe's set-up).
 
 A run directory holds ``checkpoint.pt`` (written atomically), ``summary.json``,
 ``logs/`` (TorchRL's CSV logger, TensorBoard optional) and ``learning_curve.png``.
@@ -21,7 +21,6 @@ time and resumed ends exactly as the uninterrupted run with the same seed would.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import math
 import os
@@ -54,6 +53,7 @@ from rl_pg.checkpoint import (
 from rl_pg.evaluation import evaluate
 from rl_pg.functional import discounted_return
 from rl_pg.loss import ReinforceLoss
+from rl_pg.plots import png_figure
 from rl_pg.run_dir import RunDirectory
 
 __all__ = [
@@ -480,14 +480,16 @@ def _make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimi
 
 
 def _make_collector(cfg: TrainConfig, env: EnvBase, make_env, actor, state: _State):
+    n_envs = max(1, math.prod(env.batch_size))
     if cfg.batch_mode == "episodes":
         kwargs = {
-            "frames_per_batch": 64,  # polling granularity only, with trajs_per_batch
+            # Polling granularity only (with trajs_per_batch): about 64 steps, a whole
+            # number of steps of the batched environment.
+            "frames_per_batch": n_envs * max(1, round(64 / n_envs)),
             "trajs_per_batch": cfg.episodes_per_batch,
             "traj_format": "cat",
         }
     else:
-        n_envs = max(1, math.prod(env.batch_size))
         kwargs = {"frames_per_batch": cfg.segment_length * n_envs * max(1, cfg.workers)}
     # Our policies need no extra environment transform (no recurrent state).
     inner = {"auto_register_policy_transforms": False}
@@ -835,26 +837,17 @@ def _summary(cfg: TrainConfig, recipe: str, state: _State, run_dir: Path) -> dic
 
 
 def _plot(state: _State, threshold: float | None, path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, label in (
-        ("train/episode_return", "training episodes"),
-        ("eval/mean_return", "evaluation"),
-    ):
-        points = state.history.get(name, [])
-        if points:
-            frames, values = zip(*points, strict=True)
-            ax.plot(frames, values, label=label, marker="o" if name.startswith("eval") else None)
-    if threshold is not None:
-        ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
-    ax.set(xlabel="frames", ylabel="episode return", title=title)
-    ax.legend(loc="best")
-    fig.tight_layout()
-    image = io.BytesIO()
-    fig.savefig(image, format="png", dpi=100)
-    plt.close(fig)
-    write_atomically(path, image.getvalue())
+    with png_figure(path) as ax:
+        for name, label in (
+            ("train/episode_return", "training episodes"),
+            ("eval/mean_return", "evaluation"),
+        ):
+            points = state.history.get(name, [])
+            if points:
+                frames, values = zip(*points, strict=True)
+                marker = "o" if name.startswith("eval") else None
+                ax.plot(frames, values, label=label, marker=marker)
+        if threshold is not None:
+            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        ax.set(xlabel="frames", ylabel="episode return", title=title)
+        ax.legend(loc="best")

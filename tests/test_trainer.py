@@ -493,3 +493,16 @@ def test_curves_are_read_from_logs_cut_short_by_a_kill(tmp_path):
     csv.write_text(complete + "1234,0.2")  # the last row lost its end
     steps, values = read_curve(tmp_path / "run", "loss/actor")
     assert len(steps) == len(values) == complete.count("\n")
+
+
+def test_training_leaves_the_matplotlib_backend_alone(tmp_path):
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")  # e.g. a notebook's inline backend
+    try:
+        _train(_cfg(tmp_path, total_updates=1))
+        assert matplotlib.get_backend() == "svg"
+        assert (tmp_path / "run" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
+    finally:
+        matplotlib.use(before)
