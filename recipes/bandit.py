@@ -24,10 +24,10 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.checkpoint import write_atomically
-from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
-from rl_pg.trainer import Count, Range, TrainConfig, train
+from rl_pg.training import Count, Range, TrainConfig, train
+from rl_pg.training.comparison import plot_curves, read_curve, run_variants
 
 
 @dataclass

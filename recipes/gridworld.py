@@ -18,10 +18,10 @@ import tyro
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rl_pg.comparison import plot_curves, read_curve, run_variants
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import Count, TrainConfig, train
+from rl_pg.training import Count, TrainConfig, train
+from rl_pg.training.comparison import plot_curves, read_curve, run_variants
 
 # The comparison of docs/recipes/gridworld.md, plus reward-to-go minus a learned V(s).
 VARIANTS = {

@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.trainer import Count, TrainConfig, train
+from rl_pg.training import Count, TrainConfig, train
 
 
 @dataclass

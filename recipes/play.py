@@ -17,7 +17,7 @@ import torch
 import tyro
 
 from rl_pg.evaluation import check_recording, play
-from rl_pg.trainer import Count, Positive, Range, check_fields, load_models, read_run
+from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 

@@ -26,7 +26,7 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 
 from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
-from rl_pg.trainer import Count, TrainConfig, train
+from rl_pg.training import Count, TrainConfig, train
 
 
 @dataclass

@@ -22,18 +22,18 @@ from torch import nn
 from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
-from rl_pg.comparison import read_curve
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor, mlp_critic
-from rl_pg.run_dir import RunDirBusy
-from rl_pg.trainer import (
+from rl_pg.training import (
+    RunDirBusy,
     TrainConfig,
     TrainingDiverged,
-    _EpisodeReturns,
     load_models,
     read_run,
     train,
 )
+from rl_pg.training.comparison import read_curve
+from rl_pg.training.metrics import EpisodeReturns
 
 
 def make_grid():
@@ -303,7 +303,7 @@ def test_training_episode_returns_are_summed_across_segments():
             if done[i, t]:
                 expected.append(running[i].item())
                 running[i] = 0.0
-    tracker = _EpisodeReturns(carry=True)
+    tracker = EpisodeReturns(carry=True)
     for start in range(0, steps, cut):  # the same stream as 8-step segments
         sl = slice(start, start + cut)
         batch = TensorDict(
@@ -318,7 +318,7 @@ def test_training_episode_returns_are_summed_across_segments():
 _HOLD_THE_LOCK = textwrap.dedent(
     """
     import sys, time
-    from rl_pg.run_dir import RunDirectory
+    from rl_pg.training import RunDirectory
     with RunDirectory({run!r}):
         print("locked", flush=True)
         time.sleep(60)

@@ -12,7 +12,8 @@ import numpy as np
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.plots import png_figure
-from rl_pg.trainer import TrainConfig, scalar_log_rows
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.metrics import scalar_log_rows
 
 __all__ = ["plot_curves", "read_curve", "run_variants"]
 
@@ -23,7 +24,7 @@ def read_curve(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray
     Examples:
         >>> import tempfile
         >>> from pathlib import Path
-        >>> from rl_pg.comparison import read_curve
+        >>> from rl_pg.training.comparison import read_curve
         >>> run = Path(tempfile.mkdtemp())
         >>> (run / "logs/csv/scalars/eval").mkdir(parents=True)
         >>> _ = (run / "logs/csv/scalars/eval/mean_return.csv").write_text("10,0.5\\n20,0.75\\n")

@@ -1,0 +1,41 @@
+"""The harness that runs experiments on top of rl_pg's components.
+
+One file per concern, imports pointing down (config <- checkpoints <- run_dir <- loop):
+
+* [`config`][rl_pg.training.config]: ``TrainConfig`` and the field types that bound it;
+* [`collection`][rl_pg.training.collection]: the collector and every decision that
+  depends on local, multi-process or Ray collection;
+* [`metrics`][rl_pg.training.metrics]: training-episode returns and the loggers;
+* [`checkpoints`][rl_pg.training.checkpoints]: what a checkpoint holds, resuming and
+  deploying from one;
+* [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, the summary and
+  the learning curve;
+* [`loop`][rl_pg.training.loop]: ``train()``;
+* [`comparison`][rl_pg.training.comparison]: several variants and seeds, one plot.
+
+The library (losses, estimators, transforms, environments, models) knows nothing of
+this package.
+"""
+
+from rl_pg._checks import check_fields
+from rl_pg.training.checkpoints import load_models, read_run
+from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConfig
+from rl_pg.training.loop import TrainingDiverged, train
+from rl_pg.training.metrics import scalar_log_rows
+from rl_pg.training.run_dir import RunDirBusy, RunDirectory
+
+__all__ = [
+    "Count",
+    "NonNegative",
+    "Positive",
+    "Range",
+    "RunDirBusy",
+    "RunDirectory",
+    "TrainConfig",
+    "TrainingDiverged",
+    "check_fields",
+    "load_models",
+    "read_run",
+    "scalar_log_rows",
+    "train",
+]

@@ -1,0 +1,133 @@
+"""What a run's checkpoint holds, and loading one back (to resume, or to deploy)."""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rl_pg.training.config import config_dict
+
+__all__ = ["CHECKPOINT", "RunState", "load_models", "read_run", "restore", "save"]
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class RunState:
+    """Everything about the run's progress that a checkpoint must restore."""
+
+    frames: int = 0
+    updates: int = 0
+    train_time: float = 0.0
+    solved_at_frames: int | None = None
+    last_eval: dict[str, float] = field(default_factory=dict)
+    history: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
+
+    def record(self, name: str, frames: int, value: float) -> None:
+        self.history.setdefault(name, []).append((frames, value))
+
+
+def save(cfg, recipe, loss, optimizer, state: RunState, path: Path) -> None:
+    """Writes the run's checkpoint (atomically, with a checksum) to ``path``."""
+    save_checkpoint(
+        {
+            "recipe": recipe,
+            "config": config_dict(cfg),
+            "loss": loss.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "state": dataclasses.asdict(state),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "numpy": np.random.get_state(),
+                "random": random.getstate(),
+            },
+        },
+        path,
+    )
+
+
+def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
+    """Loads a checkpoint into the run's loss and optimiser, restores the random number
+    generators, and returns the run's progress."""
+    try:
+        loss.load_state_dict(saved["loss"])
+        optimizer.load_state_dict(saved["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as err:
+        raise CheckpointError(
+            f"{path} does not fit the models this configuration builds ({err}). It was "
+            f"left as it is; resume it with the configuration that wrote it."
+        ) from err
+    torch.set_rng_state(saved["rng"]["torch"])
+    np.random.set_state(saved["rng"]["numpy"])
+    random.setstate(saved["rng"]["random"])
+    state = RunState(**saved["state"])
+    state.history = {k: [tuple(p) for p in v] for k, v in state.history.items()}
+    return state
+
+
+def read_run(run: str | Path) -> dict[str, Any]:
+    """The checkpoint of a run directory (or a checkpoint file itself).
+
+    Raises:
+        CheckpointError: missing or corrupted checkpoint.
+
+    Examples:
+        >>> import tempfile
+        >>> from rl_pg.training import read_run
+        >>> read_run(tempfile.mkdtemp())  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        rl_pg.checkpoint.CheckpointError: No checkpoint at .../checkpoint.pt.
+    """
+    path = Path(run)
+    return load_checkpoint(path / CHECKPOINT if path.is_dir() else path)
+
+
+def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
+    """Loads a checkpoint's weights into freshly built models.
+
+    The checkpoint comes from [`read_run`][rl_pg.training.checkpoints.read_run].
+
+    Raises:
+        CheckpointError: the weights do not fit the models.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor
+        >>> from rl_pg.training import load_models
+        >>> actor = mlp_actor(GridWorldEnv(), hidden=(4,))
+        >>> saved = {"loss": {f"actor_network.{k}": torch.zeros_like(v)
+        ...                   for k, v in actor.state_dict().items()}}
+        >>> load_models(saved, actor)
+        >>> float(sum(p.abs().sum() for p in actor.parameters()))
+        0.0
+    """
+    if not isinstance(saved, dict) or not isinstance(saved.get("loss"), dict):
+        raise CheckpointError(
+            "load_models needs a checkpoint as read_run(...) returns it (a dict with the "
+            "loss's weights under 'loss')."
+        )
+    for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
+        if module is None:
+            continue
+        weights = {
+            key.removeprefix(prefix): value
+            for key, value in saved["loss"].items()
+            if key.startswith(prefix)
+        }
+        try:
+            module.load_state_dict(weights)
+        except RuntimeError as err:
+            raise CheckpointError(
+                f"The checkpoint's {prefix[:-1]} does not fit the model built from its "
+                f"config ({err})."
+            ) from err

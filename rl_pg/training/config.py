@@ -1,0 +1,143 @@
+"""The settings of a training run: one dataclass, checked when it is made.
+
+Every field declares its kind and bounds in its type (``Count``, ``Positive``,
+``NonNegative``, ``Range``); a recipe's config subclasses ``TrainConfig`` and keeps
+those bounds even when it re-declares a field with a plain type.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from rl_pg._checks import Range, check_fields
+
+__all__ = ["RESUMABLE_FIELDS", "Count", "NonNegative", "Positive", "Range", "TrainConfig"]
+
+Count = Annotated[int, Range(low=1)]
+"""An integer >= 1 (a config field type: the bound is checked when a config is made)."""
+Positive = Annotated[float, Range(low=0, low_open=True)]
+"""A finite number > 0."""
+NonNegative = Annotated[float, Range(low=0)]
+"""A finite number >= 0."""
+
+RESUMABLE_FIELDS = frozenset(
+    {
+        "total_frames",
+        "total_updates",
+        "resume",
+        "run_dir",
+        "workers",
+        "ray",
+        "tensorboard",
+        "progress",
+        "threads",
+    }
+)
+"""Config fields that may change when a run is resumed; any other change is refused."""
+
+
+@dataclass
+class TrainConfig:
+    """Settings of the training loop shared by every recipe."""
+
+    seed: Annotated[int, Range(low=0, high=2**32 - 1)] = 0
+    """Seed of torch, numpy, random and the environments."""
+    total_frames: Count = 100_000
+    """Environment steps to train for (at most)."""
+    total_updates: Count | None = None
+    """Updates to train for (at most; None: no limit)."""
+    run_dir: Path | None = None
+    """Where checkpoints, logs and the summary go (default: runs/<recipe>-seed<seed>-<time>)."""
+    resume: bool = False
+    """Continue the run in run_dir from its checkpoint."""
+    workers: Count = 1
+    """Collector processes; more than 1 uses TorchRL's multi-process collector."""
+    ray: bool = False
+    """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
+    threads: Count | None = 1
+    """torch threads of this process: small models update fastest on one, and a second
+    thread only contends with the environment on a busy machine (None: torch's default)."""
+    batch_mode: Literal["episodes", "segments"] = "episodes"
+    """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
+    episodes_per_batch: Count = 8
+    """Complete episodes per update (batch_mode='episodes')."""
+    segment_length: Count = 50
+    """Steps per environment per update (batch_mode='segments')."""
+    returns: Literal["reward_to_go", "discounted_return"] = "reward_to_go"
+    """Return that weights log pi: reward-to-go (causality) or the whole-episode return."""
+    gamma: Annotated[float, Range(0, 1)] = 0.99
+    """Discount factor."""
+    baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
+    """What is subtracted from the return."""
+    baseline_rate: Annotated[float, Range(0, 1, low_open=True)] = 0.01
+    """Rate of the 'ema' baseline."""
+    entropy_coeff: NonNegative = 0.0
+    """Entropy bonus weight."""
+    critic_coeff: NonNegative = 1.0
+    """Value-loss weight."""
+    normalize_advantage: bool = False
+    """Standardise the policy weights over each batch."""
+    optimizer: Literal["adam", "sgd"] = "adam"
+    """Optimiser of actor and critic."""
+    lr: Positive = 1e-3
+    """Learning rate."""
+    lr_schedule: Literal["constant", "linear"] = "constant"
+    """'linear': decay the learning rate from lr at frame 0 to 0 at total_frames
+    (set before each update from the frames seen so far, so a resumed run continues the
+    same schedule; raising total_frames on resume stretches what is left of it)."""
+    weight_decay: NonNegative = 0.0
+    """L2 weight decay."""
+    max_grad_norm: Positive | None = None
+    """Gradient-norm clipping (None: no clipping)."""
+    eval_interval: Count = 10_000
+    """Frames between evaluations."""
+    eval_episodes: Count = 20
+    """Episodes per evaluation."""
+    eval_greedy: bool = True
+    """Evaluate greedily (argmax / mean action) rather than by sampling."""
+    threshold: float | None = None
+    """Evaluation mean return that counts as solved."""
+    stop_when_solved: bool = True
+    """Stop at the first evaluation that reaches the threshold."""
+    checkpoint_interval: Count = 50
+    """Updates between checkpoints (one is always written at the end)."""
+    log_interval: Count = 1
+    """Updates between training-metric log lines."""
+    tensorboard: bool = False
+    """Also log to TensorBoard (pip install tensorboard)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Checks every field (also those a recipe adds) against its type and bounds.
+
+        Runs when the config is made, so that the command line refuses a bad flag
+        before anything starts, and again in [`train`][rl_pg.training.loop.train].
+
+        Raises:
+            ValueError: a value out of its range or choices; the message names the
+                field and its flag.
+            TypeError: a value of the wrong kind (from Python code).
+        """
+        check_fields(self)
+        if self.resume and self.run_dir is None:
+            raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
+        if self.ray and self.batch_mode != "segments":
+            raise ValueError(
+                "The Ray collector yields fixed-length batches: use --batch-mode segments with "
+                "--ray (whole-episode batches need the local or multi-process collectors)."
+            )
+
+
+def config_dict(cfg: TrainConfig) -> dict[str, Any]:
+    """The config as plain JSON-able values (paths as strings)."""
+    return {
+        key: str(value) if isinstance(value, Path) else value
+        for key, value in dataclasses.asdict(cfg).items()
+    }

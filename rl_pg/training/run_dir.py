@@ -1,0 +1,276 @@
+"""A run directory: its lock, fresh or resumed opening, the summary and the curve.
+
+[`RunDirectory`][rl_pg.training.run_dir.RunDirectory] holds an exclusive lock on
+``<run_dir>/.lock`` for as long as a run uses the directory. The operating system
+releases the lock when the process ends, however it ends (a ``kill -9`` included), so
+a lock is never stale: a second run started on the same directory is refused with
+the holder's process id, instead of both writing the same checkpoint and logs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from rl_pg.checkpoint import (
+    CheckpointError,
+    clean_temporary_files,
+    load_checkpoint,
+    write_atomically,
+)
+from rl_pg.plots import png_figure
+from rl_pg.training.checkpoints import CHECKPOINT, RunState, save
+from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
+
+__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
+
+LOCK_FILE = ".lock"
+SUMMARY = "summary.json"
+CURVE = "learning_curve.png"
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None
+    import msvcrt
+
+
+class RunDirBusy(RuntimeError):
+    """Another live process is using the run directory."""
+
+
+class RunDirectory:
+    """Creates (if needed) and locks a run directory; a context manager.
+
+    On entry the directory is locked and the temporary files of writes that a killed
+    run left half-way are removed. On exit the lock is released. A directory that was
+    empty on entry is emptied again (and removed, if this object created it) when the
+    run fails before calling [`keep`][rl_pg.training.run_dir.RunDirectory.keep]: a run that
+    crashed while starting leaves no half-made directory behind.
+
+    Args:
+        path (str or Path): the run directory.
+
+    Raises:
+        RunDirBusy: on entry, when another process holds the directory (the message
+            gives its process id).
+        NotADirectoryError: when ``path`` is a file.
+        OSError: when the directory cannot be created or written.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.training.run_dir import RunDirBusy, RunDirectory
+        >>> path = Path(tempfile.mkdtemp()) / "run"
+        >>> with RunDirectory(path):
+        ...     with RunDirectory(path):  # doctest: +ELLIPSIS
+        ...         pass
+        Traceback (most recent call last):
+        ...
+        rl_pg.training.run_dir.RunDirBusy: .../run is in use by another run (process ...). ...
+        >>> path.exists()  # created here, and nothing was written to it
+        False
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+        self._created = False
+        self._empty_at_entry = False
+        self._keep = False
+
+    def __enter__(self) -> RunDirectory:
+        if self.path.exists() and not self.path.is_dir():
+            raise NotADirectoryError(
+                f"The run directory {self.path} is a file; choose another --run-dir."
+            )
+        self._created = not self.path.exists()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise OSError(
+                f"Cannot use {self.path} as a run directory ({err.strerror}); choose a "
+                f"writable --run-dir."
+            ) from err
+        try:
+            _lock(fd)
+        except OSError as err:
+            os.lseek(fd, 0, os.SEEK_SET)
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise RunDirBusy(
+                f"{self.path} is in use by another run (process {holder}). Wait for it to "
+                f"finish, stop it, or choose another --run-dir."
+            ) from err
+        os.ftruncate(fd, 0)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+        clean_temporary_files(self.path)
+        self._empty_at_entry = not self.contents()
+        return self
+
+    def keep(self) -> None:
+        """Marks the directory as holding something worth keeping (e.g. a checkpoint)."""
+        self._keep = True
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if self._fd is None:
+            return
+        discard = (
+            self._empty_at_entry
+            and not self._keep
+            and (exc_type is not None or not self.contents())
+        )
+        if discard:  # still locked: no other run can be writing here
+            for name in self.contents():
+                target = self.path / name
+                shutil.rmtree(target) if target.is_dir() else target.unlink()
+        os.ftruncate(self._fd, 0)
+        os.close(self._fd)  # closing the descriptor releases the lock
+        self._fd = None
+        if discard and self._created:
+            (self.path / LOCK_FILE).unlink(missing_ok=True)
+            self.path.rmdir()
+
+    @property
+    def checkpoint_path(self) -> Path:
+        """``<run_dir>/checkpoint.pt``."""
+        return self.path / CHECKPOINT
+
+    def open(self, cfg: TrainConfig, recipe: str) -> dict | None:
+        """The checkpoint to resume from (``cfg.resume``), or None for a fresh run.
+
+        Raises:
+            CheckpointError: a fresh run where a run already is; a resume from a
+                missing, corrupted or foreign checkpoint, with a changed configuration
+                or with no budget left.
+        """
+        saved = _open(cfg, recipe, self)
+        if saved is not None:
+            self.keep()
+        return saved
+
+    def save(self, cfg: TrainConfig, recipe: str, loss, optimizer, state: RunState) -> None:
+        """Writes the checkpoint (atomically); the directory is worth keeping from then on."""
+        save(cfg, recipe, loss, optimizer, state, self.checkpoint_path)
+        self.keep()
+
+    def finish(self, cfg: TrainConfig, recipe: str, state: RunState) -> dict[str, Any]:
+        """Writes ``summary.json`` and the learning curve; returns the summary."""
+        summary = _summary(cfg, recipe, state, self.path)
+        write_atomically(self.path / SUMMARY, json.dumps(summary, indent=2))
+        _plot(state, cfg.threshold, self.path / CURVE, recipe)
+        return summary
+
+    def contents(self) -> list[str]:
+        """Names in the directory, the lock file aside."""
+        return sorted(p.name for p in self.path.iterdir() if p.name != LOCK_FILE)
+
+
+def _lock(fd: int) -> None:
+    """An exclusive, non-blocking lock on ``fd``; ``OSError`` if another process has it."""
+    if fcntl is not None:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    else:
+        msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+
+
+def new_run_dir(recipe: str, seed: int) -> Path:
+    # Time-stamped, so that running a recipe twice never collides with an earlier run.
+    return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
+    run_dir, checkpoint_path = directory.path, directory.checkpoint_path
+    if cfg.resume:
+        saved = load_checkpoint(checkpoint_path)
+        if saved.get("recipe") != recipe:
+            raise CheckpointError(
+                f"{checkpoint_path} was written by recipe {saved.get('recipe')!r}, not "
+                f"{recipe!r}; resume it with that recipe."
+            )
+        current = config_dict(cfg)
+        changed = {
+            key: (saved["config"].get(key), value)
+            for key, value in current.items()
+            if key not in RESUMABLE_FIELDS and saved["config"].get(key) != value
+        }
+        if changed:
+            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            raise CheckpointError(
+                f"Cannot resume {checkpoint_path} with a different configuration ({details}). "
+                f"Only {sorted(RESUMABLE_FIELDS)} may change on resume."
+            )
+        _check_budget_left(cfg, saved["state"], run_dir)
+        return saved
+    if checkpoint_path.exists():
+        raise CheckpointError(
+            f"{run_dir} already holds a checkpoint; pass --resume to continue it, or choose "
+            f"another --run-dir. Nothing was overwritten."
+        )
+    if directory.contents():
+        # A run that died before its first checkpoint: its logs would interleave with ours.
+        raise CheckpointError(
+            f"{run_dir} holds {directory.contents()} but no checkpoint (a run that stopped "
+            f"before its first checkpoint?). Delete it or choose another --run-dir; nothing "
+            f"was overwritten."
+        )
+    return None
+
+
+def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
+    """A resumed run must have something left to do: it never trains past its budget."""
+    if state["frames"] >= cfg.total_frames:
+        raise CheckpointError(
+            f"The run in {run_dir} has already trained {state['frames']} frames, and "
+            f"total_frames={cfg.total_frames} asks for no more. Raise --total-frames above "
+            f"{state['frames']} to continue it."
+        )
+    if cfg.total_updates is not None and state["updates"] >= cfg.total_updates:
+        raise CheckpointError(
+            f"The run in {run_dir} has already made {state['updates']} updates, and "
+            f"total_updates={cfg.total_updates} asks for no more. Raise --total-updates "
+            f"above {state['updates']} to continue it."
+        )
+
+
+def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> dict[str, Any]:
+    summary = {
+        "recipe": recipe,
+        "run_dir": str(run_dir),
+        "seed": cfg.seed,
+        "frames": state.frames,
+        "updates": state.updates,
+        "train_wall_s": state.train_time,
+        "eval_mean_return": state.last_eval.get("eval/mean_return"),
+        "eval_std_return": state.last_eval.get("eval/std_return"),
+        "threshold": cfg.threshold,
+        "solved_at_frames": state.solved_at_frames,
+    }
+    for key, value in state.last_eval.items():
+        if key.endswith("_rate"):
+            summary[key.removeprefix("eval/")] = value
+    return summary
+
+
+def _plot(state: RunState, threshold: float | None, path: Path, title: str) -> None:
+    with png_figure(path) as ax:
+        for name, label in (
+            ("train/episode_return", "training episodes"),
+            ("eval/mean_return", "evaluation"),
+        ):
+            points = state.history.get(name, [])
+            if points:
+                frames, values = zip(*points, strict=True)
+                marker = "o" if name.startswith("eval") else None
+                ax.plot(frames, values, label=label, marker=marker)
+        if threshold is not None:
+            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        ax.set(xlabel="frames", ylabel="episode return", title=title)
+        ax.legend(loc="best")
