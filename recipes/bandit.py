@@ -28,6 +28,7 @@ from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
 from rl_pg.training import Count, Range, TrainConfig, train
 from rl_pg.training.comparison import plot_curves, read_curve, run_variants
+from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
 
 @dataclass
@@ -131,10 +132,11 @@ SAMPLE_VARIANTS = {f"{n} samples/update": {"samples_per_update": n} for n in (1,
 
 
 if __name__ == "__main__":
-    config = tyro.cli(Config)
-    if config.compare:
-        print(compare(config, BASELINE_VARIANTS, "baselines"))
-    elif config.compare_samples:
-        print(compare(config, SAMPLE_VARIANTS, "samples"))
-    else:
-        print(main(config))
+    with exit_quietly_on_interrupt():
+        config = tyro.cli(Config)
+        if config.compare:
+            print(compare(config, BASELINE_VARIANTS, "baselines"))
+        elif config.compare_samples:
+            print(compare(config, SAMPLE_VARIANTS, "samples"))
+        else:
+            print(main(config))

@@ -22,6 +22,7 @@ from torchrl.envs import EnvBase
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig, train
+from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
 
 @dataclass
@@ -80,4 +81,5 @@ def main(cfg: Config) -> dict:
 
 
 if __name__ == "__main__":
-    print(main(tyro.cli(Config)))
+    with exit_quietly_on_interrupt():
+        print(main(tyro.cli(Config)))

@@ -18,6 +18,7 @@ import tyro
 
 from rl_pg.evaluation import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
+from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -74,4 +75,5 @@ def main(args: Args) -> list[float]:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    with exit_quietly_on_interrupt():
+        main(tyro.cli(Args))

@@ -506,3 +506,51 @@ def test_training_leaves_the_matplotlib_backend_alone(tmp_path):
         assert (tmp_path / "run" / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
     finally:
         matplotlib.use(before)
+
+
+class TestInterruptedRun:
+    """Ctrl-C: the update in progress ends, the run saves and says how to resume."""
+
+    FLAGS = ("--checkpoint-interval", "1000000", "--eval-interval", "100000000")
+
+    def test_ctrl_c_saves_and_resumes_like_an_uninterrupted_run(self, tmp_path):
+        recipes = Path(__file__).resolve().parents[1] / "recipes"
+        run = tmp_path / "interrupted"
+        command = [sys.executable, str(recipes / "gridworld.py"), "--run-dir", str(run)]
+        command += ["--total-updates", "100000", "--no-progress", *self.FLAGS]
+        process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+        log = run / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+        deadline = time.monotonic() + 120
+        while not (log.is_file() and log.read_text().count("\n") >= 3):
+            assert process.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+        assert process.returncode == 130
+        assert "Traceback" not in stderr
+        assert f"Continue with --resume --run-dir {run}" in stderr
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["interrupted"] is True
+        stopped_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
+        assert summary["updates"] == stopped_at >= 3
+
+        sys.path.insert(0, str(recipes))
+        import gridworld
+
+        common = {"checkpoint_interval": 1_000_000, "eval_interval": 100_000_000}
+        common.update(progress=False, total_updates=stopped_at + 3)
+        straight = gridworld.main(gridworld.Config(run_dir=tmp_path / "straight", **common))
+        resumed = gridworld.main(gridworld.Config(run_dir=run, resume=True, **common))
+        assert resumed["interrupted"] is False
+        for key in ("frames", "updates", "eval_mean_return"):
+            assert resumed[key] == straight[key]
+        for key, value in _weights(tmp_path / "straight").items():
+            assert torch.equal(value, _weights(run)[key]), key
+
+    def test_a_second_ctrl_c_stops_at_once(self):
+        from rl_pg.training.interrupt import InterruptRequest
+
+        with pytest.raises(KeyboardInterrupt), InterruptRequest() as interrupt:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert interrupt.requested
+            os.kill(os.getpid(), signal.SIGINT)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import random
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,6 +41,7 @@ from rl_pg.loss import ReinforceLoss
 from rl_pg.training.checkpoints import RunState, restore
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
+from rl_pg.training.interrupt import InterruptRequest
 from rl_pg.training.metrics import EpisodeReturns, Loggers
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 
@@ -143,55 +145,67 @@ def train(
         )
         next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
         episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
-        try:
-            start = time.perf_counter()
-            for batch in collection:
-                metrics = _update(cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames))
-                episode_returns.add(batch)
-                state.updates += 1
-                spent = collection.frames_spent(batch)
-                state.frames += spent
-                collection.after_update(state.updates)
-                if state.updates % cfg.log_interval == 0:
-                    metrics["train/episode_return"] = episode_returns.pop_mean()
-                    for name, value in metrics.items():
-                        if math.isfinite(value):
-                            logger.log_scalar(name, value, step=state.frames)
-                            state.record(name, state.frames, value)
-                    progress.set_postfix(
-                        train=f"{metrics['train/episode_return']:.2f}",
-                        eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
-                        refresh=False,
+        # Ctrl-C ends the update in progress, then the run saves and stops.
+        with InterruptRequest() as interrupt:
+            try:
+                start = time.perf_counter()
+                for batch in collection:
+                    metrics = _update(
+                        cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames)
                     )
-                progress.update(spent)
-                done = state.frames >= cfg.total_frames or (
-                    cfg.total_updates is not None and state.updates >= cfg.total_updates
-                )
-                if state.frames >= next_eval or done:
-                    state.train_time += time.perf_counter() - start
-                    next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
-                    _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
-                    solved = cfg.threshold is not None and (
-                        state.last_eval["eval/mean_return"] >= cfg.threshold
+                    episode_returns.add(batch)
+                    state.updates += 1
+                    spent = collection.frames_spent(batch)
+                    state.frames += spent
+                    collection.after_update(state.updates)
+                    if state.updates % cfg.log_interval == 0:
+                        metrics["train/episode_return"] = episode_returns.pop_mean()
+                        for name, value in metrics.items():
+                            if math.isfinite(value):
+                                logger.log_scalar(name, value, step=state.frames)
+                                state.record(name, state.frames, value)
+                        progress.set_postfix(
+                            train=f"{metrics['train/episode_return']:.2f}",
+                            eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
+                            refresh=False,
+                        )
+                    progress.update(spent)
+                    done = state.frames >= cfg.total_frames or (
+                        cfg.total_updates is not None and state.updates >= cfg.total_updates
                     )
-                    if solved and state.solved_at_frames is None:
-                        state.solved_at_frames = state.frames
-                    done = done or (solved and cfg.stop_when_solved)
-                    start = time.perf_counter()
-                if done or state.updates % cfg.checkpoint_interval == 0:
-                    state.train_time += time.perf_counter() - start
-                    directory.save(cfg, recipe, loss, optimizer, state)
-                    start = time.perf_counter()
-                    # A resumed run restarts its environments here; so does this one.
-                    if collection.after_checkpoint(state.updates):
-                        episode_returns.reset()
-                if done:
-                    break
-        finally:
-            progress.close()
-            collection.shutdown()
-            eval_env.close()
-        return directory.finish(cfg, recipe, state)
+                    if state.frames >= next_eval or done:
+                        state.train_time += time.perf_counter() - start
+                        next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
+                        _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
+                        solved = cfg.threshold is not None and (
+                            state.last_eval["eval/mean_return"] >= cfg.threshold
+                        )
+                        if solved and state.solved_at_frames is None:
+                            state.solved_at_frames = state.frames
+                        done = done or (solved and cfg.stop_when_solved)
+                        start = time.perf_counter()
+                    if done or interrupt.requested or state.updates % cfg.checkpoint_interval == 0:
+                        state.train_time += time.perf_counter() - start
+                        directory.save(cfg, recipe, loss, optimizer, state)
+                        start = time.perf_counter()
+                        # A resumed run restarts its environments here; so does this one.
+                        if collection.after_checkpoint(state.updates):
+                            episode_returns.reset()
+                    if done or interrupt.requested:
+                        break
+            finally:
+                progress.close()
+                collection.shutdown()
+                eval_env.close()
+        summary = directory.finish(cfg, recipe, state, interrupted=interrupt.requested)
+        if interrupt.requested:
+            print(
+                f"Interrupted at {state.frames} frames; checkpoint and summary saved in "
+                f"{run_dir}. Continue with --resume --run-dir {run_dir}",
+                file=sys.stderr,
+            )
+            raise KeyboardInterrupt
+        return summary
 
 
 def _models(make_models, env: EnvBase):

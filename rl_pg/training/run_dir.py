@@ -161,9 +161,11 @@ class RunDirectory:
         save(cfg, recipe, loss, optimizer, state, self.checkpoint_path)
         self.keep()
 
-    def finish(self, cfg: TrainConfig, recipe: str, state: RunState) -> dict[str, Any]:
+    def finish(
+        self, cfg: TrainConfig, recipe: str, state: RunState, *, interrupted: bool = False
+    ) -> dict[str, Any]:
         """Writes ``summary.json`` and the learning curve; returns the summary."""
-        summary = _summary(cfg, recipe, state, self.path)
+        summary = {**_summary(cfg, recipe, state, self.path), "interrupted": interrupted}
         write_atomically(self.path / SUMMARY, json.dumps(summary, indent=2))
         _plot(state, cfg.threshold, self.path / CURVE, recipe)
         return summary

@@ -1,0 +1,62 @@
+"""Ctrl-C during a run: finish the update, save, say how to resume, stop.
+
+The first Ctrl-C is deferred to the end of the update in progress, where the run's
+state is consistent: the loop then writes a checkpoint and the summary and raises
+``KeyboardInterrupt`` (so a notebook cell or a caller still sees an interruption). A
+second Ctrl-C interrupts at once. Command-line entry points wrap themselves in
+[`exit_quietly_on_interrupt`][rl_pg.training.interrupt.exit_quietly_on_interrupt] to
+exit with status 130 and the one line the loop printed, instead of a traceback.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+__all__ = ["InterruptRequest", "exit_quietly_on_interrupt"]
+
+
+class InterruptRequest:
+    """A context manager that turns the first SIGINT into ``requested = True``.
+
+    Signal handlers can only be set from the main thread; elsewhere Ctrl-C keeps its
+    usual effect.
+
+    Examples:
+        >>> import os, signal
+        >>> from rl_pg.training.interrupt import InterruptRequest
+        >>> with InterruptRequest() as interrupt:
+        ...     os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C sends
+        ...     interrupt.requested
+        True
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = None
+
+    def __enter__(self) -> InterruptRequest:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
+@contextmanager
+def exit_quietly_on_interrupt() -> Iterator[None]:
+    """Exits with status 130 (the shell's code for Ctrl-C) on ``KeyboardInterrupt``."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        sys.exit(130)
