@@ -11,7 +11,7 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import tyro
@@ -31,6 +31,8 @@ class Args:
     """Run directory (or checkpoint file) written by a recipe."""
     episodes: Count = 5
     """Episodes to play."""
+    checkpoint: Literal["best", "last"] = "best"
+    """Deploy the best evaluated checkpoint, or the last one."""
     sample: bool = False
     """Sample actions from the policy instead of acting greedily."""
     gif: Path | None = None
@@ -47,7 +49,7 @@ class Args:
 
 
 def main(args: Args) -> list[float]:
-    saved = read_run(args.run)
+    saved = read_run(args.run, which=args.checkpoint)
     recipe = importlib.import_module(saved["recipe"])
     fields = {f.name for f in dataclasses.fields(recipe.Config)}
     cfg = recipe.Config(**{k: v for k, v in saved["config"].items() if k in fields})

@@ -98,6 +98,13 @@ def test_play_records_a_gif(tmp_path, capsys):
     assert "mean return" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("which", ["best", "last"])
+def test_play_deploys_the_best_or_the_last_checkpoint(tmp_path, capsys, which):
+    cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=600, **TINY))
+    returns = play.main(play.Args(run=tmp_path, episodes=1, checkpoint=which))
+    assert len(returns) == 1
+
+
 def test_play_uses_one_environment_of_a_batched_run(tmp_path, capsys):
     summary = cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=300, **TINY))
     assert summary["frames"] >= 32 * 8  # trained on the default batch of 32 CartPoles

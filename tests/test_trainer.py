@@ -23,6 +23,7 @@ from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
+from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor, mlp_critic
 from rl_pg.training import (
     RunDirBusy,
@@ -554,3 +555,35 @@ class TestInterruptedRun:
             os.kill(os.getpid(), signal.SIGINT)
             assert interrupt.requested
             os.kill(os.getpid(), signal.SIGINT)
+
+
+class TestBestCheckpoint:
+    def test_best_holds_the_best_evaluation_and_plays_it_back(self, tmp_path):
+        summary = _train(_cfg(tmp_path, total_updates=12, eval_interval=200))
+        evaluations = [
+            value for _, value in read_run(tmp_path / "run")["state"]["history"]["eval/mean_return"]
+        ]
+        assert len(evaluations) >= 3
+        best = read_run(tmp_path / "run", which="best")
+        first_best = evaluations.index(max(evaluations))
+        assert best["state"]["best_mean_return"] == max(evaluations)
+        assert summary["best_eval_mean_return"] == max(evaluations)
+        assert summary["best_at_frames"] == best["state"]["frames"]
+        assert len(best["state"]["history"]["eval/mean_return"]) == first_best + 1
+        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
+        load_models(best, actor)
+        env = make_grid()
+        env.set_seed(0 + 1_000_003)  # the evaluation's start states
+        result = evaluate(actor, env, episodes=1)
+        assert result["mean_return"] == pytest.approx(max(evaluations))
+
+    def test_which_must_be_last_or_best(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=1))
+        with pytest.raises(ValueError, match="which must be 'last' or 'best'"):
+            read_run(tmp_path / "run", which="first")
+
+    def test_a_run_without_a_best_checkpoint_says_so(self, tmp_path):
+        _train(_cfg(tmp_path, total_updates=1))
+        (tmp_path / "run" / "best.pt").unlink()
+        with pytest.raises(CheckpointError, match=r"has no best\.pt .* which='last'"):
+            read_run(tmp_path / "run", which="best")

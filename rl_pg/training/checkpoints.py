@@ -15,9 +15,12 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training.config import config_dict
 
-__all__ = ["CHECKPOINT", "RunState", "load_models", "read_run", "restore", "save"]
+__all__ = ["BEST", "CHECKPOINT", "RunState", "load_models", "read_run", "restore", "save"]
 
 CHECKPOINT = "checkpoint.pt"
+"""The last checkpoint: what a run resumes from."""
+BEST = "best.pt"
+"""The checkpoint of the best evaluation so far: what is deployed by default."""
 
 
 @dataclass
@@ -30,9 +33,19 @@ class RunState:
     solved_at_frames: int | None = None
     last_eval: dict[str, float] = field(default_factory=dict)
     history: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
+    best_mean_return: float | None = None
+    best_at_frames: int | None = None
 
     def record(self, name: str, frames: int, value: float) -> None:
         self.history.setdefault(name, []).append((frames, value))
+
+    def is_best(self) -> bool:
+        """Takes in the last evaluation; True if it beat every earlier one."""
+        mean = self.last_eval["eval/mean_return"]
+        if self.best_mean_return is not None and mean <= self.best_mean_return:
+            return False
+        self.best_mean_return, self.best_at_frames = mean, self.frames
+        return True
 
 
 def save(cfg, recipe, loss, optimizer, state: RunState, path: Path) -> None:
@@ -73,11 +86,17 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
     return state
 
 
-def read_run(run: str | Path) -> dict[str, Any]:
-    """The checkpoint of a run directory (or a checkpoint file itself).
+def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
+    """A checkpoint of a run directory (or a checkpoint file itself).
+
+    Keyword Args:
+        which (str): ``"last"`` (``checkpoint.pt``, what a run resumes from) or
+            ``"best"`` (``best.pt``, the best evaluation so far). Ignored when ``run``
+            is a file. Defaults to ``"last"``.
 
     Raises:
         CheckpointError: missing or corrupted checkpoint.
+        ValueError: an unknown ``which``.
 
     Examples:
         >>> import tempfile
@@ -87,8 +106,18 @@ def read_run(run: str | Path) -> dict[str, Any]:
         ...
         rl_pg.checkpoint.CheckpointError: No checkpoint at .../checkpoint.pt.
     """
+    files = {"last": CHECKPOINT, "best": BEST}
+    if which not in files:
+        raise ValueError(f"which must be 'last' or 'best', got {which!r}.")
     path = Path(run)
-    return load_checkpoint(path / CHECKPOINT if path.is_dir() else path)
+    if not path.is_dir():
+        return load_checkpoint(path)
+    if which == "best" and not (path / BEST).is_file() and (path / CHECKPOINT).is_file():
+        raise CheckpointError(
+            f"{path} has no {BEST} (the run never evaluated, or predates best "
+            f"checkpoints); deploy its last checkpoint with which='last'."
+        )
+    return load_checkpoint(path / files[which])
 
 
 def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:

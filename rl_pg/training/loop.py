@@ -177,6 +177,8 @@ def train(
                         state.train_time += time.perf_counter() - start
                         next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
                         _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
+                        if state.is_best():
+                            directory.save(cfg, recipe, loss, optimizer, state, best=True)
                         solved = cfg.threshold is not None and (
                             state.last_eval["eval/mean_return"] >= cfg.threshold
                         )

@@ -23,7 +23,7 @@ from rl_pg.checkpoint import (
     write_atomically,
 )
 from rl_pg.plots import png_figure
-from rl_pg.training.checkpoints import CHECKPOINT, RunState, save
+from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
 
 __all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
@@ -156,9 +156,12 @@ class RunDirectory:
             self.keep()
         return saved
 
-    def save(self, cfg: TrainConfig, recipe: str, loss, optimizer, state: RunState) -> None:
-        """Writes the checkpoint (atomically); the directory is worth keeping from then on."""
-        save(cfg, recipe, loss, optimizer, state, self.checkpoint_path)
+    def save(
+        self, cfg: TrainConfig, recipe: str, loss, optimizer, state: RunState, *, best=False
+    ) -> None:
+        """Writes the last checkpoint (or, with ``best``, ``best.pt``), atomically; the
+        directory is worth keeping from then on."""
+        save(cfg, recipe, loss, optimizer, state, self.path / (BEST if best else CHECKPOINT))
         self.keep()
 
     def finish(
@@ -254,6 +257,8 @@ def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> d
         "eval_std_return": state.last_eval.get("eval/std_return"),
         "threshold": cfg.threshold,
         "solved_at_frames": state.solved_at_frames,
+        "best_eval_mean_return": state.best_mean_return,
+        "best_at_frames": state.best_at_frames,
     }
     for key, value in state.last_eval.items():
         if key.endswith("_rate"):
