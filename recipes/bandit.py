@@ -28,6 +28,7 @@ from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
 from rl_pg.training import Count, Range, TrainConfig, train
 from rl_pg.training.comparison import plot_curves, read_curve, run_variants
+from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
 
@@ -139,4 +140,4 @@ if __name__ == "__main__":
         elif config.compare_samples:
             print(compare(config, SAMPLE_VARIANTS, "samples"))
         else:
-            print(main(config))
+            print(format_summary(main(config)))

@@ -22,6 +22,7 @@ from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig, train
 from rl_pg.training.comparison import plot_curves, read_curve, run_variants
+from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
 # The comparison of docs/recipes/gridworld.md, plus reward-to-go minus a learned V(s).
@@ -105,4 +106,4 @@ def compare(cfg: Config) -> dict:
 if __name__ == "__main__":
     with exit_quietly_on_interrupt():
         config = tyro.cli(Config)
-        print(compare(config) if config.compare else main(config))
+        print(compare(config) if config.compare else format_summary(main(config)))

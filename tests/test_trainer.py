@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -34,6 +35,7 @@ from rl_pg.training import (
     train,
 )
 from rl_pg.training.comparison import read_curve
+from rl_pg.training.console import Console
 from rl_pg.training.metrics import EpisodeReturns
 
 
@@ -587,3 +589,35 @@ class TestBestCheckpoint:
         (tmp_path / "run" / "best.pt").unlink()
         with pytest.raises(CheckpointError, match=r"has no best\.pt .* which='last'"):
             read_run(tmp_path / "run", which="best")
+
+
+class TestConsole:
+    def test_lines_when_not_on_a_terminal(self, tmp_path):
+        stream = io.StringIO()
+        console = Console(total_frames=1000, initial_frames=0, enabled=True, stream=stream)
+        console.update(100, 100, {"train/episode_return": 3.0, "loss/actor": 0.5}, {})
+        console.update(200, 100, None, {"eval/mean_return": 7.0}, evaluated=True)
+        lines = stream.getvalue().splitlines()
+        assert len(lines) == 1  # the first update came before every_s had passed
+        assert "frames 200/1,000" in lines[0] and "train return 3.00" in lines[0]
+        assert "eval 7.00" in lines[0]
+
+    def test_nothing_when_disabled(self):
+        stream = io.StringIO()
+        console = Console(total_frames=10, initial_frames=0, enabled=False, stream=stream)
+        console.update(10, 10, None, {}, evaluated=True)
+        console.close()
+        assert stream.getvalue() == ""
+
+    def test_a_recipe_in_a_pipe_reports_progress_and_a_readable_summary(self, tmp_path):
+        recipes = Path(__file__).resolve().parents[1] / "recipes"
+        flags = ["--run-dir", str(tmp_path / "r"), "--total-updates", "3", "--eval-interval", "500"]
+        result = subprocess.run(
+            [sys.executable, str(recipes / "gridworld.py"), *flags],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        assert "frames " in result.stderr and "eval " in result.stderr  # one line per eval
+        assert result.stdout.startswith("gridworld, seed 0: ")
+        assert f"run directory: {tmp_path / 'r'}" in result.stdout

@@ -33,7 +33,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
-from tqdm import tqdm
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import evaluate
@@ -41,6 +40,7 @@ from rl_pg.loss import ReinforceLoss
 from rl_pg.training.checkpoints import RunState, restore
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
+from rl_pg.training.console import Console
 from rl_pg.training.interrupt import InterruptRequest
 from rl_pg.training.metrics import EpisodeReturns, Loggers
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
@@ -103,8 +103,8 @@ def train(
         ...     make_env=lambda: GridWorldEnv(batch_size=4),
         ...     make_models=mlp_actor_critic,
         ... )
-        >>> summary["updates"], sorted(summary)[:4]
-        (2, ['eval_mean_return', 'eval_std_return', 'frames', 'recipe'])
+        >>> summary["updates"], summary["frames"] > 0, "eval_mean_return" in summary
+        (2, True, True)
     """
     if not isinstance(cfg, TrainConfig):
         raise TypeError(f"train needs a TrainConfig, got {type(cfg).__name__}.")
@@ -137,11 +137,8 @@ def train(
             tensorboard=cfg.tensorboard,
             resume_at=state.frames if saved is not None else None,
         )
-        progress = tqdm(
-            total=cfg.total_frames,
-            initial=state.frames,
-            unit="frames",
-            disable=None if cfg.progress else True,  # None: shown on terminals only
+        console = Console(
+            total_frames=cfg.total_frames, initial_frames=state.frames, enabled=cfg.progress
         )
         next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
         episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
@@ -158,22 +155,18 @@ def train(
                     spent = collection.frames_spent(batch)
                     state.frames += spent
                     collection.after_update(state.updates)
-                    if state.updates % cfg.log_interval == 0:
+                    logged = state.updates % cfg.log_interval == 0
+                    if logged:
                         metrics["train/episode_return"] = episode_returns.pop_mean()
                         for name, value in metrics.items():
                             if math.isfinite(value):
                                 logger.log_scalar(name, value, step=state.frames)
                                 state.record(name, state.frames, value)
-                        progress.set_postfix(
-                            train=f"{metrics['train/episode_return']:.2f}",
-                            eval=f"{state.last_eval.get('eval/mean_return', float('nan')):.2f}",
-                            refresh=False,
-                        )
-                    progress.update(spent)
                     done = state.frames >= cfg.total_frames or (
                         cfg.total_updates is not None and state.updates >= cfg.total_updates
                     )
-                    if state.frames >= next_eval or done:
+                    evaluated = state.frames >= next_eval or done
+                    if evaluated:
                         state.train_time += time.perf_counter() - start
                         next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
                         _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
@@ -186,6 +179,13 @@ def train(
                             state.solved_at_frames = state.frames
                         done = done or (solved and cfg.stop_when_solved)
                         start = time.perf_counter()
+                    console.update(
+                        state.frames,
+                        spent,
+                        metrics if logged else None,
+                        state.last_eval,
+                        evaluated=evaluated,
+                    )
                     if done or interrupt.requested or state.updates % cfg.checkpoint_interval == 0:
                         state.train_time += time.perf_counter() - start
                         directory.save(cfg, recipe, loss, optimizer, state)
@@ -196,7 +196,7 @@ def train(
                     if done or interrupt.requested:
                         break
             finally:
-                progress.close()
+                console.close()
                 collection.shutdown()
                 eval_env.close()
         summary = directory.finish(cfg, recipe, state, interrupted=interrupt.requested)
