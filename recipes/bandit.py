@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import tyro
 from torch import nn
 from torchrl.envs import EnvBase
 
@@ -27,6 +26,7 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.envs import BanditEnv
 from rl_pg.models import mlp_actor
 from rl_pg.training import Count, Range, TrainConfig, train
+from rl_pg.training.cli import parse_config
 from rl_pg.training.comparison import plot_curves, read_curve, run_variants
 from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
@@ -134,7 +134,7 @@ SAMPLE_VARIANTS = {f"{n} samples/update": {"samples_per_update": n} for n in (1,
 
 if __name__ == "__main__":
     with exit_quietly_on_interrupt():
-        config = tyro.cli(Config)
+        config = parse_config(Config)
         if config.compare:
             print(compare(config, BASELINE_VARIANTS, "baselines"))
         elif config.compare_samples:

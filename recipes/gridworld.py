@@ -14,13 +14,13 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-import tyro
 from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.envs import GridWorldEnv
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig, train
+from rl_pg.training.cli import parse_config
 from rl_pg.training.comparison import plot_curves, read_curve, run_variants
 from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
@@ -105,5 +105,5 @@ def compare(cfg: Config) -> dict:
 
 if __name__ == "__main__":
     with exit_quietly_on_interrupt():
-        config = tyro.cli(Config)
+        config = parse_config(Config)
         print(compare(config) if config.compare else format_summary(main(config)))

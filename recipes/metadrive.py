@@ -19,13 +19,13 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-import tyro
 from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.envs import driving_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig, train
+from rl_pg.training.cli import parse_config
 from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
@@ -102,4 +102,4 @@ def main(cfg: Config) -> dict:
 
 if __name__ == "__main__":
     with exit_quietly_on_interrupt():
-        print(format_summary(main(tyro.cli(Config))))
+        print(format_summary(main(parse_config(Config))))

@@ -18,7 +18,6 @@ from functools import partial
 from typing import Literal
 
 import torch
-import tyro
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
@@ -27,6 +26,7 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
 from rl_pg.training import Count, TrainConfig, train
+from rl_pg.training.cli import parse_config
 from rl_pg.training.console import format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 
@@ -124,4 +124,4 @@ def main(cfg: Config) -> dict:
 
 if __name__ == "__main__":
     with exit_quietly_on_interrupt():
-        print(format_summary(main(tyro.cli(Config))))
+        print(format_summary(main(parse_config(Config))))

@@ -621,3 +621,22 @@ class TestConsole:
         assert "frames " in result.stderr and "eval " in result.stderr  # one line per eval
         assert result.stdout.startswith("gridworld, seed 0: ")
         assert f"run directory: {tmp_path / 'r'}" in result.stdout
+
+
+class TestResumeFromTheCommandLine:
+    def test_resume_needs_only_the_run_directory_and_what_changes(self, tmp_path):
+        recipes = Path(__file__).resolve().parents[1] / "recipes"
+        run = str(tmp_path / "run")
+        first = ["--run-dir", run, "--total-updates", "2", "--lr", "0.05", "--hidden", "16"]
+        script = [sys.executable, str(recipes / "gridworld.py")]
+        subprocess.run([*script, *first, "--no-progress"], check=True, capture_output=True)
+        stored = json.loads((tmp_path / "run" / "config.json").read_text())
+        assert (stored["recipe"], stored["lr"], stored["hidden"]) == ("gridworld", 0.05, 16)
+        resumed = subprocess.run(
+            [*script, "--resume", "--run-dir", run, "--total-updates", "4"],
+            capture_output=True,
+            text=True,
+        )
+        assert resumed.returncode == 0, resumed.stderr
+        assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] == 4
+        assert json.loads((tmp_path / "run" / "config.json").read_text())["total_updates"] == 4

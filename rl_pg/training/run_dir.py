@@ -30,6 +30,7 @@ __all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
 
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
+CONFIG = "config.json"
 CURVE = "learning_curve.png"
 
 try:
@@ -154,6 +155,10 @@ class RunDirectory:
         saved = _open(cfg, recipe, self)
         if saved is not None:
             self.keep()
+        # Readable by people; the checkpoint's own copy is what resuming checks.
+        write_atomically(
+            self.path / CONFIG, json.dumps({"recipe": recipe, **config_dict(cfg)}, indent=2)
+        )
         return saved
 
     def save(
