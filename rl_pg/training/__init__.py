@@ -1,16 +1,20 @@
 """The harness that runs experiments on top of rl_pg's components.
 
-One file per concern, imports pointing down (config <- checkpoints <- run_dir <- loop):
+One file per concern, imports pointing down (config first, loop and cli last):
 
 * [`config`][rl_pg.training.config]: ``TrainConfig`` and the field types that bound it;
 * [`collection`][rl_pg.training.collection]: the collector and every decision that
   depends on local, multi-process or Ray collection;
+* [`optimisation`][rl_pg.training.optimisation]: the loss, the optimiser, one update;
 * [`metrics`][rl_pg.training.metrics]: training-episode returns and the loggers;
+* [`console`][rl_pg.training.console]: the progress shown while training, the summary;
 * [`checkpoints`][rl_pg.training.checkpoints]: what a checkpoint holds, resuming and
   deploying from one;
-* [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, the summary and
-  the learning curve;
+* [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config, the
+  summary and the learning curve;
+* [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`loop`][rl_pg.training.loop]: ``train()``;
+* [`cli`][rl_pg.training.cli]: flags to a config, resuming without retyping them;
 * [`comparison`][rl_pg.training.comparison]: several variants and seeds, one plot.
 
 The library (losses, estimators, transforms, environments, models) knows nothing of
@@ -20,8 +24,9 @@ this package.
 from rl_pg._checks import check_fields
 from rl_pg.training.checkpoints import load_models, read_run
 from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConfig
-from rl_pg.training.loop import TrainingDiverged, train
+from rl_pg.training.loop import train
 from rl_pg.training.metrics import scalar_log_rows
+from rl_pg.training.optimisation import TrainingDiverged
 from rl_pg.training.run_dir import RunDirBusy, RunDirectory
 
 __all__ = [

@@ -31,25 +31,26 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import evaluate
-from rl_pg.loss import ReinforceLoss
 from rl_pg.training.checkpoints import RunState, restore
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
 from rl_pg.training.interrupt import InterruptRequest
 from rl_pg.training.metrics import EpisodeReturns, Loggers
+from rl_pg.training.optimisation import (
+    learning_rate,
+    make_loss,
+    make_optimizer,
+    update,
+    warm_up,
+)
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 
-__all__ = ["TrainingDiverged", "train"]
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss or its gradient became non-finite; the last good checkpoint is kept."""
+__all__ = ["train"]
 
 
 def train(
@@ -113,8 +114,44 @@ def train(
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else new_run_dir(recipe, cfg.seed)
-    # Held until the run ends, however it ends: one run per directory at a time.
-    with RunDirectory(run_dir) as directory:
+    # The directory is held until the run ends, however it ends; Ctrl-C ends the update
+    # in progress, then the run saves and stops.
+    with RunDirectory(run_dir) as directory, InterruptRequest() as interrupt:
+        run = _Run(cfg, recipe, directory, make_env, make_models, make_eval_env, eval_flags)
+        try:
+            for batch in run.collection:
+                metrics = run.update(batch)
+                done = run.budget_spent()
+                evaluated = done or run.evaluation_due()
+                if evaluated:
+                    done = run.evaluate() or done
+                run.console.update(
+                    run.state.frames, run.spent, metrics, run.state.last_eval, evaluated=evaluated
+                )
+                if done or interrupt.requested or run.checkpoint_due():
+                    run.checkpoint()
+                if done or interrupt.requested:
+                    break
+        finally:
+            run.close()
+        summary = directory.finish(cfg, recipe, run.state, interrupted=interrupt.requested)
+    if interrupt.requested:
+        print(
+            f"Interrupted at {run.state.frames} frames; checkpoint and summary saved in "
+            f"{run_dir}. Continue with --resume --run-dir {run_dir}",
+            file=sys.stderr,
+        )
+        raise KeyboardInterrupt
+    return summary
+
+
+class _Run:
+    """The pieces of one run and the steps the loop calls them through."""
+
+    def __init__(
+        self, cfg, recipe, directory, make_env, make_models, make_eval_env, eval_flags
+    ) -> None:
+        self.cfg, self.recipe, self.directory, self.eval_flags = cfg, recipe, directory, eval_flags
         saved = directory.open(cfg, recipe)
         _seed_everything(cfg.seed)
         env = make_env()
@@ -123,91 +160,94 @@ def train(
                 f"make_env must return a TorchRL environment (EnvBase), got "
                 f"{type(env).__name__}. Wrap gymnasium environments with rl_pg.envs.gym_env."
             )
-        actor, critic = _models(make_models, env)
-        loss = _make_loss(cfg, actor, critic)
-        _warm_up(loss, env)
-        optimizer = _make_optimizer(cfg, loss)
-        state = RunState()
+        self.actor, critic = _models(make_models, env)
+        self.loss = make_loss(cfg, self.actor, critic)
+        warm_up(self.loss, env)
+        self.optimizer = make_optimizer(cfg, self.loss)
+        self.state = RunState()
         if saved is not None:
-            state = restore(saved, loss, optimizer, directory.checkpoint_path)
-        eval_env = (make_eval_env or make_env)()
-        collection = Collection(cfg, env, make_env, actor, updates=state.updates)
-        logger = Loggers(
-            run_dir / "logs",
+            self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
+        self.eval_env = (make_eval_env or make_env)()
+        self.collection = Collection(cfg, env, make_env, self.actor, updates=self.state.updates)
+        self.logger = Loggers(
+            directory.path / "logs",
             tensorboard=cfg.tensorboard,
-            resume_at=state.frames if saved is not None else None,
+            resume_at=self.state.frames if saved is not None else None,
         )
-        console = Console(
-            total_frames=cfg.total_frames, initial_frames=state.frames, enabled=cfg.progress
+        self.console = Console(
+            total_frames=cfg.total_frames, initial_frames=self.state.frames, enabled=cfg.progress
         )
-        next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
-        episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
-        # Ctrl-C ends the update in progress, then the run saves and stops.
-        with InterruptRequest() as interrupt:
-            try:
-                start = time.perf_counter()
-                for batch in collection:
-                    metrics = _update(
-                        cfg, loss, optimizer, batch, lr=_learning_rate(cfg, state.frames)
-                    )
-                    episode_returns.add(batch)
-                    state.updates += 1
-                    spent = collection.frames_spent(batch)
-                    state.frames += spent
-                    collection.after_update(state.updates)
-                    logged = state.updates % cfg.log_interval == 0
-                    if logged:
-                        metrics["train/episode_return"] = episode_returns.pop_mean()
-                        for name, value in metrics.items():
-                            if math.isfinite(value):
-                                logger.log_scalar(name, value, step=state.frames)
-                                state.record(name, state.frames, value)
-                    done = state.frames >= cfg.total_frames or (
-                        cfg.total_updates is not None and state.updates >= cfg.total_updates
-                    )
-                    evaluated = state.frames >= next_eval or done
-                    if evaluated:
-                        state.train_time += time.perf_counter() - start
-                        next_eval = (state.frames // cfg.eval_interval + 1) * cfg.eval_interval
-                        _evaluate(cfg, actor, eval_env, eval_flags, state, logger)
-                        if state.is_best():
-                            directory.save(cfg, recipe, loss, optimizer, state, best=True)
-                        solved = cfg.threshold is not None and (
-                            state.last_eval["eval/mean_return"] >= cfg.threshold
-                        )
-                        if solved and state.solved_at_frames is None:
-                            state.solved_at_frames = state.frames
-                        done = done or (solved and cfg.stop_when_solved)
-                        start = time.perf_counter()
-                    console.update(
-                        state.frames,
-                        spent,
-                        metrics if logged else None,
-                        state.last_eval,
-                        evaluated=evaluated,
-                    )
-                    if done or interrupt.requested or state.updates % cfg.checkpoint_interval == 0:
-                        state.train_time += time.perf_counter() - start
-                        directory.save(cfg, recipe, loss, optimizer, state)
-                        start = time.perf_counter()
-                        # A resumed run restarts its environments here; so does this one.
-                        if collection.after_checkpoint(state.updates):
-                            episode_returns.reset()
-                    if done or interrupt.requested:
-                        break
-            finally:
-                console.close()
-                collection.shutdown()
-                eval_env.close()
-        summary = directory.finish(cfg, recipe, state, interrupted=interrupt.requested)
-        if interrupt.requested:
-            print(
-                f"Interrupted at {state.frames} frames; checkpoint and summary saved in "
-                f"{run_dir}. Continue with --resume --run-dir {run_dir}",
-                file=sys.stderr,
-            )
-            raise KeyboardInterrupt
-        return summary
+        self.episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
+        self.next_eval = self._next_evaluation()
+        self.spent = 0
+        self._clock = time.perf_counter()  # training time excludes evaluations and saving
+
+    def update(self, batch: TensorDictBase) -> dict[str, float] | None:
+        """One optimiser step on ``batch``; returns the metrics when this update logs."""
+        cfg, state = self.cfg, self.state
+        lr = learning_rate(cfg, state.frames)
+        metrics = update(cfg, self.loss, self.optimizer, batch, lr=lr)
+        self.episode_returns.add(batch)
+        state.updates += 1
+        self.spent = self.collection.frames_spent(batch)
+        state.frames += self.spent
+        self.collection.after_update(state.updates)
+        if state.updates % cfg.log_interval != 0:
+            return None
+        metrics["train/episode_return"] = self.episode_returns.pop_mean()
+        for name, value in metrics.items():
+            if math.isfinite(value):
+                self.logger.log_scalar(name, value, step=state.frames)
+                state.record(name, state.frames, value)
+        return metrics
+
+    def budget_spent(self) -> bool:
+        cfg, state = self.cfg, self.state
+        return state.frames >= cfg.total_frames or (
+            cfg.total_updates is not None and state.updates >= cfg.total_updates
+        )
+
+    def evaluation_due(self) -> bool:
+        return self.state.frames >= self.next_eval
+
+    def evaluate(self) -> bool:
+        """Evaluates (keeping the best checkpoint); True when the run is solved and stops."""
+        cfg, state = self.cfg, self.state
+        self._pause()
+        self.next_eval = self._next_evaluation()
+        _evaluate(cfg, self.actor, self.eval_env, self.eval_flags, state, self.logger)
+        if state.is_best():
+            self.directory.save(cfg, self.recipe, self.loss, self.optimizer, state, best=True)
+        solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
+        if solved and state.solved_at_frames is None:
+            state.solved_at_frames = state.frames
+        self._resume_clock()
+        return solved and cfg.stop_when_solved
+
+    def checkpoint_due(self) -> bool:
+        return self.state.updates % self.cfg.checkpoint_interval == 0
+
+    def checkpoint(self) -> None:
+        self._pause()
+        self.directory.save(self.cfg, self.recipe, self.loss, self.optimizer, self.state)
+        self._resume_clock()
+        # A resumed run restarts its environments here; so does this one.
+        if self.collection.after_checkpoint(self.state.updates):
+            self.episode_returns.reset()
+
+    def close(self) -> None:
+        self.console.close()
+        self.collection.shutdown()
+        self.eval_env.close()
+
+    def _next_evaluation(self) -> int:
+        return (self.state.frames // self.cfg.eval_interval + 1) * self.cfg.eval_interval
+
+    def _pause(self) -> None:
+        self.state.train_time += time.perf_counter() - self._clock
+
+    def _resume_clock(self) -> None:
+        self._clock = time.perf_counter()
 
 
 def _models(make_models, env: EnvBase):
@@ -224,89 +264,6 @@ def _seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
-
-
-def _make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
-    loss = ReinforceLoss(
-        actor,
-        critic,
-        baseline=cfg.baseline,
-        baseline_rate=cfg.baseline_rate,
-        entropy_coeff=cfg.entropy_coeff or None,
-        critic_coeff=cfg.critic_coeff,
-        normalize_advantage=cfg.normalize_advantage,
-        loss_critic_type="l2",
-        # The collector runs the actor itself: keep one set of parameters.
-        functional=False,
-    )
-    loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
-    return loss
-
-
-def _warm_up(loss: ReinforceLoss, env: EnvBase) -> None:
-    """Compiles (or loads from numba's cache) the return kernel before the clock starts.
-
-    The first calls cost up to a second; timing them would charge the training loop
-    with set-up, as if timing ``import torch``.
-    """
-    fake = env.fake_tensordict()
-    batch = torch.stack([fake, fake], dim=-1)
-    with torch.no_grad():
-        for _ in range(2):  # the second call still pays for thread-pool start-up
-            loss.value_estimator(batch)
-
-
-def _make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
-    params = [p for p in loss.parameters() if p.requires_grad]
-    if cfg.optimizer == "sgd":
-        return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-
-
-def _learning_rate(cfg: TrainConfig, frames: int) -> float:
-    """The learning rate of the update that follows ``frames`` environment steps."""
-    if cfg.lr_schedule == "linear":
-        return cfg.lr * max(0.0, 1.0 - frames / cfg.total_frames)
-    return cfg.lr
-
-
-def _update(
-    cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase, *, lr: float
-) -> dict:
-    losses = loss(batch)
-    total = sum(value for key, value in losses.items() if key.startswith("loss_"))
-    if not torch.isfinite(total):
-        raise TrainingDiverged(
-            f"The loss became {total.item()} ({_describe(losses)}); training stopped and "
-            f"the last good checkpoint was kept. Lower the learning rate or clip gradients."
-        )
-    optimizer.zero_grad(set_to_none=True)
-    total.backward()
-    params = [p for group in optimizer.param_groups for p in group["params"]]
-    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
-    grad_norm = nn.utils.clip_grad_norm_(params, max_norm)
-    if not torch.isfinite(grad_norm):
-        raise TrainingDiverged(
-            f"The gradient norm became {grad_norm.item()}; training stopped and the last "
-            f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
-        )
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    optimizer.step()
-    metrics = {
-        f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
-    }
-    for key in ("entropy", "advantage_mean", "advantage_std", "explained_variance", "baseline"):
-        value = losses.get(key, None)
-        if value is not None:
-            metrics[f"train/{key}"] = value.item()
-    metrics["train/grad_norm"] = grad_norm.item()
-    metrics["train/lr"] = lr
-    return metrics
-
-
-def _describe(losses: TensorDictBase) -> str:
-    return ", ".join(f"{k}={v.item():.4g}" for k, v in losses.items() if k.startswith("loss_"))
 
 
 def _evaluate(cfg, actor, eval_env, eval_flags, state: RunState, logger) -> None:

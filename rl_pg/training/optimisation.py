@@ -1,0 +1,107 @@
+"""How the policy learns from a batch: the loss, the optimiser, one update."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.envs import EnvBase
+
+from rl_pg.loss import ReinforceLoss
+from rl_pg.training.config import TrainConfig
+
+__all__ = [
+    "TrainingDiverged",
+    "learning_rate",
+    "make_loss",
+    "make_optimizer",
+    "update",
+    "warm_up",
+]
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or its gradient became non-finite; the last good checkpoint is kept."""
+
+
+def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
+    loss = ReinforceLoss(
+        actor,
+        critic,
+        baseline=cfg.baseline,
+        baseline_rate=cfg.baseline_rate,
+        entropy_coeff=cfg.entropy_coeff or None,
+        critic_coeff=cfg.critic_coeff,
+        normalize_advantage=cfg.normalize_advantage,
+        loss_critic_type="l2",
+        # The collector runs the actor itself: keep one set of parameters.
+        functional=False,
+    )
+    loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
+    return loss
+
+
+def warm_up(loss: ReinforceLoss, env: EnvBase) -> None:
+    """Compiles (or loads from numba's cache) the return kernel before the clock starts.
+
+    The first calls cost up to a second; timing them would charge the training loop
+    with set-up, as if timing ``import torch``.
+    """
+    fake = env.fake_tensordict()
+    batch = torch.stack([fake, fake], dim=-1)
+    with torch.no_grad():
+        for _ in range(2):  # the second call still pays for thread-pool start-up
+            loss.value_estimator(batch)
+
+
+def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
+    params = [p for p in loss.parameters() if p.requires_grad]
+    if cfg.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
+def learning_rate(cfg: TrainConfig, frames: int) -> float:
+    """The learning rate of the update that follows ``frames`` environment steps."""
+    if cfg.lr_schedule == "linear":
+        return cfg.lr * max(0.0, 1.0 - frames / cfg.total_frames)
+    return cfg.lr
+
+
+def update(
+    cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase, *, lr: float
+) -> dict:
+    losses = loss(batch)
+    total = sum(value for key, value in losses.items() if key.startswith("loss_"))
+    if not torch.isfinite(total):
+        raise TrainingDiverged(
+            f"The loss became {total.item()} ({_describe(losses)}); training stopped and "
+            f"the last good checkpoint was kept. Lower the learning rate or clip gradients."
+        )
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
+    grad_norm = nn.utils.clip_grad_norm_(params, max_norm)
+    if not torch.isfinite(grad_norm):
+        raise TrainingDiverged(
+            f"The gradient norm became {grad_norm.item()}; training stopped and the last "
+            f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
+        )
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    optimizer.step()
+    metrics = {
+        f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
+    }
+    for key in ("entropy", "advantage_mean", "advantage_std", "explained_variance", "baseline"):
+        value = losses.get(key, None)
+        if value is not None:
+            metrics[f"train/{key}"] = value.item()
+    metrics["train/grad_norm"] = grad_norm.item()
+    metrics["train/lr"] = lr
+    return metrics
+
+
+def _describe(losses: TensorDictBase) -> str:
+    return ", ".join(f"{k}={v.item():.4g}" for k, v in losses.items() if k.startswith("loss_"))
