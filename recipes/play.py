@@ -50,7 +50,7 @@ class Args:
 
 def main(args: Args) -> list[float]:
     saved = read_run(args.run, which=args.checkpoint)
-    recipe = importlib.import_module(saved["recipe"])
+    recipe = _recipe(saved["recipe"], args.run)
     fields = {f.name for f in dataclasses.fields(recipe.Config)}
     cfg = recipe.Config(**{k: v for k, v in saved["config"].items() if k in fields})
     if "num_envs" in fields:  # play one environment, whatever the run trained on
@@ -74,6 +74,20 @@ def main(args: Args) -> list[float]:
     if args.gif is not None:
         print(f"recorded {args.gif}")
     return returns
+
+
+def _recipe(name: str, run: Path):
+    """The recipe module that trained a run; runs of other code cannot be rebuilt here."""
+    path = Path(__file__).resolve().parent / f"{name}.py"
+    if name == Path(__file__).stem or not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.py") if p.stem != "play")
+        raise ValueError(
+            f"{run} was trained by {name!r}, which is not one of the recipes play.py can "
+            f"rebuild ({', '.join(known)}). Its weights load from Python: "
+            f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
+            f"and critic; rl_pg.training.load_models(saved, actor, critic)."
+        )
+    return importlib.import_module(name)
 
 
 if __name__ == "__main__":

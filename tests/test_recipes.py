@@ -151,6 +151,17 @@ def test_mp4_without_an_encoder_says_how_to_install_one(tmp_path, monkeypatch):
         play.Args(run=tmp_path / "no-run", gif=tmp_path / "x.mp4")
 
 
+def test_play_says_what_it_needs_for_a_run_of_other_code(tmp_path):
+    from rl_pg.envs import GridWorldEnv
+    from rl_pg.models import mlp_actor_critic
+    from rl_pg.training import TrainConfig, train
+
+    cfg = TrainConfig(run_dir=tmp_path / "api", total_updates=1, eval_episodes=1, progress=False)
+    train(cfg, recipe="my-own", make_env=GridWorldEnv, make_models=mlp_actor_critic)
+    with pytest.raises(ValueError, match=r"trained by 'my-own', which is not one of the recipes"):
+        play.main(play.Args(run=tmp_path / "api"))
+
+
 def test_play_refuses_to_record_what_does_not_render(tmp_path):
     gridworld.main(gridworld.Config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
