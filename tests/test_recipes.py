@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
@@ -95,6 +96,10 @@ def test_play_records_a_gif(tmp_path, capsys):
     gif = tmp_path / "play.gif"
     returns = play.main(play.Args(run=tmp_path, episodes=2, gif=gif))
     assert len(returns) == 2 and gif.stat().st_size > 0
+    with Image.open(gif) as image:  # a real animation of the rendered frames
+        assert image.size == (600, 400) and image.n_frames > 1
+        image.seek(image.n_frames - 1)
+        assert len(image.convert("RGB").getcolors(maxcolors=256)) > 2
     assert "mean return" in capsys.readouterr().out
 
 
