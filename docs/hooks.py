@@ -4,6 +4,9 @@
 ``recipes/cartpole.py``'s ``Config`` (flag, default, description), read from the
 dataclass and its field docstrings, the same text ``--help`` prints;
 ``config_table("play", "Args")`` names another dataclass of the module.
+
+``$$ ... $$`` blocks of LaTeX become MathML when the site is built (latex2mathml):
+browsers render MathML themselves, so the maths needs no script and no network.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
+DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -61,5 +65,12 @@ def config_table(recipe: str, name: str = "Config") -> str:
     return "\n".join(rows)
 
 
+def mathml(latex: str) -> str:
+    from latex2mathml.converter import convert
+
+    return f'<div class="math">{convert(latex, display="block")}</div>'
+
+
 def on_page_markdown(markdown: str, **kwargs) -> str:
+    markdown = DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown)
     return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2) or "Config"), markdown)
