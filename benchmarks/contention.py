@@ -102,7 +102,7 @@ def main(cfg: Config) -> dict:
             with busy_processes(cfg.busy if condition == "busy" else 0):
                 for name, run in contenders.items():
                     times[name][condition].append(seconds(run, cfg.frames))
-                load[condition].append(_load_average())
+                load[condition].append(os.getloadavg()[0])
     median = {
         name: {c: statistics.median(t) for c, t in by_condition.items()}
         for name, by_condition in times.items()
@@ -131,10 +131,6 @@ def main(cfg: Config) -> dict:
         rl_pg_slowdown_over_floor=ours,
         load_average=load,
     )
-
-
-def _load_average() -> float:
-    return os.getloadavg()[0]
 
 
 if __name__ == "__main__":

@@ -105,9 +105,7 @@ def evaluate(
         >>> evaluate(actor, BanditEnv(num_arms=4, batch_size=8), episodes=8)["mean_return"]
         0.0
     """
-    episodes = check_int("episodes", episodes, low=1)
-    max_steps = check_int("max_steps", max_steps, low=1)
-    deterministic = check_bool("deterministic", deterministic)
+    episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
     flags = check_names("flags", flags)
     n_envs = max(1, math.prod(env.batch_size))
     results: dict[str, list[torch.Tensor]] = {}
@@ -204,9 +202,7 @@ def play(
         >>> len(play(mlp_actor(env), env, episodes=2, deterministic=False))
         2
     """
-    episodes = check_int("episodes", episodes, low=1)
-    max_steps = check_int("max_steps", max_steps, low=1)
-    deterministic = check_bool("deterministic", deterministic)
+    episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
     if record is not None:
         # Everything that could make the recording fail is checked before playing.
         fps = check_real("fps", fps, low=0, low_open=True)
@@ -227,6 +223,15 @@ def play(
     if record is not None:
         _write_video(record, frames, fps)
     return returns
+
+
+def _check_playing(episodes, max_steps, deterministic) -> tuple[int, int, bool]:
+    """The arguments ``evaluate`` and ``play`` share."""
+    return (
+        check_int("episodes", episodes, low=1),
+        check_int("max_steps", max_steps, low=1),
+        check_bool("deterministic", deterministic),
+    )
 
 
 _VIDEO_FORMATS = (".gif", ".mp4")

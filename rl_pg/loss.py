@@ -262,6 +262,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         self.normalize_advantage = normalize_advantage
         self.critic_coeff = critic_coeff
         self._deferred_key_error: KeyError | None = None
+        self._declares_bounds = _declares_bounds(actor_network)
         out_keys = ["loss_actor"]
         if self.has_critic:
             out_keys.append("loss_value")
@@ -555,7 +556,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"The input tensordict has no action entry {self.tensor_keys.action!r}; "
                     f"collect it or rename the key with loss.set_keys(action=...)."
                 )
-            _check_support(dist, action, self.tensor_keys.action, self._declared_bounds())
+            _check_support(dist, action, self.tensor_keys.action, self._declares_bounds)
         log_prob = dist.log_prob(action)
         if is_tensor_collection(log_prob):
             log_prob = _sum_td_features(log_prob)
@@ -579,25 +580,6 @@ class ReinforceLoss(TorchRLReinforceLoss):
             "Either an action has (near) zero probability under the policy (e.g. on the "
             "bounds of a TanhNormal that was not declared), or the policy's output is "
             "NaN because its weights diverged: lower the learning rate or clip gradients."
-        )
-
-    def _declared_bounds(self) -> bool:
-        """Whether the policy declares action bounds: a bounded action spec, or ``low`` /
-        ``high`` given to its distribution.
-
-        TorchRL's own tests score actions drawn from ``randn`` under a ``TanhNormal`` whose
-        spec is unbounded; only bounds the user stated are enforced, so that they pass.
-        """
-        spec = getattr(self.actor_network, "spec", None)
-        if spec is not None and any(
-            isinstance(leaf, Bounded) and leaf.dtype.is_floating_point
-            for leaf in (spec.values(True, True) if isinstance(spec, Composite) else [spec])
-        ):
-            return True
-        return any(
-            {"low", "high"} & set(getattr(module, "distribution_kwargs", None) or {})
-            for module in self.actor_network.modules()
-            if isinstance(module, ProbabilisticTensorDictModule)
         )
 
     def loss_critic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -639,6 +621,26 @@ def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tens
     raise ValueError(
         f"{key!r} has shape {tuple(value.shape)}, but the batch is {tuple(batch_size)}: "
         f"expected {(*batch_size, 1)} (or {tuple(batch_size)}), one value per step."
+    )
+
+
+def _declares_bounds(actor) -> bool:
+    """Whether the policy declares action bounds: a bounded action spec, or ``low`` /
+    ``high`` given to its distribution.
+
+    TorchRL's own tests score actions drawn from ``randn`` under a ``TanhNormal`` whose
+    spec is unbounded; only bounds the user stated are enforced, so that they pass.
+    """
+    spec = getattr(actor, "spec", None)
+    if spec is not None and any(
+        isinstance(leaf, Bounded) and leaf.dtype.is_floating_point
+        for leaf in (spec.values(True, True) if isinstance(spec, Composite) else [spec])
+    ):
+        return True
+    return any(
+        {"low", "high"} & set(getattr(module, "distribution_kwargs", None) or {})
+        for module in actor.modules()
+        if isinstance(module, ProbabilisticTensorDictModule)
     )
 
 
