@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -15,13 +13,6 @@ from typing import Any
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def recipe(name: str):
-    """A recipe module (``recipes/<name>.py``, scripts rather than a package)."""
-    if str(REPO / "recipes") not in sys.path:
-        sys.path.insert(0, str(REPO / "recipes"))
-    return importlib.import_module(name)
 
 
 def machine() -> dict[str, Any]:

@@ -3,7 +3,7 @@
 Users share machines (laptops, cluster nodes). On an idle machine and beside ``--busy``
 processes that each spin one core, in one run, repetitions interleaved:
 
-* rl_pg's training loop: ``recipes/cartpole.py`` with its defaults for ``--frames``
+* rl_pg's training loop: the ``cartpole`` recipe with its defaults for ``--frames``
   frames (collection, returns, loss, optimiser step; evaluation excluded);
 * the same loop with the return kernel on every numba thread whatever the batch (how
   rl_pg ran before the kernel chose its threads), for comparison;
@@ -84,7 +84,7 @@ def seconds(rate_of: Callable[[int], float], frames: int) -> float:
 
 def main(cfg: Config) -> dict:
     torch.set_num_threads(cfg.threads)
-    n_envs = cartpole.Config().num_envs
+    n_envs = cartpole.config().num_envs
     floor_name = f"floor: SyncVectorEnv({n_envs}) + MLP"
     contenders = {
         "rl_pg training loop (recipe)": rl_pg_training,

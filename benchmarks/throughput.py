@@ -3,7 +3,7 @@
 One run, every contender timed in turn, repetitions interleaved (so machine noise hits
 all alike), medians of frames/s reported with ratios:
 
-* rl_pg's training loop: ``recipes/cartpole.py`` with its defaults (collection,
+* rl_pg's training loop: the ``cartpole`` recipe with its defaults (collection,
   returns, loss, optimiser step; evaluation excluded), frames / training wall-clock.
 * TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` and
   ``Collector(GymEnv("CartPole-v1", num_envs=8))``, collection only, same MLP policy.
@@ -28,11 +28,13 @@ from pathlib import Path
 import gymnasium as gym
 import torch
 import tyro
-from common import REPO, recipe, table, write_json
+from common import REPO, table, write_json
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
-cartpole = recipe("cartpole")
+from rl_pg.recipes import load
+
+cartpole = load("cartpole")
 
 
 @dataclass
@@ -53,14 +55,14 @@ class Config:
 
 def recipe_actor():
     """The recipe's MLP policy (same architecture for every contender that needs one)."""
-    recipe = cartpole.Config()
+    recipe = cartpole.config()
     return cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
 
 
 def rl_pg_training(frames: int) -> float:
     with tempfile.TemporaryDirectory() as run_dir:
-        summary = cartpole.main(
-            cartpole.Config(
+        summary = cartpole.train(
+            cartpole.config(
                 run_dir=Path(run_dir),
                 total_frames=frames,
                 threshold=None,
@@ -126,7 +128,7 @@ def gym_floor(num_envs: int) -> Callable[[int], float]:
 
 def main(cfg: Config) -> dict:
     torch.set_num_threads(cfg.threads)
-    n = cartpole.Config().num_envs
+    n = cartpole.config().num_envs
     contenders: dict[str, Callable[[int], float]] = {
         "rl_pg training loop (recipe)": rl_pg_training,
         "TorchRL Collector(GymEnv), collection only": torchrl_collector(None),

@@ -22,7 +22,9 @@ from pathlib import Path
 
 import torch
 import tyro
-from common import REPO, recipe, table, write_json
+from common import REPO, table, write_json
+
+from rl_pg.recipes import load
 
 
 @dataclass
@@ -53,10 +55,10 @@ RL_PG_BUDGET = 300_000
 
 
 def run_rl_pg(seed: int, cfg: Config) -> dict:
-    cartpole = recipe("cartpole")
+    cartpole = load("cartpole")
     with tempfile.TemporaryDirectory() as run_dir:
-        summary = cartpole.main(
-            cartpole.Config(
+        summary = cartpole.train(
+            cartpole.config(
                 seed=seed,
                 run_dir=Path(run_dir),
                 total_frames=cfg.budget_frames or RL_PG_BUDGET,

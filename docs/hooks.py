@@ -1,9 +1,9 @@
 """MkDocs hook: tables generated from the code, so the docs cannot drift from it.
 
-``{{ config_table("cartpole") }}`` in a page becomes the table of every field of
-``recipes/cartpole.py``'s ``Config`` (flag, default, description), read from the
-dataclass and its field docstrings, the same text ``--help`` prints;
-``config_table("play", "Args")`` names another dataclass of the module.
+``{{ config_table("cartpole") }}`` in a page becomes the table of every field of the
+cartpole recipe's config (flag, default, description), read from the dataclass and
+its field docstrings, the same text ``--help`` prints; ``config_table("play", "Args")``
+names a dataclass of another module of ``rl_pg.recipes``.
 
 ``$$ ... $$`` blocks of LaTeX become MathML when the site is built (latex2mathml):
 browsers render MathML themselves, so the maths needs no script and no network.
@@ -17,8 +17,9 @@ import importlib
 import inspect
 import itertools
 import re
-import sys
 from pathlib import Path
+
+from rl_pg.recipes import load
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
@@ -45,10 +46,11 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def config_table(recipe: str, name: str = "Config") -> str:
-    if str(REPO / "recipes") not in sys.path:
-        sys.path.insert(0, str(REPO / "recipes"))
-    config = getattr(importlib.import_module(recipe), name)
+def config_table(recipe: str, name: str | None = None) -> str:
+    if name is None:
+        config = load(recipe).config
+    else:
+        config = getattr(importlib.import_module(f"rl_pg.recipes.{recipe}"), name)
     docs = field_docs(config)
     rows = ["| flag | default | meaning |", "|---|---|---|"]
     for field in dataclasses.fields(config):

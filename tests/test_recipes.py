@@ -1,25 +1,19 @@
-"""Every recipe's main() on a tiny budget, one real CartPole solve, and deployment."""
+"""Every recipe trained on a tiny budget, one real CartPole solve, and deployment."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+from rl_pg.recipes import load, play
 
-import bandit
-import cartpole
-import gridworld
-import highway
-import lunarlander
-import metadrive
-import play
-import pong
+bandit, cartpole, gridworld, highway, lunarlander, metadrive, pong = (
+    load(name)
+    for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "metadrive", "pong")
+)
 
 TINY = {"eval_episodes": 1, "checkpoint_interval": 1, "progress": False}
 RECIPES = {
@@ -49,10 +43,10 @@ RECIPES = {
 
 
 @pytest.mark.parametrize("name", list(RECIPES))
-def test_recipe_main_leaves_a_complete_run(name, tmp_path):
-    module, overrides = RECIPES[name]
+def test_recipe_trains_to_a_complete_run(name, tmp_path):
+    recipe, overrides = RECIPES[name]
     run = tmp_path / name
-    summary = module.main(module.Config(run_dir=run, **TINY, **overrides))
+    summary = recipe.train(recipe.config(run_dir=run, **TINY, **overrides))
     assert json.loads((run / "summary.json").read_text()) == summary
     for key in ("recipe", "seed", "frames", "train_wall_s", "eval_mean_return", "threshold"):
         assert key in summary
@@ -62,8 +56,8 @@ def test_recipe_main_leaves_a_complete_run(name, tmp_path):
 
 
 def test_highway_reports_the_crash_rate(tmp_path):
-    summary = highway.main(
-        highway.Config(
+    summary = highway.train(
+        highway.config(
             run_dir=tmp_path, total_frames=40, eval_interval=40, episodes_per_batch=1, **TINY
         )
     )
@@ -71,28 +65,35 @@ def test_highway_reports_the_crash_rate(tmp_path):
 
 
 def test_cartpole_reaches_475(tmp_path):
-    summary = cartpole.main(cartpole.Config(run_dir=tmp_path, progress=False))
+    summary = cartpole.train(cartpole.config(run_dir=tmp_path, progress=False))
     assert summary["solved_at_frames"] is not None
     assert summary["eval_mean_return"] >= 475
 
 
 def test_gridworld_comparison_plot(tmp_path):
-    cfg = gridworld.Config(run_dir=tmp_path, n_seeds=1, total_updates=2, **TINY)
-    results = gridworld.compare(cfg)
-    assert set(results) == set(gridworld.VARIANTS)
+    cfg = gridworld.config(run_dir=tmp_path, n_seeds=1, total_updates=2, compare=True, **TINY)
+    results = gridworld.run(cfg)
+    assert set(results) == {
+        "no baseline",
+        "running-mean baseline",
+        "reward-to-go",
+        "reward-to-go - learned V",
+    }
     assert (tmp_path / "comparison.png").is_file()
 
 
 def test_bandit_comparison_plot(tmp_path):
-    cfg = bandit.Config(run_dir=tmp_path, n_seeds=2, total_updates=30, eval_interval=10, **TINY)
-    results = bandit.compare(cfg, bandit.BASELINE_VARIANTS, "baselines")
+    cfg = bandit.config(
+        run_dir=tmp_path, n_seeds=2, total_updates=30, eval_interval=10, compare=True, **TINY
+    )
+    results = bandit.run(cfg)
     assert [len(runs) for runs in results.values()] == [2, 2]
     assert all("final_running_reward" in run for runs in results.values() for run in runs)
     assert (tmp_path / "comparison.png").is_file()
 
 
 def test_play_records_a_gif(tmp_path, capsys):
-    cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=300, **TINY))
+    cartpole.train(cartpole.config(run_dir=tmp_path, total_frames=300, **TINY))
     gif = tmp_path / "play.gif"
     returns = play.main(play.Args(run=tmp_path, episodes=2, gif=gif))
     assert len(returns) == 2 and gif.stat().st_size > 0
@@ -105,20 +106,20 @@ def test_play_records_a_gif(tmp_path, capsys):
 
 @pytest.mark.parametrize("which", ["best", "last"])
 def test_play_deploys_the_best_or_the_last_checkpoint(tmp_path, capsys, which):
-    cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=600, **TINY))
+    cartpole.train(cartpole.config(run_dir=tmp_path, total_frames=600, **TINY))
     returns = play.main(play.Args(run=tmp_path, episodes=1, checkpoint=which))
     assert len(returns) == 1
 
 
 def test_play_uses_one_environment_of_a_batched_run(tmp_path, capsys):
-    summary = cartpole.main(cartpole.Config(run_dir=tmp_path, total_frames=300, **TINY))
+    summary = cartpole.train(cartpole.config(run_dir=tmp_path, total_frames=300, **TINY))
     assert summary["frames"] >= 32 * 8  # trained on the default batch of 32 CartPoles
     returns = play.main(play.Args(run=tmp_path, episodes=3, sample=True))
     assert len(returns) == 3 and all(r >= 1 for r in returns)
 
 
 def test_play_records_an_mp4_into_a_missing_folder(tmp_path):
-    cartpole.main(cartpole.Config(run_dir=tmp_path / "run", total_frames=300, **TINY))
+    cartpole.train(cartpole.config(run_dir=tmp_path / "run", total_frames=300, **TINY))
     video = tmp_path / "videos" / "new" / "cartpole.mp4"
     play.main(play.Args(run=tmp_path / "run", episodes=1, gif=video, fps=50))
     assert video.stat().st_size > 0
@@ -163,28 +164,24 @@ def test_play_says_what_it_needs_for_a_run_of_other_code(tmp_path):
 
     cfg = TrainConfig(run_dir=tmp_path / "api", total_updates=1, eval_episodes=1, progress=False)
     train(cfg, recipe="my-own", make_env=GridWorldEnv, make_models=mlp_actor_critic)
-    with pytest.raises(ValueError, match=r"trained by 'my-own', which is not one of the recipes"):
+    with pytest.raises(ValueError, match=r"No recipe called 'my-own'.*load_models"):
         play.main(play.Args(run=tmp_path / "api"))
 
 
 def test_play_refuses_to_record_what_does_not_render(tmp_path):
-    gridworld.main(gridworld.Config(run_dir=tmp_path, total_updates=1, **TINY))
+    gridworld.train(gridworld.config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
 
 
 def _metadrive_installed() -> bool:
-    try:
-        metadrive._require_metadrive()
-    except ImportError:
-        return False
-    return True
+    return importlib.util.find_spec("metadrive") is not None
 
 
 @pytest.mark.skipif(not _metadrive_installed(), reason="MetaDrive is not installed (optional)")
-def test_metadrive_main(tmp_path):
-    summary = metadrive.main(
-        metadrive.Config(run_dir=tmp_path, total_frames=200, eval_interval=200, **TINY)
+def test_metadrive_trains(tmp_path):
+    summary = metadrive.train(
+        metadrive.config(run_dir=tmp_path, total_frames=200, eval_interval=200, **TINY)
     )
     assert summary["frames"] > 0
 
@@ -192,12 +189,13 @@ def test_metadrive_main(tmp_path):
 @pytest.mark.skipif(_metadrive_installed(), reason="MetaDrive is installed")
 def test_metadrive_missing_says_how_to_install(tmp_path):
     with pytest.raises(ImportError, match="pip install metadrive-simulator"):
-        metadrive.main(metadrive.Config(run_dir=tmp_path))
+        metadrive.train(metadrive.config(run_dir=tmp_path / "run"))
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
 def test_ray_collection(tmp_path):
-    cfg = gridworld.Config(
+    cfg = gridworld.config(
         run_dir=tmp_path,
         ray=True,
         workers=2,
@@ -206,4 +204,4 @@ def test_ray_collection(tmp_path):
         total_updates=2,
         **TINY,
     )
-    assert gridworld.main(cfg)["updates"] == 2
+    assert gridworld.train(cfg)["updates"] == 2

@@ -26,6 +26,7 @@ from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.recipes import load
 from rl_pg.training import (
     RunDirBusy,
     TrainConfig,
@@ -34,8 +35,8 @@ from rl_pg.training import (
     read_run,
     train,
 )
-from rl_pg.training.comparison import read_curve
 from rl_pg.training.console import Console
+from rl_pg.training.curves import read_curve
 from rl_pg.training.metrics import EpisodeReturns
 
 
@@ -531,19 +532,17 @@ class TestInterruptedRun:
         _, stderr = process.communicate(timeout=120)
         assert process.returncode == 130
         assert "Traceback" not in stderr
-        assert f"Continue with --resume --run-dir {run}" in stderr
+        assert f"Continue with: rl-pg resume {run}" in stderr
         summary = json.loads((run / "summary.json").read_text())
         assert summary["interrupted"] is True
         stopped_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
         assert summary["updates"] == stopped_at >= 3
 
-        sys.path.insert(0, str(recipes))
-        import gridworld
-
+        gridworld = load("gridworld")
         common = {"checkpoint_interval": 1_000_000, "eval_interval": 100_000_000}
         common.update(progress=False, total_updates=stopped_at + 3)
-        straight = gridworld.main(gridworld.Config(run_dir=tmp_path / "straight", **common))
-        resumed = gridworld.main(gridworld.Config(run_dir=run, resume=True, **common))
+        straight = gridworld.train(gridworld.config(run_dir=tmp_path / "straight", **common))
+        resumed = gridworld.train(gridworld.config(run_dir=run, resume=True, **common))
         assert resumed["interrupted"] is False
         for key in ("frames", "updates", "eval_mean_return"):
             assert resumed[key] == straight[key]
@@ -562,16 +561,15 @@ class TestInterruptedRun:
 class TestBestCheckpoint:
     def test_best_holds_the_best_evaluation_and_plays_it_back(self, tmp_path):
         summary = _train(_cfg(tmp_path, total_updates=12, eval_interval=200))
-        evaluations = [
-            value for _, value in read_run(tmp_path / "run")["state"]["history"]["eval/mean_return"]
-        ]
+        frames, evaluations = read_curve(tmp_path / "run", "eval/mean_return")
+        evaluations = evaluations.tolist()
         assert len(evaluations) >= 3
         best = read_run(tmp_path / "run", which="best")
         first_best = evaluations.index(max(evaluations))
         assert best["state"]["best_mean_return"] == max(evaluations)
         assert summary["best_eval_mean_return"] == max(evaluations)
         assert summary["best_at_frames"] == best["state"]["frames"]
-        assert len(best["state"]["history"]["eval/mean_return"]) == first_best + 1
+        assert best["state"]["frames"] == frames[first_best]
         actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
         load_models(best, actor)
         env = make_grid()

@@ -10,12 +10,15 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`console`][rl_pg.training.console]: the progress shown while training, the summary;
 * [`checkpoints`][rl_pg.training.checkpoints]: what a checkpoint holds, resuming and
   deploying from one;
-* [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config, the
-  summary and the learning curve;
+* [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config and the
+  summary;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`loop`][rl_pg.training.loop]: ``train()``;
+* [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
+  ``rl-pg`` and ``play``;
 * [`cli`][rl_pg.training.cli]: flags to a config, resuming without retyping them;
-* [`comparison`][rl_pg.training.comparison]: several variants and seeds, one plot.
+* [`comparison`][rl_pg.training.comparison]: several variants and seeds;
+* [`curves`][rl_pg.training.curves]: every plot, drawn from the CSV logs.
 
 The library (losses, estimators, transforms, environments, models) knows nothing of
 this package.
@@ -27,6 +30,7 @@ from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConf
 from rl_pg.training.loop import train
 from rl_pg.training.metrics import scalar_log_rows
 from rl_pg.training.optimisation import TrainingDiverged
+from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import RunDirBusy, RunDirectory
 
 __all__ = [
@@ -34,6 +38,7 @@ __all__ = [
     "NonNegative",
     "Positive",
     "Range",
+    "Recipe",
     "RunDirBusy",
     "RunDirectory",
     "TrainConfig",

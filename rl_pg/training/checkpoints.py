@@ -32,12 +32,8 @@ class RunState:
     train_time: float = 0.0
     solved_at_frames: int | None = None
     last_eval: dict[str, float] = field(default_factory=dict)
-    history: dict[str, list[tuple[int, float]]] = field(default_factory=dict)
     best_mean_return: float | None = None
     best_at_frames: int | None = None
-
-    def record(self, name: str, frames: int, value: float) -> None:
-        self.history.setdefault(name, []).append((frames, value))
 
     def is_best(self) -> bool:
         """Takes in the last evaluation; True if it beat every earlier one."""
@@ -48,11 +44,15 @@ class RunState:
         return True
 
 
-def save(cfg, recipe, loss, optimizer, state: RunState, path: Path) -> None:
-    """Writes the run's checkpoint (atomically, with a checksum) to ``path``."""
+def save(cfg, recipe: dict[str, str | None], loss, optimizer, state: RunState, path: Path) -> None:
+    """Writes the run's checkpoint (atomically, with a checksum) to ``path``.
+
+    ``recipe`` names the recipe (``"recipe"``) and the module defining it
+    (``"recipe_module"``), so that the run can be rebuilt to play it.
+    """
     save_checkpoint(
         {
-            "recipe": recipe,
+            **recipe,
             "config": config_dict(cfg),
             "loss": loss.state_dict(),
             "optimizer": optimizer.state_dict(),
@@ -81,9 +81,9 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
     torch.set_rng_state(saved["rng"]["torch"])
     np.random.set_state(saved["rng"]["numpy"])
     random.setstate(saved["rng"]["random"])
-    state = RunState(**saved["state"])
-    state.history = {k: [tuple(p) for p in v] for k, v in state.history.items()}
-    return state
+    # Checkpoints of earlier versions also carried the curve, now read from the logs.
+    fields = {f.name for f in dataclasses.fields(RunState)}
+    return RunState(**{k: v for k, v in saved["state"].items() if k in fields})
 
 
 def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
@@ -105,11 +105,17 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
         Traceback (most recent call last):
         ...
         rl_pg.checkpoint.CheckpointError: No checkpoint at .../checkpoint.pt.
+        >>> read_run("runs/nothing-here")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        rl_pg.checkpoint.CheckpointError: runs/nothing-here does not exist: give a run ...
     """
     files = {"last": CHECKPOINT, "best": BEST}
     if which not in files:
         raise ValueError(f"which must be 'last' or 'best', got {which!r}.")
     path = Path(run)
+    if not path.exists():
+        raise CheckpointError(f"{path} does not exist: give a run directory or a checkpoint file.")
     if not path.is_dir():
         return load_checkpoint(path)
     if which == "best" and not (path / BEST).is_file() and (path / CHECKPOINT).is_file():

@@ -18,7 +18,9 @@ __all__ = ["parse_config"]
 Config = TypeVar("Config")
 
 
-def parse_config(config_class: type[Config], args: Sequence[str] | None = None) -> Config:
+def parse_config(
+    config_class: type[Config], args: Sequence[str] | None = None, *, prog: str | None = None
+) -> Config:
     """``tyro.cli(config_class)``, except that ``--resume --run-dir DIR`` starts from the
     configuration stored in DIR's checkpoint: only the flags given on the command line
     change it (and the loop refuses changes that are not safe on resume).
@@ -26,6 +28,9 @@ def parse_config(config_class: type[Config], args: Sequence[str] | None = None) 
     Args:
         config_class (type): a ``TrainConfig`` dataclass.
         args (sequence of str, optional): the command line. Defaults to ``sys.argv[1:]``.
+
+    Keyword Args:
+        prog (str, optional): the program's name in ``--help``.
 
     Examples:
         >>> import tempfile
@@ -46,15 +51,17 @@ def parse_config(config_class: type[Config], args: Sequence[str] | None = None) 
     args = list(sys.argv[1:] if args is None else args)
     run_dir = _resumed_run_dir(args)
     if run_dir is None:
-        return tyro.cli(config_class, args=args)
+        return tyro.cli(config_class, args=args, prog=prog)
     try:
         stored = read_run(run_dir)["config"]
     except CheckpointError:
-        return tyro.cli(config_class, args=args)  # train() reports the missing checkpoint
+        return tyro.cli(
+            config_class, args=args, prog=prog
+        )  # train() reports the missing checkpoint
     names = {field.name for field in dataclasses.fields(config_class)}
     values = {key: value for key, value in stored.items() if key in names}
     default = config_class(**{**values, "resume": True, "run_dir": Path(run_dir)})
-    return tyro.cli(config_class, args=args, default=default)
+    return tyro.cli(config_class, args=args, default=default, prog=prog)
 
 
 def _resumed_run_dir(args: list[str]) -> str | None:

@@ -1,13 +1,21 @@
 """The settings of a training run: one dataclass, checked when it is made.
 
 Every field declares its kind and bounds in its type (``Count``, ``Positive``,
-``NonNegative``, ``Range``); a recipe's config subclasses ``TrainConfig`` and keeps
-those bounds even when it re-declares a field with a plain type.
+``NonNegative``, ``Range``). A recipe's config subclasses ``TrainConfig``, declares the
+fields it adds, and changes the defaults of inherited fields in its class statement,
+without re-declaring them (their type, bounds and help text stay the base's)::
+
+    @dataclass
+    class Config(TrainConfig, lr=5e-3, total_frames=300_000):
+        hidden: Count = 64
+        '''Width of the hidden layers.'''
 """
 
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -110,6 +118,33 @@ class TrainConfig:
     """Also log to TensorBoard (pip install tensorboard)."""
     progress: bool = True
     """Show a progress bar."""
+
+    def __init_subclass__(cls, **defaults: Any) -> None:
+        """``class Config(TrainConfig, lr=5e-3)``: new defaults for inherited fields."""
+        super().__init_subclass__()
+        if not defaults:
+            return
+        inherited = {}
+        for base in reversed(cls.__mro__[1:]):
+            if dataclasses.is_dataclass(base):
+                inherited.update(typing.get_type_hints(base, include_extras=True))
+        unknown = sorted(set(defaults) - set(inherited))
+        if unknown:
+            raise TypeError(
+                f"{cls.__name__} sets defaults of {', '.join(unknown)}, which "
+                f"{cls.__mro__[1].__name__} does not have: declare new fields in the class body."
+            )
+        own = dict(inspect.get_annotations(cls))
+        clash = sorted(set(defaults) & set(own))
+        if clash:
+            raise TypeError(
+                f"{cls.__name__} both declares and overrides {', '.join(clash)}: do one."
+            )
+        # Re-declared with the base's type: @dataclass then keeps the field in place.
+        annotations = {name: inherited[name] for name in defaults}
+        cls.__annotations__ = {**annotations, **own}
+        for name, value in defaults.items():
+            setattr(cls, name, value)
 
     def __post_init__(self) -> None:
         self.validate()

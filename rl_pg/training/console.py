@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 import sys
 import time
+from pathlib import Path
 from typing import Any, TextIO
 
 from tqdm import tqdm
 
-__all__ = ["Console", "format_summary"]
+__all__ = ["Console", "format_comparison", "format_summary"]
 
 
 class Console:
@@ -127,8 +128,56 @@ def format_summary(summary: dict[str, Any]) -> str:
             if solved is not None
             else f"  solved: not yet (threshold {summary['threshold']:g})"
         )
+    extra = {k: v for k, v in summary.items() if k not in _SUMMARY_FIELDS and k not in rates}
+    lines.extend(f"  {k.replace('_', ' ')}: {_number(v)}" for k, v in extra.items())
     lines.append(f"  run directory: {summary['run_dir']}")
     return "\n".join(lines)
+
+
+def format_comparison(results: dict[str, list[dict[str, Any]]]) -> str:
+    """Several variants' runs (``{variant: [summary per seed]}``), one line per variant.
+
+    Examples:
+        >>> from rl_pg.training.console import format_comparison
+        >>> print(format_comparison({"no baseline": [
+        ...     {"run_dir": "runs/c/no baseline/seed0", "eval_mean_return": 0.9,
+        ...      "solved_at_frames": None},
+        ...     {"run_dir": "runs/c/no baseline/seed1", "eval_mean_return": 1.0,
+        ...      "solved_at_frames": 3000}]}))
+        no baseline: 1/2 seeds solved, last evaluation 0.90 1.00 (runs/c/no baseline)
+    """
+    lines = []
+    for variant, runs in results.items():
+        solved = sum(run.get("solved_at_frames") is not None for run in runs)
+        evals = " ".join(_number(run.get("eval_mean_return")) for run in runs)
+        folder = Path(runs[0]["run_dir"]).parent if runs else ""
+        lines.append(
+            f"{variant}: {solved}/{len(runs)} seeds solved, last evaluation {evals} ({folder})"
+        )
+    return "\n".join(lines)
+
+
+_SUMMARY_FIELDS = frozenset(
+    {
+        "recipe",
+        "run_dir",
+        "seed",
+        "frames",
+        "updates",
+        "train_wall_s",
+        "eval_mean_return",
+        "eval_std_return",
+        "threshold",
+        "solved_at_frames",
+        "best_eval_mean_return",
+        "best_at_frames",
+        "interrupted",
+    }
+)
+
+
+def _number(value: Any) -> str:
+    return f"{value:.2f}" if isinstance(value, float) else str(value)
 
 
 def _losses(metrics: dict[str, float]) -> str:

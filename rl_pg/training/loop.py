@@ -61,6 +61,8 @@ def train(
     make_models: Callable[[EnvBase], tuple[TensorDictModuleBase, TensorDictModuleBase | None]],
     make_eval_env: Callable[[], EnvBase] | None = None,
     eval_flags: Sequence[str] = (),
+    recipe_module: str | None = None,
+    summarise: Callable[[Path], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Trains ``make_models``' actor (and critic) on ``make_env`` with REINFORCE.
 
@@ -77,6 +79,11 @@ def train(
             Defaults to ``make_env``.
         eval_flags (sequence of str): boolean entries reported as rates by evaluations,
             e.g. ``("crashed",)``. Defaults to ``()``.
+        recipe_module (str, optional): the importable module that defines the recipe
+            (a [`Recipe`][rl_pg.training.recipe.Recipe] passes its own); recorded so
+            that ``rl-pg play`` can rebuild the run.
+        summarise (callable, optional): ``run_dir -> dict`` of fields added to the
+            summary, computed from the run's logs when it ends.
 
     Returns:
         The summary written to ``run_dir/summary.json``.
@@ -117,7 +124,8 @@ def train(
     # The directory is held until the run ends, however it ends; Ctrl-C ends the update
     # in progress, then the run saves and stops.
     with RunDirectory(run_dir) as directory, InterruptRequest() as interrupt:
-        run = _Run(cfg, recipe, directory, make_env, make_models, make_eval_env, eval_flags)
+        saved = directory.open(cfg, recipe, recipe_module)
+        run = _Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_flags)
         try:
             for batch in run.collection:
                 metrics = run.update(batch)
@@ -134,11 +142,12 @@ def train(
                     break
         finally:
             run.close()
-        summary = directory.finish(cfg, recipe, run.state, interrupted=interrupt.requested)
+        extra = summarise(run_dir) if summarise is not None else None
+        summary = directory.finish(run.state, interrupted=interrupt.requested, extra=extra)
     if interrupt.requested:
         print(
             f"Interrupted at {run.state.frames} frames; checkpoint and summary saved in "
-            f"{run_dir}. Continue with --resume --run-dir {run_dir}",
+            f"{run_dir}. Continue with: rl-pg resume {run_dir}",
             file=sys.stderr,
         )
         raise KeyboardInterrupt
@@ -149,10 +158,9 @@ class _Run:
     """The pieces of one run and the steps the loop calls them through."""
 
     def __init__(
-        self, cfg, recipe, directory, make_env, make_models, make_eval_env, eval_flags
+        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_flags
     ) -> None:
-        self.cfg, self.recipe, self.directory, self.eval_flags = cfg, recipe, directory, eval_flags
-        saved = directory.open(cfg, recipe)
+        self.cfg, self.directory, self.eval_flags = cfg, directory, eval_flags
         _seed_everything(cfg.seed)
         env = make_env()
         if not isinstance(env, EnvBase):
@@ -198,7 +206,6 @@ class _Run:
         for name, value in metrics.items():
             if math.isfinite(value):
                 self.logger.log_scalar(name, value, step=state.frames)
-                state.record(name, state.frames, value)
         return metrics
 
     def budget_spent(self) -> bool:
@@ -217,7 +224,7 @@ class _Run:
         self.next_eval = self._next_evaluation()
         _evaluate(cfg, self.actor, self.eval_env, self.eval_flags, state, self.logger)
         if state.is_best():
-            self.directory.save(cfg, self.recipe, self.loss, self.optimizer, state, best=True)
+            self.directory.save(self.loss, self.optimizer, state, best=True)
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
         if solved and state.solved_at_frames is None:
             state.solved_at_frames = state.frames
@@ -229,7 +236,7 @@ class _Run:
 
     def checkpoint(self) -> None:
         self._pause()
-        self.directory.save(self.cfg, self.recipe, self.loss, self.optimizer, self.state)
+        self.directory.save(self.loss, self.optimizer, self.state)
         self._resume_clock()
         # A resumed run restarts its environments here; so does this one.
         if self.collection.after_checkpoint(self.state.updates):
@@ -278,4 +285,3 @@ def _evaluate(cfg, actor, eval_env, eval_flags, state: RunState, logger) -> None
     state.last_eval = result
     for name, value in result.items():
         logger.log_scalar(name, value, step=state.frames)
-        state.record(name, state.frames, value)

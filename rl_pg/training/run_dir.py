@@ -22,16 +22,15 @@ from rl_pg.checkpoint import (
     load_checkpoint,
     write_atomically,
 )
-from rl_pg.plots import png_figure
 from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
+from rl_pg.training.curves import plot_run
 
 __all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
 
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
 CONFIG = "config.json"
-CURVE = "learning_curve.png"
 
 try:
     import fcntl
@@ -79,6 +78,8 @@ class RunDirectory:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.cfg: TrainConfig | None = None
+        self.recipe: dict[str, str | None] = {}
         self._fd: int | None = None
         self._created = False
         self._empty_at_entry = False
@@ -144,8 +145,9 @@ class RunDirectory:
         """``<run_dir>/checkpoint.pt``."""
         return self.path / CHECKPOINT
 
-    def open(self, cfg: TrainConfig, recipe: str) -> dict | None:
-        """The checkpoint to resume from (``cfg.resume``), or None for a fresh run.
+    def open(self, cfg: TrainConfig, recipe: str, module: str | None = None) -> dict | None:
+        """Starts the run of ``recipe`` (defined in ``module``, if importable) with
+        ``cfg``; returns the checkpoint to resume from (``cfg.resume``), or None.
 
         Raises:
             CheckpointError: a fresh run where a run already is; a resume from a
@@ -155,27 +157,29 @@ class RunDirectory:
         saved = _open(cfg, recipe, self)
         if saved is not None:
             self.keep()
+        self.cfg, self.recipe = cfg, {"recipe": recipe, "recipe_module": module}
         # Readable by people; the checkpoint's own copy is what resuming checks.
         write_atomically(
-            self.path / CONFIG, json.dumps({"recipe": recipe, **config_dict(cfg)}, indent=2)
+            self.path / CONFIG, json.dumps({**self.recipe, **config_dict(cfg)}, indent=2)
         )
         return saved
 
-    def save(
-        self, cfg: TrainConfig, recipe: str, loss, optimizer, state: RunState, *, best=False
-    ) -> None:
+    def save(self, loss, optimizer, state: RunState, *, best: bool = False) -> None:
         """Writes the last checkpoint (or, with ``best``, ``best.pt``), atomically; the
         directory is worth keeping from then on."""
-        save(cfg, recipe, loss, optimizer, state, self.path / (BEST if best else CHECKPOINT))
+        path = self.path / (BEST if best else CHECKPOINT)
+        save(self.cfg, self.recipe, loss, optimizer, state, path)
         self.keep()
 
     def finish(
-        self, cfg: TrainConfig, recipe: str, state: RunState, *, interrupted: bool = False
+        self, state: RunState, *, interrupted: bool = False, extra: dict[str, Any] | None = None
     ) -> dict[str, Any]:
-        """Writes ``summary.json`` and the learning curve; returns the summary."""
-        summary = {**_summary(cfg, recipe, state, self.path), "interrupted": interrupted}
+        """Writes ``summary.json`` (with the recipe's ``extra`` fields) and the learning
+        curve; returns the summary."""
+        summary = {**_summary(self.cfg, self.recipe["recipe"], state, self.path), **(extra or {})}
+        summary["interrupted"] = interrupted
         write_atomically(self.path / SUMMARY, json.dumps(summary, indent=2))
-        _plot(state, cfg.threshold, self.path / CURVE, recipe)
+        plot_run(self.path, threshold=self.cfg.threshold, title=self.recipe["recipe"])
         return summary
 
     def contents(self) -> list[str]:
@@ -269,20 +273,3 @@ def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> d
         if key.endswith("_rate"):
             summary[key.removeprefix("eval/")] = value
     return summary
-
-
-def _plot(state: RunState, threshold: float | None, path: Path, title: str) -> None:
-    with png_figure(path) as ax:
-        for name, label in (
-            ("train/episode_return", "training episodes"),
-            ("eval/mean_return", "evaluation"),
-        ):
-            points = state.history.get(name, [])
-            if points:
-                frames, values = zip(*points, strict=True)
-                marker = "o" if name.startswith("eval") else None
-                ax.plot(frames, values, label=label, marker=marker)
-        if threshold is not None:
-            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
-        ax.set(xlabel="frames", ylabel="episode return", title=title)
-        ax.legend(loc="best")

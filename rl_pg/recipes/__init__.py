@@ -1,0 +1,65 @@
+"""The recipes: complete experiments on real environments, run by ``rl-pg``.
+
+Each module defines a config class, builds its environments and models, and exposes
+them as a [`Recipe`][rl_pg.training.recipe.Recipe] named ``RECIPE``.
+[`load`][rl_pg.recipes.load] is the one way to get a recipe by name: the command
+line, deployment, the tests, the benchmarks and the docs all use it.
+
+Examples:
+    >>> from rl_pg.recipes import NAMES, load
+    >>> NAMES
+    ('bandit', 'gridworld', 'cartpole', 'lunarlander', 'highway', 'pong', 'metadrive')
+    >>> recipe = load("cartpole")
+    >>> recipe.config().threshold
+    475.0
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from rl_pg.training.recipe import Recipe
+
+__all__ = ["NAMES", "load"]
+
+NAMES = ("bandit", "gridworld", "cartpole", "lunarlander", "highway", "pong", "metadrive")
+"""The built-in recipes, simplest first."""
+
+
+def load(name: str, module: str | None = None) -> Recipe:
+    """The recipe called ``name``: a built-in one, or the one ``module`` defines.
+
+    Args:
+        name (str): a name of [`NAMES`][rl_pg.recipes.NAMES], or a recipe's own name.
+        module (str, optional): the importable module that defines the recipe (runs
+            record it). Tried first.
+
+    Raises:
+        ValueError: no such recipe; the message lists the built-in ones and says what
+            a recipe of your own needs.
+    """
+    if module is not None:
+        recipe = _find(name, module)
+        if recipe is not None:
+            return recipe
+    if name in NAMES:
+        return importlib.import_module(f"{__name__}.{name}").RECIPE
+    where = ""
+    if module == "__main__":
+        where = " (it was defined in a script, which cannot be imported again)"
+    elif module is not None:
+        where = f" (its module {module!r} does not define it, or cannot be imported)"
+    raise ValueError(
+        f"No recipe called {name!r}{where}. The built-in recipes are {', '.join(NAMES)}. "
+        f"A recipe of your own is an rl_pg.training.recipe.Recipe in an importable module, "
+        f"trained with recipe.train(cfg): its runs record that module."
+    )
+
+
+def _find(name: str, module: str) -> Recipe | None:
+    try:
+        namespace = vars(importlib.import_module(module))
+    except ImportError:
+        return None
+    found = [v for v in namespace.values() if isinstance(v, Recipe) and v.name == name]
+    return found[0] if found else None

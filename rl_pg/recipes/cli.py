@@ -1,0 +1,119 @@
+"""``rl-pg``: train a recipe, resume a run, play a trained agent, list the recipes.
+
+    rl-pg list
+    rl-pg train cartpole --seed 1          # rl-pg train cartpole --help: every flag
+    rl-pg resume runs/cartpole-seed1-...   # continue with the run's stored config
+    rl-pg play runs/cartpole-seed1-... --gif cartpole.gif
+
+``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
+recipes/<name>.py`` runs ``rl-pg train <name>`` and ``python recipes/play.py``
+runs ``rl-pg play``.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import tyro
+
+from rl_pg.checkpoint import CheckpointError
+from rl_pg.recipes import NAMES, load
+from rl_pg.training.checkpoints import read_run
+from rl_pg.training.cli import parse_config
+from rl_pg.training.console import format_comparison, format_summary
+from rl_pg.training.interrupt import exit_quietly_on_interrupt
+from rl_pg.training.run_dir import RunDirBusy
+
+__all__ = ["main", "run_checkout_script"]
+
+USAGE = """usage: rl-pg {list,train,resume,play} ...
+
+  rl-pg list                       the recipes and what they train
+  rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
+  rl-pg resume RUN_DIR [FLAGS]     continue a run with its stored config; FLAGS may
+                                   change what is safe to change (budget, workers, ...)
+  rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
+"""
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """The ``rl-pg`` command (``argv`` defaults to ``sys.argv[1:]``)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    command, rest = (args[0], args[1:]) if args else ("", [])
+    with exit_quietly_on_interrupt(), _user_errors():
+        if command == "list":
+            _list()
+        elif command == "train" and rest and not rest[0].startswith("-"):
+            _train(rest[0], rest[1:])
+        elif command == "resume" and rest and not rest[0].startswith("-"):
+            _resume(Path(rest[0]), rest[1:])
+        elif command == "play":
+            _play(rest)
+        elif command in ("-h", "--help"):
+            print(USAGE, end="")
+        else:
+            print(USAGE, end="", file=sys.stderr)
+            sys.exit(2)
+
+
+def run_checkout_script(path: str) -> None:
+    """What ``python recipes/<name>.py`` runs in a checkout: ``rl-pg train <name>``
+    (``rl-pg play`` for ``play.py``)."""
+    # Python puts a script's folder first on the import path, where recipes/metadrive.py
+    # would shadow the metadrive package: these scripts import nothing from there.
+    folder = str(Path(path).resolve().parent)
+    sys.path[:] = [p for p in sys.path if str(Path(p or ".").resolve()) != folder]
+    name = Path(path).stem
+    main(["play", *sys.argv[1:]] if name == "play" else ["train", name, *sys.argv[1:]])
+
+
+@contextmanager
+def _user_errors() -> Iterator[None]:
+    """Errors in what the user asked for (a busy or foreign run directory, a missing
+    package): the message alone, and exit status 1."""
+    try:
+        yield
+    except (CheckpointError, RunDirBusy, ImportError) as err:
+        sys.exit(f"rl-pg: {err}")
+
+
+def _list() -> None:
+    width = max(map(len, NAMES))
+    for name in NAMES:
+        print(f"{name:<{width}}  {load(name).description}")
+
+
+def _train(name: str, args: list[str]) -> None:
+    try:
+        recipe = load(name)
+    except ValueError as err:
+        sys.exit(f"rl-pg train: {err}")
+    cfg = parse_config(recipe.config, args, prog=f"rl-pg train {name}")
+    _report(recipe.run(cfg))
+
+
+def _resume(run_dir: Path, args: list[str]) -> None:
+    saved = read_run(run_dir)
+    try:
+        recipe = load(saved["recipe"], saved.get("recipe_module"))
+    except ValueError as err:
+        sys.exit(f"rl-pg resume: {run_dir} cannot be rebuilt: {err}")
+    args = ["--resume", "--run-dir", str(run_dir), *args]
+    cfg = parse_config(recipe.config, args, prog=f"rl-pg resume {run_dir}")
+    _report(recipe.run(cfg))
+
+
+def _play(args: list[str]) -> None:
+    from rl_pg.recipes import play
+
+    try:
+        play.main(tyro.cli(play.Args, args=args, prog="rl-pg play"))
+    except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
+        sys.exit(f"rl-pg play: {err}")
+
+
+def _report(result: dict) -> None:
+    print(format_summary(result) if "frames" in result else format_comparison(result))

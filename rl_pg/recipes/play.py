@@ -1,0 +1,79 @@
+"""Deploy a trained agent: load a run directory (or checkpoint), play, record.
+
+rl-pg play runs/cartpole-seed0 --episodes 5 --gif cartpole.gif
+rl-pg play runs/highway-seed0 --sample          # sample, not greedy
+rl-pg play runs/highway-seed0 --checkpoint last # the last weights, not the best
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import torch
+import tyro
+
+from rl_pg.evaluation import check_recording, play
+from rl_pg.recipes import load
+from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
+
+__all__ = ["Args", "main"]
+
+
+@dataclass
+class Args:
+    """Play a trained agent's episodes and print their returns."""
+
+    run: tyro.conf.Positional[Path]
+    """Run directory (or checkpoint file) written by a recipe."""
+    episodes: Count = 5
+    """Episodes to play."""
+    checkpoint: Literal["best", "last"] = "best"
+    """Deploy the best evaluated checkpoint, or the last one."""
+    sample: bool = False
+    """Sample actions from the policy instead of acting greedily."""
+    gif: Path | None = None
+    """Record the episodes to this .gif (or .mp4, with rl_pg[video]) file."""
+    fps: Positive = 30.0
+    """Frames per second of the recording."""
+    seed: Annotated[int, Range(low=0, high=2**32 - 1)] = 0
+    """Seed of the environment and of the sampled actions."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if self.gif is not None:  # before the checkpoint is loaded and episodes played
+            self.gif = check_recording(self.gif)
+
+
+def main(args: Args) -> list[float]:
+    """Plays ``args.episodes`` episodes of the run's agent; returns their returns."""
+    saved = read_run(args.run, which=args.checkpoint)
+    try:
+        recipe = load(saved["recipe"], saved.get("recipe_module"))
+    except ValueError as err:
+        raise ValueError(
+            f"{args.run} cannot be rebuilt: {err} Its weights load from Python: "
+            f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
+            f"and critic; rl_pg.training.load_models(saved, actor, critic)."
+        ) from None
+    cfg = recipe.config_from(saved["config"], num_envs=1)  # one environment, to watch
+    env = recipe.make_env(cfg, render=args.gif is not None)
+    actor, critic = recipe.make_models(env, cfg)
+    load_models(saved, actor, critic)
+    torch.manual_seed(args.seed)
+    env.set_seed(args.seed)
+    returns = play(
+        actor,
+        env,
+        episodes=args.episodes,
+        deterministic=not args.sample,
+        record=args.gif,
+        fps=args.fps,
+    )
+    for episode, value in enumerate(returns):
+        print(f"episode {episode}: return {value:.2f}")
+    print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episodes")
+    if args.gif is not None:
+        print(f"recorded {args.gif}")
+    return returns

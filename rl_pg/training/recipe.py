@@ -1,0 +1,134 @@
+"""What a recipe is: a config class and how to build the run's environments and models.
+
+Training, deployment (``rl-pg play``), the tests, the benchmarks and the docs all
+reach a recipe through this interface, and built-in recipes by name through
+[`rl_pg.recipes.load`][rl_pg.recipes.load]. A recipe of your own is a ``Recipe`` in
+an importable module::
+
+    RECIPE = Recipe(
+        name="my-task",
+        config=MyConfig,                       # a TrainConfig subclass
+        make_env=make_env,                     # (cfg, *, render=False) -> EnvBase
+        make_models=make_models,               # (env, cfg) -> (actor, critic or None)
+    )
+    RECIPE.train(MyConfig(seed=1))
+
+Its runs record the module, so ``rl-pg play RUN_DIR`` can rebuild them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+
+from rl_pg._checks import check_names
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.loop import train
+
+__all__ = ["Recipe"]
+
+Models = tuple[TensorDictModuleBase, TensorDictModuleBase | None]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A training experiment, as ``train``, ``play`` and ``rl-pg`` use it.
+
+    Args:
+        name (str): what the run directory and the summary call it.
+        config (type): its ``TrainConfig`` subclass; the defaults are the recipe's.
+        make_env (callable): ``(cfg, *, render=False) -> EnvBase``, the training
+            environment; with ``render=True``, one environment that renders RGB frames
+            (for recordings). Module-level functions keep multi-process collection
+            possible (they are pickled).
+        make_models (callable): ``(env, cfg) -> (actor, critic or None)``.
+        make_eval_env (callable, optional): ``cfg -> EnvBase`` for evaluations.
+            Defaults to ``make_env``.
+        eval_flags (sequence of str): boolean entries evaluations report as rates
+            (``("crashed",)``). Defaults to ``()``.
+        prepare (callable, optional): ``cfg -> cfg``, run before training (a default
+            that depends on the environment, for example).
+        summarise (callable, optional): ``(cfg, run_dir) -> dict``, fields the recipe
+            adds to the run's summary, read from its logs.
+        commands (dict, optional): ``{flag: cfg -> dict}``: when the config's boolean
+            field ``flag`` is set, the command line runs this (a comparison of several
+            runs, say) instead of one training. Defaults to none.
+    """
+
+    name: str
+    config: type[TrainConfig]
+    make_env: Callable[..., EnvBase]
+    make_models: Callable[[EnvBase, Any], Models]
+    make_eval_env: Callable[[Any], EnvBase] | None = None
+    eval_flags: Sequence[str] = ()
+    prepare: Callable[[Any], Any] | None = None
+    summarise: Callable[[Any, Any], dict[str, Any]] | None = None
+    commands: dict[str, Callable[[Any], dict[str, Any]]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.config, type) and issubclass(self.config, TrainConfig)):
+            raise TypeError(
+                f"Recipe {self.name!r}: config must be a TrainConfig subclass, got {self.config!r}."
+            )
+        object.__setattr__(self, "eval_flags", check_names("eval_flags", self.eval_flags))
+        names = {f.name for f in dataclasses.fields(self.config)}
+        unknown = sorted(set(self.commands) - names)
+        if unknown:
+            raise ValueError(
+                f"Recipe {self.name!r}: commands {unknown} are not fields of "
+                f"{self.config.__name__}; each command is switched on by a bool field."
+            )
+
+    @property
+    def module(self) -> str:
+        """The module that defines the recipe's functions (recorded in its runs)."""
+        return self.make_env.__module__
+
+    @property
+    def description(self) -> str:
+        """The first line of the config's docstring."""
+        return (self.config.__doc__ or self.name).strip().splitlines()[0]
+
+    def train(self, cfg: TrainConfig | None = None) -> dict[str, Any]:
+        """Trains with ``cfg`` (default: the recipe's defaults); returns the summary."""
+        cfg = self.config() if cfg is None else cfg
+        if not isinstance(cfg, self.config):
+            raise TypeError(
+                f"Recipe {self.name!r} trains with its own {self.config.__name__}, got "
+                f"{type(cfg).__name__}."
+            )
+        if self.prepare is not None:
+            cfg = self.prepare(cfg)
+        eval_env = self.make_eval_env or self.make_env
+        return train(
+            cfg,
+            recipe=self.name,
+            recipe_module=self.module,
+            make_env=partial(self.make_env, cfg),
+            make_models=partial(_call_with_cfg, self.make_models, cfg),
+            make_eval_env=partial(eval_env, cfg),
+            eval_flags=self.eval_flags,
+            summarise=None if self.summarise is None else partial(self.summarise, cfg),
+        )
+
+    def run(self, cfg: TrainConfig) -> dict[str, Any]:
+        """What the command line does: the command whose flag is set, else ``train``."""
+        for flag, command in self.commands.items():
+            if getattr(cfg, flag):
+                return command(cfg)
+        return self.train(cfg)
+
+    def config_from(self, stored: dict[str, Any], **changes: Any) -> TrainConfig:
+        """The recipe's config from a run's stored config (fields it lacks keep defaults)."""
+        names = {field.name for field in dataclasses.fields(self.config)}
+        return self.config(**{k: v for k, v in {**stored, **changes}.items() if k in names})
+
+
+def _call_with_cfg(make_models, cfg, env):
+    return make_models(env, cfg)

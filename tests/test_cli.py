@@ -1,0 +1,227 @@
+"""The ``rl-pg`` command as users run it: in subprocesses, from a checkout and from a wheel."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import sysconfig
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from rl_pg.recipes import NAMES
+from rl_pg.recipes.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+QUICK = ["--total-updates", "2", "--eval-interval", "100", "--eval-episodes", "1"]
+
+
+def rl_pg(*args: str, cwd: Path, python: str = sys.executable, **kwargs):
+    """``rl-pg ARGS`` (the installed entry point: ``python -m rl_pg.recipes``)."""
+    return subprocess.run(
+        [python, "-m", "rl_pg.recipes", *args], cwd=cwd, capture_output=True, text=True, **kwargs
+    )
+
+
+def in_process(*args: str, capsys) -> tuple[int, str, str]:
+    """``rl-pg ARGS`` in this process: (exit status, stdout, stderr)."""
+    try:
+        main(list(args))
+        status = 0
+    except SystemExit as stop:
+        status = stop.code if isinstance(stop.code, int) else 1
+        if isinstance(stop.code, str):
+            print(stop.code, file=sys.stderr)  # what Python prints for sys.exit("...")
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_list_names_every_recipe_with_what_it_trains(capsys):
+    status, out, _ = in_process("list", capsys=capsys)
+    assert status == 0
+    lines = out.splitlines()
+    assert [line.split()[0] for line in lines] == list(NAMES)
+    assert "CartPole-v1" in lines[NAMES.index("cartpole")]
+
+
+def test_train_resume_and_play_a_run_by_its_directory_alone(tmp_path):
+    trained = rl_pg("train", "gridworld", "--run-dir", "run", "--lr", "0.05", *QUICK, cwd=tmp_path)
+    assert trained.returncode == 0, trained.stderr
+    assert trained.stdout.startswith("gridworld, seed 0: ")
+    resumed = rl_pg("resume", "run", "--total-updates", "4", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert (config["lr"], config["total_updates"]) == (0.05, 4)  # stored, then changed
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] == 4
+    played = rl_pg("play", "run", "--episodes", "2", cwd=tmp_path)
+    assert played.returncode == 0, played.stderr
+    assert "mean return" in played.stdout
+
+
+def test_resume_refuses_what_is_not_safe_to_change(tmp_path, capsys):
+    run = str(tmp_path / "run")
+    assert in_process("train", "gridworld", "--run-dir", run, *QUICK, capsys=capsys)[0] == 0
+    status, _, err = in_process("resume", run, "--total-updates", "4", "--gamma", "0.5",
+                                capsys=capsys)  # fmt: skip
+    assert status == 1 and "gamma: 1.0 -> 0.5" in err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["train", "tetris"], "No recipe called 'tetris'. The built-in recipes are bandit"),
+        (["resume", "nowhere"], "rl-pg: nowhere does not exist: give a run directory"),
+        (["play", "nowhere"], "rl-pg: nowhere does not exist: give a run directory"),
+        (["resume", "."], "rl-pg: No checkpoint at checkpoint.pt"),
+        (["train", "metadrive"], "MetaDrive is not installed"),
+    ],
+)
+def test_mistakes_get_one_line(tmp_path, args, message, capsys, monkeypatch):
+    if args[-1] == "metadrive" and _has("metadrive"):
+        pytest.skip("MetaDrive is installed")
+    monkeypatch.chdir(tmp_path)
+    status, _, err = in_process(*args, capsys=capsys)
+    assert status == 1 and message in err
+
+
+def test_a_mistake_in_a_subprocess_is_one_line_without_traceback(tmp_path):
+    result = rl_pg("play", "nowhere", cwd=tmp_path)
+    assert result.returncode == 1
+    assert (
+        result.stderr
+        == "rl-pg: nowhere does not exist: give a run directory or a checkpoint file.\n"
+    )
+
+
+@pytest.mark.parametrize("args", [[], ["frobnicate"], ["train"], ["resume", "--total-frames"]])
+def test_usage_for_anything_else(args, capsys):
+    status, _, err = in_process(*args, capsys=capsys)
+    assert status == 2 and err.startswith("usage: rl-pg")
+
+
+def test_train_help_shows_the_recipes_defaults(capsys):
+    status, out, _ = in_process("train", "cartpole", "--help", capsys=capsys)
+    assert status == 0
+    assert "usage: rl-pg train cartpole" in out
+    assert "(default: 0.005)" in out  # the recipe's lr, not TrainConfig's 1e-3
+
+
+def test_a_recipe_of_your_own_trains_resumes_and_plays(tmp_path, capsys, monkeypatch):
+    (tmp_path / "my_recipe.py").write_text(  # an importable module of the user's
+        textwrap.dedent(
+            """
+            from dataclasses import dataclass
+
+            from rl_pg.envs import GridWorldEnv
+            from rl_pg.models import mlp_actor_critic
+            from rl_pg.training import TrainConfig
+            from rl_pg.training.recipe import Recipe
+
+
+            @dataclass
+            class Config(TrainConfig, total_updates=2, eval_episodes=1, progress=False):
+                size: int = 4
+
+
+            def make_env(cfg, *, render=False):
+                return GridWorldEnv(batch_size=8)
+
+
+            def make_models(env, cfg):
+                return mlp_actor_critic(env, hidden=(8,))
+
+
+            RECIPE = Recipe("my-grid", Config, make_env, make_models)
+            """
+        )
+    )
+    monkeypatch.syspath_prepend(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    from my_recipe import RECIPE, Config
+
+    RECIPE.train(Config(run_dir="run"))
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert (config["recipe"], config["recipe_module"]) == ("my-grid", "my_recipe")
+    assert in_process("resume", "run", "--total-updates", "3", capsys=capsys)[0] == 0
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] == 3
+    status, out, _ = in_process("play", "run", "--episodes", "1", capsys=capsys)
+    assert status == 0 and "mean return" in out
+
+
+def test_a_run_that_cannot_be_rebuilt_says_what_play_needs(tmp_path, capsys):
+    from rl_pg.envs import GridWorldEnv
+    from rl_pg.models import mlp_actor_critic
+    from rl_pg.training import TrainConfig, train
+
+    cfg = TrainConfig(run_dir=tmp_path / "run", total_updates=1, eval_episodes=1, progress=False)
+    train(cfg, recipe="mine", make_env=GridWorldEnv, make_models=mlp_actor_critic)
+    status, _, err = in_process("play", str(tmp_path / "run"), capsys=capsys)
+    assert status == 1 and "No recipe called 'mine'" in err
+    assert "rl_pg.training.load_models(saved, actor, critic)" in err
+
+
+@pytest.mark.parametrize("name", ["metadrive", "play"])
+def test_checkout_scripts_are_the_command(tmp_path, name):
+    # recipes/metadrive.py must not shadow the metadrive package from its own folder.
+    result = subprocess.run(
+        [sys.executable, str(REPO / "recipes" / f"{name}.py"), "--help"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 0, result.stderr
+    expected = "rl-pg play" if name == "play" else f"rl-pg train {name}"
+    assert f"usage: {expected}" in result.stdout
+
+
+def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
+    """Build the wheel, install it into a fresh virtual environment (its dependencies
+    from this one's site-packages), and train, play and list from another folder."""
+    dist = tmp_path / "dist"
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+         "-w", str(dist), str(REPO)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    (wheel,) = dist.glob("rl_pg-*.whl")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = str(venv / "bin" / "python")
+    site = subprocess.run(
+        [python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+        capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    # Only a path: the .pth files there (this checkout's editable install) are not read.
+    Path(site, "deps.pth").write_text(sysconfig.get_path("purelib") + "\n")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", python, "install", "-q", "--no-deps",
+         str(wheel)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    command = str(venv / "bin" / "rl-pg")
+    where = subprocess.run(
+        [python, "-c", "import rl_pg.recipes; print(rl_pg.recipes.__file__)"],
+        cwd=work, capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    assert where.startswith(site)
+    listed = subprocess.run([command, "list"], cwd=work, capture_output=True, text=True)
+    assert listed.returncode == 0 and "cartpole" in listed.stdout, listed.stderr
+    trained = subprocess.run(
+        [command, "train", "gridworld", "--run-dir", "run", *QUICK], cwd=work,
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr
+    played = subprocess.run(
+        [command, "play", "run", "--episodes", "1"], cwd=work, capture_output=True, text=True
+    )
+    assert played.returncode == 0 and "mean return" in played.stdout, played.stderr
+
+
+def _has(module: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(module) is not None

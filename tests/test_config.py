@@ -1,0 +1,65 @@
+"""TrainConfig: recipes change defaults in the class statement, and every recipe does."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+from dataclasses import dataclass
+
+import pytest
+import tyro
+
+from rl_pg.recipes import NAMES, load
+from rl_pg.training import Count, TrainConfig
+
+
+@dataclass
+class _Recipe(TrainConfig, lr=5e-3, gamma=0.5, max_grad_norm=1.0):
+    """A recipe's config."""
+
+    hidden: Count = 3
+    """Width."""
+
+
+class TestDefaultsInTheClassStatement:
+    def test_new_defaults_keep_the_fields_order_type_and_help(self):
+        cfg = _Recipe()
+        assert (cfg.lr, cfg.gamma, cfg.max_grad_norm, cfg.hidden) == (5e-3, 0.5, 1.0, 3)
+        base = [f.name for f in dataclasses.fields(TrainConfig)]
+        assert [f.name for f in dataclasses.fields(_Recipe)] == [*base, "hidden"]
+        assert TrainConfig().lr == 1e-3  # the base is untouched
+
+    def test_bounds_still_hold(self):
+        with pytest.raises(ValueError, match=r"gamma \(--gamma\) must be a finite number"):
+            _Recipe(gamma=2.0)
+        with pytest.raises(ValueError, match=r"max_grad_norm .* must be a finite number > 0"):
+            _Recipe(max_grad_norm=-1.0)
+
+    def test_help_shows_the_new_default_with_the_base_text(self, capsys):
+        with pytest.raises(SystemExit):
+            tyro.cli(_Recipe, args=["--help"])
+        out = " ".join(capsys.readouterr().out.split())
+        assert "Discount factor. (default: 0.5)" in out.replace("│", "").replace("  ", " ")
+
+    def test_an_unknown_field_is_refused(self):
+        with pytest.raises(TypeError, match="sets defaults of lrr, which TrainConfig"):
+
+            @dataclass
+            class _Typo(TrainConfig, lrr=1.0):
+                pass
+
+    def test_declaring_and_overriding_the_same_field_is_refused(self):
+        with pytest.raises(TypeError, match="both declares and overrides lr"):
+
+            @dataclass
+            class _Both(TrainConfig, lr=1.0):
+                lr: float = 2.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_recipes_declare_only_the_fields_they_add(name):
+    config = load(name).config
+    body = ast.parse(inspect.getsource(config)).body[0].body
+    declared = {node.target.id for node in body if isinstance(node, ast.AnnAssign)}
+    assert not declared & {f.name for f in dataclasses.fields(TrainConfig)}
