@@ -110,13 +110,16 @@ def evaluate(
     n_envs = max(1, math.prod(env.batch_size))
     results: dict[str, list[torch.Tensor]] = {}
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    cast = _device_of(policy) not in (None, env.device)  # a policy on a GPU, say
     with set_exploration_type(exploration), torch.no_grad():
         played = 0
         while played < episodes:
             if n_envs == 1:
-                rollout = env.rollout(max_steps, policy, break_when_any_done=True)
+                rollout = env.rollout(
+                    max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast
+                )
             else:
-                rollout = _until_each_done(policy, env, max_steps)
+                rollout = _until_each_done(policy, env, max_steps, cast=cast)
             for key, value in first_episodes(rollout, flags).items():
                 results.setdefault(key, []).append(value)
             played += n_envs
@@ -132,8 +135,12 @@ def evaluate(
     return out
 
 
+def _device_of(policy: TensorDictModuleBase) -> torch.device | None:
+    return next((p.device for p in policy.parameters()), None)
+
+
 def _until_each_done(
-    policy: TensorDictModuleBase, env: EnvBase, max_steps: int, chunk: int = 64
+    policy: TensorDictModuleBase, env: EnvBase, max_steps: int, *, cast: bool, chunk: int = 64
 ) -> TensorDictBase:
     """``[*B, T]`` rollout of a batched env until each of its envs has ended an episode.
 
@@ -150,6 +157,7 @@ def _until_each_done(
             auto_reset=False,
             tensordict=tensordict,
             break_when_any_done=False,
+            auto_cast_to_device=cast,
         )
         parts.append(part)
         steps += part.shape[-1]

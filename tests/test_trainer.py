@@ -638,3 +638,23 @@ class TestResumeFromTheCommandLine:
         assert resumed.returncode == 0, resumed.stderr
         assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] == 4
         assert json.loads((tmp_path / "run" / "config.json").read_text())["total_updates"] == 4
+
+
+class TestDevice:
+    def test_auto_trains_where_torch_can(self, tmp_path):
+        summary = _train(_cfg(tmp_path, device="auto", total_updates=2))
+        expected = "cuda" if torch.cuda.is_available() else "cpu"
+        assert summary["updates"] == 2
+        assert _cfg(tmp_path, device="auto").torch_device().type == expected
+        assert all(v.device.type == "cpu" for v in _weights(tmp_path / "run").values())
+
+    @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+    def test_cuda_without_a_gpu_says_so_before_anything_starts(self, tmp_path):
+        with pytest.raises(ValueError, match=r"--device\) is 'cuda' but torch sees no CUDA"):
+            _train(_cfg(tmp_path, device="cuda"))
+        assert not (tmp_path / "run").exists()
+
+    def test_cuda_with_worker_processes_is_refused(self, tmp_path):
+        cfg = _cfg(tmp_path, device="cuda", workers=2)
+        with pytest.raises(ValueError, match="local collection only: drop --workers"):
+            cfg.torch_device()

@@ -13,6 +13,7 @@ import os
 import sys
 from collections.abc import Callable, Iterator
 
+import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
@@ -37,6 +38,8 @@ class Collection:
 
     Keyword Args:
         updates (int): updates already made (a resumed run), which seed the environments.
+        device (torch.device): where the policy runs and batches are stored (local
+            collection; the environment steps on its own device). Defaults to the CPU.
     """
 
     def __init__(
@@ -47,6 +50,7 @@ class Collection:
         actor: TensorDictModuleBase,
         *,
         updates: int,
+        device: torch.device | None = None,
     ) -> None:
         self.cfg = cfg
         self.local = cfg.workers == 1 and not cfg.ray
@@ -57,6 +61,8 @@ class Collection:
         # Our policies need no extra environment transform (no recurrent state).
         inner = {"auto_register_policy_transforms": False}
         if self.local:
+            if device is not None and device != env.device:
+                kwargs.update(policy_device=device, storing_device=device, env_device=env.device)
             self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._restart(updates)
             return

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import torch
+
 from rl_pg._checks import Range, check_fields
 
 __all__ = ["RESUMABLE_FIELDS", "Count", "NonNegative", "Positive", "Range", "TrainConfig"]
@@ -42,6 +44,7 @@ RESUMABLE_FIELDS = frozenset(
         "tensorboard",
         "progress",
         "threads",
+        "device",
     }
 )
 """Config fields that may change when a run is resumed; any other change is refused."""
@@ -65,6 +68,10 @@ class TrainConfig:
     """Collector processes; more than 1 uses TorchRL's multi-process collector."""
     ray: bool = False
     """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
+    device: Literal["auto", "cpu", "cuda"] = "cpu"
+    """Where the models, the loss and the optimiser live ('auto': CUDA when available).
+    Environments step on the CPU. The recipes' small networks train fastest on the CPU,
+    next to their environments; a GPU pays for large models (Pong's trunk)."""
     threads: Count | None = 1
     """torch threads of this process: small models update fastest on one, and a second
     thread only contends with the environment on a busy machine (None: torch's default)."""
@@ -148,6 +155,29 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         self.validate()
+
+    def torch_device(self) -> torch.device:
+        """``device`` as a ``torch.device`` ('auto' resolved).
+
+        Raises:
+            ValueError: ``device='cuda'`` where torch sees no CUDA device, or a CUDA
+                device with worker processes.
+        """
+        device = self.device
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        if device == "cuda" and (self.workers > 1 or self.ray):
+            raise ValueError(
+                f"--device {self.device} trains on CUDA with local collection only: drop "
+                f"--workers / --ray, or use --device cpu with them."
+            )
+        if device == "cuda" and not torch.cuda.is_available():
+            raise ValueError(
+                "device (--device) is 'cuda' but torch sees no CUDA device (torch "
+                f"{torch.__version__}, built for CUDA {torch.version.cuda}); use --device cpu, "
+                "or install a CUDA build of torch (README: Bring your own torch)."
+            )
+        return torch.device(device)
 
     def validate(self) -> None:
         """Checks every field (also those a recipe adds) against its type and bounds.

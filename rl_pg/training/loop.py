@@ -168,15 +168,18 @@ class _Run:
                 f"make_env must return a TorchRL environment (EnvBase), got "
                 f"{type(env).__name__}. Wrap gymnasium environments with rl_pg.envs.gym_env."
             )
+        device = cfg.torch_device()
         self.actor, critic = _models(make_models, env)
-        self.loss = make_loss(cfg, self.actor, critic)
-        warm_up(self.loss, env)
+        self.loss = make_loss(cfg, self.actor, critic).to(device)
+        warm_up(self.loss, env, device)
         self.optimizer = make_optimizer(cfg, self.loss)
         self.state = RunState()
         if saved is not None:
             self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
         self.eval_env = (make_eval_env or make_env)()
-        self.collection = Collection(cfg, env, make_env, self.actor, updates=self.state.updates)
+        self.collection = Collection(
+            cfg, env, make_env, self.actor, updates=self.state.updates, device=device
+        )
         self.logger = Loggers(
             directory.path / "logs",
             tensorboard=cfg.tensorboard,

@@ -41,14 +41,14 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
     return loss
 
 
-def warm_up(loss: ReinforceLoss, env: EnvBase) -> None:
+def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
     """Compiles (or loads from numba's cache) the return kernel before the clock starts.
 
     The first calls cost up to a second; timing them would charge the training loop
     with set-up, as if timing ``import torch``.
     """
     fake = env.fake_tensordict()
-    batch = torch.stack([fake, fake], dim=-1)
+    batch = torch.stack([fake, fake], dim=-1).to(device)
     with torch.no_grad():
         for _ in range(2):  # the second call still pays for thread-pool start-up
             loss.value_estimator(batch)
