@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
 import math
@@ -89,6 +90,44 @@ class TestTrain:
     def test_tensorboard_logs(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2, tensorboard=True))
         assert list((tmp_path / "run" / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+
+    @pytest.mark.skipif(
+        not all(importlib.util.find_spec(m) for m in ("tensorboard", "wandb", "mlflow")),
+        reason="rl_pg[tensorboard,wandb,mlflow] is not installed",
+    )
+    def test_every_logger_at_once_gets_metrics_and_hyperparameters(self, tmp_path):
+        import mlflow
+
+        uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+        cfg = _cfg(tmp_path, total_updates=2, lr=0.0125, tensorboard=True, wandb=True)
+        summary = _train(replace(cfg, mlflow=True, mlflow_uri=uri))
+        run = tmp_path / "run"
+        assert read_curve(run, "eval/mean_return")[1][-1] == summary["eval_mean_return"]
+        (hparams,) = (run / "logs" / "csv" / "texts").glob("hparams*.txt")
+        assert "lr: 0.0125" in hparams.read_text()
+        assert list((run / "logs" / "tensorboard").rglob("events.out.tfevents.*"))
+        (record,) = (run / "wandb").glob("offline-run-*/run-*.wandb")  # W&B's offline run
+        data = record.read_bytes()
+        assert b"eval/mean_return" in data and b"episodes_per_batch" in data
+        client = mlflow.tracking.MlflowClient(uri)
+        (logged,) = client.search_runs([client.get_experiment_by_name("grid").experiment_id])
+        assert logged.data.params["lr"] == "0.0125"
+        assert logged.data.tags["mlflow.runName"] == "run"
+        assert logged.data.metrics["eval/mean_return"] == summary["eval_mean_return"]
+        assert mlflow.active_run() is None  # ended with the run
+
+    def test_a_missing_logger_package_names_its_extra(self, tmp_path, monkeypatch):
+        real = importlib.util.find_spec
+        monkeypatch.setattr(
+            importlib.util,
+            "find_spec",
+            lambda name, *a: None if name == "wandb" else real(name, *a),
+        )
+        with pytest.raises(
+            ImportError, match=r'--wandb needs the wandb package: .*"rl_pg\[wandb\]"'
+        ):
+            _train(_cfg(tmp_path, wandb=True))
+        assert not (tmp_path / "run").exists()
 
     def test_solves_the_gridworld(self, tmp_path):
         threshold = GridWorldEnv().optimal_return - 1e-6

@@ -42,6 +42,11 @@ RESUMABLE_FIELDS = frozenset(
         "workers",
         "ray",
         "tensorboard",
+        "wandb",
+        "wandb_project",
+        "wandb_mode",
+        "mlflow",
+        "mlflow_uri",
         "progress",
         "threads",
         "device",
@@ -122,7 +127,20 @@ class TrainConfig:
     log_interval: Count = 1
     """Updates between training-metric log lines."""
     tensorboard: bool = False
-    """Also log to TensorBoard (pip install tensorboard)."""
+    """Also log to TensorBoard, in run_dir/logs/tensorboard (rl_pg[tensorboard])."""
+    wandb: bool = False
+    """Also log to Weights & Biases (rl_pg[wandb]); the run is named after run_dir."""
+    wandb_project: str = "rl_pg"
+    """W&B project of the run."""
+    wandb_mode: Literal["offline", "online"] = "offline"
+    """'offline': no account needed, files in run_dir/wandb (upload later with `wandb
+    sync`); 'online': stream to the W&B server (after `wandb login`)."""
+    mlflow: bool = False
+    """Also log to MLflow (rl_pg[mlflow]): an MLflow run in the experiment named after
+    the recipe."""
+    mlflow_uri: str | None = None
+    """MLflow tracking URI, e.g. sqlite:///mlflow.db or http://host:5000 (None: MLflow's
+    default, or $MLFLOW_TRACKING_URI)."""
     progress: bool = True
     """Show a progress bar."""
 

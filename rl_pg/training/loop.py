@@ -181,10 +181,9 @@ class _Run:
             cfg, env, make_env, self.actor, updates=self.state.updates, device=device
         )
         self.logger = Loggers(
-            directory.path / "logs",
-            tensorboard=cfg.tensorboard,
+            cfg, directory.path, directory.recipe["recipe"],
             resume_at=self.state.frames if saved is not None else None,
-        )
+        )  # fmt: skip
         self.console = Console(
             total_frames=cfg.total_frames, initial_frames=self.state.frames, enabled=cfg.progress
         )
@@ -247,6 +246,7 @@ class _Run:
 
     def close(self) -> None:
         self.console.close()
+        self.logger.close()
         self.collection.shutdown()
         self.eval_env.close()
 

@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
+import os
+import re
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger
+from torchrl.record.loggers import (
+    CSVLogger,
+    Logger,
+    MLFlowLogger,
+    TensorboardLogger,
+    WandbLogger,
+)
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.functional import discounted_return
+from rl_pg.training.config import TrainConfig, config_dict
 
 __all__ = ["EpisodeReturns", "Loggers", "scalar_log_rows"]
 
@@ -53,27 +64,93 @@ class EpisodeReturns:
 
 
 class Loggers:
-    """Sends each scalar to every TorchRL logger of the run (CSV, and TensorBoard if asked).
+    """Sends each scalar to every TorchRL logger of the run.
+
+    The CSV logger always writes ``logs/csv`` (the learning curve is read from it);
+    TensorBoard, Weights & Biases and MLflow are added when the config asks, and every
+    logger receives the run's hyper-parameters first.
 
     Args:
-        log_dir (Path): the run's ``logs`` directory.
+        cfg (TrainConfig): ``tensorboard``, ``wandb*`` and ``mlflow*`` are read; its
+            fields are the hyper-parameters logged.
+        run_dir (Path): the run directory.
+        name (str): the recipe's name (MLflow's experiment).
 
     Keyword Args:
-        tensorboard (bool): also write TensorBoard event files.
         resume_at (int, optional): frames of the checkpoint a resumed run starts from;
-            rows logged after it by the killed run are dropped first (they are redone).
+            CSV rows logged after it by the killed run are dropped first (they are
+            redone). The other loggers keep them: their viewers show both.
+
+    Raises:
+        ImportError: a logger's package is missing; the message names the extra.
     """
 
-    def __init__(self, log_dir: Path, *, tensorboard: bool, resume_at: int | None) -> None:
+    def __init__(
+        self, cfg: TrainConfig, run_dir: Path, name: str, *, resume_at: int | None
+    ) -> None:
+        for wanted, module, extra in (
+            (cfg.tensorboard, "tensorboard", "tensorboard"),
+            (cfg.wandb, "wandb", "wandb"),
+            (cfg.mlflow, "mlflow", "mlflow"),
+        ):
+            if wanted and importlib.util.find_spec(module) is None:
+                raise ImportError(
+                    f"--{extra} needs the {module} package: pip install -c constraints.txt "
+                    f'"rl_pg[{extra}]".'
+                )
+        log_dir = run_dir / "logs"
         if resume_at is not None:
             _trim_csv_logs(log_dir, resume_at)
         self.loggers: list[Logger] = [CSVLogger(exp_name="csv", log_dir=str(log_dir))]
-        if tensorboard:
+        if cfg.tensorboard:
             self.loggers.append(TensorboardLogger(exp_name="tensorboard", log_dir=str(log_dir)))
+        if cfg.wandb:
+            self.loggers.append(_wandb(cfg, run_dir))
+        if cfg.mlflow:
+            self.loggers.append(_mlflow(cfg, run_dir, name))
+        hyperparameters = {
+            key: value for key, value in config_dict(cfg).items() if value is not None
+        }
+        for logger in self.loggers:
+            logger.log_hparams(hyperparameters)
 
     def log_scalar(self, name: str, value: float, step: int) -> None:
         for logger in self.loggers:
             logger.log_scalar(name, value, step=step)
+
+    def close(self) -> None:
+        """Ends the W&B and MLflow runs (their files are complete afterwards)."""
+        for logger in self.loggers:
+            if isinstance(logger, WandbLogger):
+                logger.experiment.finish()
+            elif isinstance(logger, MLFlowLogger):
+                import mlflow
+
+                mlflow.end_run()
+
+
+def _wandb(cfg: TrainConfig, run_dir: Path) -> Logger:
+    os.environ.setdefault("WANDB_SILENT", "true")  # the console is rl_pg's
+    path = str(run_dir.resolve())
+    # The same W&B run id for the run directory: a resumed run continues its W&B run.
+    run_id = f"{run_dir.name[:48]}-{hashlib.sha1(path.encode()).hexdigest()[:8]}"
+    return WandbLogger(
+        exp_name=run_dir.name,
+        offline=cfg.wandb_mode == "offline",
+        save_dir=path,
+        project=cfg.wandb_project,
+        id=re.sub(r"[^A-Za-z0-9_-]", "-", run_id),
+        resume="allow",
+    )
+
+
+def _mlflow(cfg: TrainConfig, run_dir: Path, name: str) -> Logger:
+    import mlflow
+
+    uri = cfg.mlflow_uri or mlflow.get_tracking_uri()
+    logger = MLFlowLogger(exp_name=name, tracking_uri=uri)  # starts an MLflow run
+    mlflow.set_tags({"mlflow.runName": run_dir.name, "run_dir": str(run_dir.resolve())})
+    return logger
 
 
 def _trim_csv_logs(log_dir: Path, frames: int) -> None:
