@@ -230,6 +230,42 @@ class TestTrain:
             )
         assert path.read_bytes() == before
 
+    @pytest.mark.parametrize(
+        "ray",
+        [
+            False,
+            pytest.param(
+                True,
+                marks=pytest.mark.skipif(
+                    importlib.util.find_spec("ray") is None, reason="ray is not installed"
+                ),
+            ),
+        ],
+    )
+    def test_new_weights_reach_the_worker_processes(self, tmp_path, ray):
+        from rl_pg.training.collection import Collection
+
+        cfg = _cfg(tmp_path, workers=2, ray=ray, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = make_grid_models(env)[0]
+        collection = Collection(cfg, env, make_grid, actor, updates=0)
+        try:
+            batches = iter(collection)
+            next(batches)
+            last = [m for m in actor.modules() if isinstance(m, nn.Linear)][-1]
+            with torch.no_grad():  # a policy that always moves right (action 2)
+                for parameter in actor.parameters():
+                    parameter.zero_()
+                last.bias[2] = 50.0
+            collection.after_update(1)
+            next(batches)  # at most one batch in flight may predate the new weights
+            actions = next(batches)["action"]
+        finally:
+            collection.shutdown()
+        if actions.shape[-1] == 4:  # one-hot
+            actions = actions.argmax(-1)
+        assert (actions == 2).all()
+
     def test_multi_process_collection(self, tmp_path):
         summary = _train(_cfg(tmp_path, workers=2, total_updates=3))
         assert summary["updates"] == 3 and summary["frames"] > 0

@@ -14,10 +14,9 @@ import sys
 from collections.abc import Callable, Iterator
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
-from torchrl.collectors.weight_update import RayWeightUpdater
 from torchrl.envs import EnvBase
 
 from rl_pg.training.config import TrainConfig
@@ -76,9 +75,6 @@ class Collection:
                     "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
                 },
                 "collector_kwargs": inner,
-                # Weights go through Ray's object store (below) rather than the default
-                # torch.distributed group, which needs a network set-up many hosts lack.
-                "weight_sync_schemes": {},
             }
             # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
             kwargs["total_frames"] = 2**62
@@ -94,15 +90,11 @@ class Collection:
             backend_options=backend_options,
             **kwargs,
         )
-        if cfg.ray:
-            self._sync_weights = RayWeightUpdater(
-                policy_weights=TensorDict.from_module(actor),
-                remote_collectors=self.collector.remote_collectors,
-                max_interval=0,
-            )
-        else:
+        if not cfg.ray:
             self.collector.set_seed(_derived_seed(cfg.seed, updates))
-            self._sync_weights = self.collector.update_policy_weights_
+        # TorchRL's weight-sync scheme of each backend (shared memory for processes, a
+        # torch.distributed gloo group for Ray actors).
+        self._sync_weights = self.collector.update_policy_weights_
 
     def _batching(self, n_envs: int) -> dict:
         if self.cfg.batch_mode == "episodes":
