@@ -11,6 +11,8 @@ import contextlib
 import gc
 import io
 import re
+import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -40,7 +42,11 @@ def test_output_blocks_follow_code():
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(DOCS)))
 def test_page_code_runs(page, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # anything a block writes lands in a temporary directory
-    namespace: dict = {"__name__": "__docs__"}
+    # The page runs as a module of its own, as a reader's script would (dataclasses and
+    # pickling look their module up in sys.modules).
+    module = types.ModuleType("__docs__")
+    monkeypatch.setitem(sys.modules, "__docs__", module)
+    namespace = module.__dict__
     for number, match in enumerate(BLOCK.finditer(page.read_text()), start=1):
         printed = io.StringIO()
         try:
