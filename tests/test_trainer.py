@@ -217,6 +217,40 @@ class TestTrain:
         for key, value in _weights(tmp_path / "straight").items():
             assert torch.equal(value, _weights(tmp_path / "split")[key]), key
 
+    def test_segment_results_do_not_depend_on_the_checkpoint_interval(self, tmp_path):
+        summaries, weights = [], []
+        for interval in (1, 3, 1000):
+            run = tmp_path / f"every{interval}"
+            cfg = _cfg(tmp_path, run_dir=run, total_updates=11, checkpoint_interval=interval)
+            summaries.append(_train(replace(cfg, **SEGMENTS, log_interval=2)))
+            weights.append(_weights(run))
+        for summary in summaries[1:]:
+            for key in ("frames", "eval_mean_return", "best_eval_mean_return"):
+                assert summary[key] == summaries[0][key]
+        for other in weights[1:]:
+            for key, value in weights[0].items():
+                assert torch.equal(value, other[key]), key
+        curves = [read_curve(tmp_path / f"every{i}", "train/episode_return") for i in (1, 1000)]
+        assert np.array_equal(curves[0][1], curves[1][1])
+
+    @pytest.mark.parametrize("split", [5, 6, 8])  # on, just after and between restarts
+    def test_segment_resume_between_restarts_is_exact(self, tmp_path, split):
+        common = {**SEGMENTS, "log_interval": 3, "checkpoint_interval": 1000}
+        _train(_cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=13, **common))
+        _train(_cfg(tmp_path, run_dir=tmp_path / "split", total_updates=split, **common))
+        resumed = _train(
+            _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=13, resume=True, **common)
+        )
+        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
+        for key in ("frames", "updates", "eval_mean_return"):
+            assert resumed[key] == expected[key]
+        for key, value in _weights(tmp_path / "straight").items():
+            assert torch.equal(value, _weights(tmp_path / "split")[key]), key
+        straight, split_run = (
+            read_curve(tmp_path / run, "train/episode_return") for run in ("straight", "split")
+        )
+        assert np.array_equal(straight[1], split_run[1])  # episodes in flight carried over
+
     def test_non_finite_gradient_stops_and_keeps_the_checkpoint(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
         path = tmp_path / "run" / "checkpoint.pt"
@@ -334,17 +368,21 @@ _KILLABLE_RUN = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_trainer import _cfg, _train
     from pathlib import Path
-    _train(_cfg(Path({tmp!r}), run_dir=Path({run!r}), total_updates=12, checkpoint_interval=1))
+    _train(_cfg(Path({tmp!r}), run_dir=Path({run!r}), total_updates=12, checkpoint_interval=1,
+                **{extra!r}))
     """
 )
+SEGMENTS = {"batch_mode": "segments", "segment_length": 10, "env_restart_interval": 5}
 
 
 class TestKilledRun:
-    def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path):
-        _train(_cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=12))
+    @pytest.mark.parametrize("extra", [{}, SEGMENTS], ids=["episodes", "segments"])
+    def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path, extra):
+        # The uninterrupted run checkpoints every 2 updates, the killed one every update.
+        _train(_cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=12, **extra))
         run = tmp_path / "killed"
         script = _KILLABLE_RUN.format(
-            tests=str(Path(__file__).parent), tmp=str(tmp_path), run=str(run)
+            tests=str(Path(__file__).parent), tmp=str(tmp_path), run=str(run), extra=extra
         )
         process = subprocess.Popen([sys.executable, "-c", script], env=os.environ.copy())
         deadline = time.monotonic() + 120
@@ -361,8 +399,9 @@ class TestKilledRun:
         killed_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
         assert 4 <= killed_at < 12
         resumed = _train(
-            _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True)
-        )
+            _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True,
+                 **extra)
+        )  # fmt: skip
         expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
         for key in ("frames", "updates", "eval_mean_return"):
             assert resumed[key] == expected[key]
@@ -483,7 +522,8 @@ class TestNothingIsLost:
         _train(_cfg(tmp_path, total_updates=2))
         path = tmp_path / "run" / "checkpoint.pt"
         data = bytearray(path.read_bytes())
-        data[len(data) // 2 : len(data) // 2 + 16] = bytes(16)
+        middle = len(data) // 2
+        data[middle : middle + 16] = bytes(b ^ 0xFF for b in data[middle : middle + 16])
         path.write_bytes(bytes(data))
         with pytest.raises(CheckpointError, match="do not match the checksum"):
             _train(_cfg(tmp_path, total_updates=4, resume=True))

@@ -34,6 +34,7 @@ class Config(
     critic_coeff=0.5,
     max_grad_norm=0.5,
     checkpoint_interval=100,
+    env_restart_interval=100,
     log_interval=5,
     eval_interval=25_000,
     threshold=200.0,

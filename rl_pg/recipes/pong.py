@@ -41,6 +41,7 @@ class Config(
     threshold=0.0,  # a milestone: the game is solved at 20
     stop_when_solved=False,
     checkpoint_interval=200,
+    env_restart_interval=200,  # 160k agent steps: a game is rarely cut
     log_interval=10,
 ):
     """REINFORCE + learned baseline with bootstrapped 50-step segments on ALE Pong."""

@@ -15,7 +15,16 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training.config import config_dict
 
-__all__ = ["BEST", "CHECKPOINT", "RunState", "load_models", "read_run", "restore", "save"]
+__all__ = [
+    "BEST",
+    "CHECKPOINT",
+    "RunState",
+    "load_models",
+    "read_run",
+    "restore",
+    "restore_rng",
+    "save",
+]
 
 CHECKPOINT = "checkpoint.pt"
 """The last checkpoint: what a run resumes from."""
@@ -44,15 +53,19 @@ class RunState:
         return True
 
 
-def save(cfg, recipe: dict[str, str | None], loss, optimizer, state: RunState, path: Path) -> None:
+def save(
+    cfg, recipe: dict[str, str | None], loss, optimizer, state: RunState, path: Path, **parts
+) -> None:
     """Writes the run's checkpoint (atomically, with a checksum) to ``path``.
 
     ``recipe`` names the recipe (``"recipe"``) and the module defining it
-    (``"recipe_module"``), so that the run can be rebuilt to play it.
+    (``"recipe_module"``), so that the run can be rebuilt to play it; ``parts`` are
+    the states of the run's other pieces (collection, episode counters).
     """
     save_checkpoint(
         {
             **recipe,
+            **parts,
             "config": config_dict(cfg),
             "loss": loss.state_dict(),
             "optimizer": optimizer.state_dict(),
@@ -68,8 +81,8 @@ def save(cfg, recipe: dict[str, str | None], loss, optimizer, state: RunState, p
 
 
 def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
-    """Loads a checkpoint into the run's loss and optimiser, restores the random number
-    generators, and returns the run's progress."""
+    """Loads a checkpoint into the run's loss and optimiser and returns the run's
+    progress (``restore_rng`` then restores the random number generators)."""
     try:
         loss.load_state_dict(saved["loss"])
         optimizer.load_state_dict(saved["optimizer"])
@@ -78,12 +91,16 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
             f"{path} does not fit the models this configuration builds ({err}). It was "
             f"left as it is; resume it with the configuration that wrote it."
         ) from err
-    torch.set_rng_state(saved["rng"]["torch"])
-    np.random.set_state(saved["rng"]["numpy"])
-    random.setstate(saved["rng"]["random"])
     # Checkpoints of earlier versions also carried the curve, now read from the logs.
     fields = {f.name for f in dataclasses.fields(RunState)}
     return RunState(**{k: v for k, v in saved["state"].items() if k in fields})
+
+
+def restore_rng(saved: dict) -> None:
+    """Sets torch's, numpy's and Python's generators to the checkpoint's states."""
+    torch.set_rng_state(saved["rng"]["torch"])
+    np.random.set_state(saved["rng"]["numpy"])
+    random.setstate(saved["rng"]["random"])
 
 
 def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:

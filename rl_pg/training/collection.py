@@ -2,8 +2,15 @@
 
 [`Collection`][rl_pg.training.collection.Collection] builds TorchRL's collector for the
 config (local, multi-process or Ray) and answers every question the loop has about
-it: how many frames a batch cost, what to do after an update, what to do after a
-checkpoint.
+it: how many frames a batch cost, what to do after an update, and what a checkpoint
+must hold for a resumed run to collect exactly what the uninterrupted run would.
+
+Local segment collection restarts every environment every ``env_restart_interval``
+updates, whatever the checkpoint interval, and records the actions taken since. A
+resumed run restarts the environments as that restart did and replays the recorded
+actions: the environments are then where the checkpointed run left them (gymnasium and
+rl_pg environments are deterministic given their seed and actions), so the results of
+a run do not depend on how often, or when, it was checkpointed.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from collections import deque
 from collections.abc import Callable, Iterator
 
 import torch
@@ -39,6 +47,7 @@ class Collection:
         updates (int): updates already made (a resumed run), which seed the environments.
         device (torch.device): where the policy runs and batches are stored (local
             collection; the environment steps on its own device). Defaults to the CPU.
+        resumed (dict, optional): the checkpoint's ``state_dict()`` of the collection.
     """
 
     def __init__(
@@ -50,20 +59,31 @@ class Collection:
         *,
         updates: int,
         device: torch.device | None = None,
+        resumed: dict | None = None,
     ) -> None:
         self.cfg = cfg
         self.local = cfg.workers == 1 and not cfg.ray
         """One collector in this process: strictly on-policy, exactly resumable."""
+        self.replaying = self.local and cfg.batch_mode == "segments"
+        """Restarts on a fixed schedule, replays actions since the last one on resume."""
         self._frames_counted = 0
         self._sync_weights: Callable[[], object] | None = None
+        self._restarted_at = 0
+        self._actions: list[torch.Tensor] = []
+        self._action_key = env.action_key
         kwargs = self._batching(max(1, math.prod(env.batch_size)))
         # Our policies need no extra environment transform (no recurrent state).
         inner = {"auto_register_policy_transforms": False}
         if self.local:
             if device is not None and device != env.device:
                 kwargs.update(policy_device=device, storing_device=device, env_device=env.device)
+            if self.replaying:
+                actor = _ReplayingPolicy(actor, self._action_key)
             self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
-            self._restart(updates)
+            self._batches = self._record(iter(self.collector))
+            self._restart(resumed["restarted_at"] if resumed else updates)
+            if resumed:
+                self._actions = list(resumed["actions"])
             return
         env.close()
         if cfg.ray:
@@ -95,6 +115,8 @@ class Collection:
         # TorchRL's weight-sync scheme of each backend (shared memory for processes, a
         # torch.distributed gloo group for Ray actors).
         self._sync_weights = self.collector.update_policy_weights_
+        self._sync_weights()  # the workers start from the learner's weights
+        self._batches = iter(self.collector)
 
     def _batching(self, n_envs: int) -> dict:
         if self.cfg.batch_mode == "episodes":
@@ -109,7 +131,37 @@ class Collection:
         return {"frames_per_batch": frames}
 
     def __iter__(self) -> Iterator[TensorDictBase]:
-        return iter(self.collector)
+        return self._batches
+
+    def _record(self, batches: Iterator[TensorDictBase]) -> Iterator[TensorDictBase]:
+        for batch in batches:
+            if self.replaying:  # time first: [T, *environments, *action]
+                actions = batch[self._action_key].movedim(batch.ndim - 1, 0)
+                self._actions.append(actions.clone())
+            yield batch
+
+    def replay(self) -> int:
+        """Steps the restarted environments through the actions recorded since their
+        last restart (a resumed run); returns the number of batches replayed.
+
+        The policy still runs (its outputs keep their keys) but the recorded actions
+        replace its own; the caller restores the random number generators afterwards.
+        """
+        if not self.replaying or not self._actions:
+            return 0
+        recorded, self._actions = self._actions, []
+        policy = self.collector.policy
+        for actions in recorded:
+            policy.queue.extend(actions.unbind(0))
+            next(self._batches)
+        self._frames_counted = self.collector.state_dict()["frames"]
+        return len(recorded)
+
+    def state_dict(self) -> dict:
+        """What a checkpoint must hold to collect on exactly as this run does."""
+        if not self.replaying:
+            return {}
+        return {"restarted_at": self._restarted_at, "actions": list(self._actions)}
 
     def frames_spent(self, batch: TensorDictBase) -> int:
         """Environment steps taken for ``batch`` (dropped in-flight steps included)."""
@@ -119,21 +171,18 @@ class Collection:
         spent, self._frames_counted = count - self._frames_counted, count
         return spent
 
-    def after_update(self, updates: int) -> None:
-        """Sends the new weights to the workers, or (local whole-episode batches) drops
-        the episodes in flight, whose first steps the previous policy chose."""
-        if self._sync_weights is not None:
-            self._sync_weights()
-        elif self.cfg.batch_mode == "episodes":
-            self._restart(updates)
-
-    def after_checkpoint(self, updates: int) -> bool:
-        """Restarts local segment collection where a resumed run would restart it.
+    def after_update(self, updates: int) -> bool:
+        """Sends the new weights to the workers, or restarts local environments: after
+        every update with whole-episode batches (the episodes in flight began under the
+        previous policy), every ``env_restart_interval`` updates with segments.
 
         Returns:
             Whether the episodes in flight were dropped.
         """
-        if not (self.local and self.cfg.batch_mode == "segments"):
+        if self._sync_weights is not None:
+            self._sync_weights()
+            return False
+        if self.replaying and updates % self.cfg.env_restart_interval != 0:
             return False
         self._restart(updates)
         return True
@@ -142,6 +191,7 @@ class Collection:
         """Reseeds and resets the environments: the next batch depends only on (seed, updates)."""
         self.collector.set_seed(_derived_seed(self.cfg.seed, updates))
         self.collector.reset()
+        self._restarted_at, self._actions = updates, []
 
     def shutdown(self) -> None:
         """Stops the collector and its workers."""
@@ -151,3 +201,20 @@ class Collection:
 def _derived_seed(seed: int, updates: int) -> int:
     # Spread runs apart so that run s at update u never replays run s + 1 at update u - 1.
     return (seed * 1_000_003 + updates) % 2**31
+
+
+class _ReplayingPolicy(TensorDictModuleBase):
+    """The actor, except that queued actions (a resumed run's replay) replace its own."""
+
+    def __init__(self, actor: TensorDictModuleBase, action_key) -> None:
+        super().__init__()
+        self.actor = actor
+        self.in_keys, self.out_keys = actor.in_keys, actor.out_keys
+        self.action_key = action_key
+        self.queue: deque[torch.Tensor] = deque()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self.actor(tensordict)
+        if self.queue:
+            tensordict.set(self.action_key, self.queue.popleft())
+        return tensordict

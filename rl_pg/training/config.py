@@ -86,6 +86,10 @@ class TrainConfig:
     """Complete episodes per update (batch_mode='episodes')."""
     segment_length: Count = 50
     """Steps per environment per update (batch_mode='segments')."""
+    env_restart_interval: Count = 50
+    """Updates between restarts of every environment (segments, one worker): episodes in
+    flight are cut there. A resumed run replays the actions since the last restart, so
+    the results do not depend on when, or how often, the run checkpoints."""
     returns: Literal["reward_to_go", "discounted_return"] = "reward_to_go"
     """Return that weights log pi: reward-to-go (causality) or the whole-episode return."""
     gamma: Annotated[float, Range(0, 1)] = 0.99

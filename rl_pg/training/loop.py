@@ -14,7 +14,8 @@ Two ways to batch experience:
 
 ``resume=True`` continues from the run directory's checkpoint; with one worker, a run
 killed at any time and resumed ends exactly as the uninterrupted run with the same
-seed would.
+seed would, however often either checkpointed (see
+[`collection`][rl_pg.training.collection]).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import evaluate
-from rl_pg.training.checkpoints import RunState, restore
+from rl_pg.training.checkpoints import RunState, restore, restore_rng
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
@@ -177,9 +178,11 @@ class _Run:
         if saved is not None:
             self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
         self.eval_env = (make_eval_env or make_env)()
+        resumed = saved.get("collection") if saved is not None else None
         self.collection = Collection(
-            cfg, env, make_env, self.actor, updates=self.state.updates, device=device
-        )
+            cfg, env, make_env, self.actor, updates=self.state.updates, device=device,
+            resumed=resumed,
+        )  # fmt: skip
         self.logger = Loggers(
             cfg, directory.path, directory.recipe["recipe"],
             resume_at=self.state.frames if saved is not None else None,
@@ -188,6 +191,11 @@ class _Run:
             total_frames=cfg.total_frames, initial_frames=self.state.frames, enabled=cfg.progress
         )
         self.episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
+        if saved is not None:  # the environments and counters where the run left them
+            self.collection.replay()
+            if "episodes" in saved:
+                self.episode_returns.load_state_dict(saved["episodes"])
+            restore_rng(saved)
         self.next_eval = self._next_evaluation()
         self.spent = 0
         self._clock = time.perf_counter()  # training time excludes evaluations and saving
@@ -201,7 +209,8 @@ class _Run:
         state.updates += 1
         self.spent = self.collection.frames_spent(batch)
         state.frames += self.spent
-        self.collection.after_update(state.updates)
+        if self.collection.after_update(state.updates):
+            self.episode_returns.reset()
         if state.updates % cfg.log_interval != 0:
             return None
         metrics["train/episode_return"] = self.episode_returns.pop_mean()
@@ -226,7 +235,7 @@ class _Run:
         self.next_eval = self._next_evaluation()
         _evaluate(cfg, self.actor, self.eval_env, self.eval_flags, state, self.logger)
         if state.is_best():
-            self.directory.save(self.loss, self.optimizer, state, best=True)
+            self._save(best=True)
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
         if solved and state.solved_at_frames is None:
             state.solved_at_frames = state.frames
@@ -238,11 +247,14 @@ class _Run:
 
     def checkpoint(self) -> None:
         self._pause()
-        self.directory.save(self.loss, self.optimizer, self.state)
+        self._save()
         self._resume_clock()
-        # A resumed run restarts its environments here; so does this one.
-        if self.collection.after_checkpoint(self.state.updates):
-            self.episode_returns.reset()
+
+    def _save(self, *, best: bool = False) -> None:
+        self.directory.save(
+            self.loss, self.optimizer, self.state, best=best,
+            collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
+        )  # fmt: skip
 
     def close(self) -> None:
         self.console.close()

@@ -56,6 +56,12 @@ class EpisodeReturns:
             in_flight = done.flip(-1).cumsum(-1).flip(-1) == 0
             self.partial = (reward * in_flight).sum(-1)
 
+    def state_dict(self) -> dict:
+        return {"partial": self.partial, "ended": list(self.ended)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.partial, self.ended = state["partial"], list(state["ended"])
+
     def pop_mean(self) -> float:
         """Mean over the episodes ended since the last call (NaN if none)."""
         ended = torch.cat(self.ended) if self.ended else torch.zeros(0)

@@ -164,11 +164,12 @@ class RunDirectory:
         )
         return saved
 
-    def save(self, loss, optimizer, state: RunState, *, best: bool = False) -> None:
-        """Writes the last checkpoint (or, with ``best``, ``best.pt``), atomically; the
-        directory is worth keeping from then on."""
+    def save(self, loss, optimizer, state: RunState, *, best: bool = False, **parts) -> None:
+        """Writes the last checkpoint (or, with ``best``, ``best.pt``), atomically, with
+        the states ``parts`` of the run's other pieces; the directory is worth keeping
+        from then on."""
         path = self.path / (BEST if best else CHECKPOINT)
-        save(self.cfg, self.recipe, loss, optimizer, state, path)
+        save(self.cfg, self.recipe, loss, optimizer, state, path, **parts)
         self.keep()
 
     def finish(
