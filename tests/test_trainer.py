@@ -773,3 +773,15 @@ class TestDevice:
         cfg = _cfg(tmp_path, device="cuda", workers=2)
         with pytest.raises(ValueError, match="local collection only: drop --workers"):
             cfg.torch_device()
+
+
+def test_keep_every_keeps_copies_without_changing_the_run(tmp_path):
+    plain = _cfg(tmp_path, run_dir=tmp_path / "plain", total_updates=5, **SEGMENTS)
+    _train(plain)
+    _train(replace(plain, run_dir=tmp_path / "kept", keep_every=2))
+    kept = sorted((tmp_path / "kept" / "checkpoints").glob("*.pt"))
+    assert [p.name for p in kept] == ["update_2.pt", "update_4.pt"]
+    assert [read_run(p)["state"]["updates"] for p in kept] == [2, 4]
+    assert not (tmp_path / "plain" / "checkpoints").exists()
+    for key, value in _weights(tmp_path / "plain").items():
+        assert torch.equal(value, _weights(tmp_path / "kept")[key]), key

@@ -50,6 +50,7 @@ RESUMABLE_FIELDS = frozenset(
         "progress",
         "threads",
         "device",
+        "keep_every",
     }
 )
 """Config fields that may change when a run is resumed; any other change is refused."""
@@ -128,6 +129,9 @@ class TrainConfig:
     """Stop at the first evaluation that reaches the threshold."""
     checkpoint_interval: Count = 50
     """Updates between checkpoints (one is always written at the end)."""
+    keep_every: Count | None = None
+    """Also keep a copy of the checkpoint every N updates, as
+    run_dir/checkpoints/update_<N>.pt (None: only the last and the best)."""
     log_interval: Count = 1
     """Updates between training-metric log lines."""
     tensorboard: bool = False

@@ -235,7 +235,7 @@ class _Run:
         self.next_eval = self._next_evaluation()
         _evaluate(cfg, self.actor, self.eval_env, self.eval_flags, state, self.logger)
         if state.is_best():
-            self._save(best=True)
+            self._save(to="best")
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
         if solved and state.solved_at_frames is None:
             state.solved_at_frames = state.frames
@@ -243,16 +243,22 @@ class _Run:
         return solved and cfg.stop_when_solved
 
     def checkpoint_due(self) -> bool:
-        return self.state.updates % self.cfg.checkpoint_interval == 0
+        return self.state.updates % self.cfg.checkpoint_interval == 0 or self._keep_due()
 
     def checkpoint(self) -> None:
         self._pause()
         self._save()
+        if self._keep_due():
+            self._save(to="kept")
         self._resume_clock()
 
-    def _save(self, *, best: bool = False) -> None:
+    def _keep_due(self) -> bool:
+        every = self.cfg.keep_every
+        return every is not None and self.state.updates % every == 0
+
+    def _save(self, *, to: str = "last") -> None:
         self.directory.save(
-            self.loss, self.optimizer, self.state, best=best,
+            self.loss, self.optimizer, self.state, to=to,
             collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
         )  # fmt: skip
 

@@ -31,6 +31,7 @@ __all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
 CONFIG = "config.json"
+KEPT = "checkpoints"
 
 try:
     import fcntl
@@ -164,12 +165,13 @@ class RunDirectory:
         )
         return saved
 
-    def save(self, loss, optimizer, state: RunState, *, best: bool = False, **parts) -> None:
-        """Writes the last checkpoint (or, with ``best``, ``best.pt``), atomically, with
-        the states ``parts`` of the run's other pieces; the directory is worth keeping
-        from then on."""
-        path = self.path / (BEST if best else CHECKPOINT)
-        save(self.cfg, self.recipe, loss, optimizer, state, path, **parts)
+    def save(self, loss, optimizer, state: RunState, *, to: str = "last", **parts) -> None:
+        """Writes a checkpoint atomically, with the states ``parts`` of the run's other
+        pieces, ``to`` the last one (``checkpoint.pt``), the best one (``best.pt``) or
+        a copy kept for good (``"kept"``: ``checkpoints/update_<updates>.pt``); the
+        directory is worth keeping from then on."""
+        files = {"last": CHECKPOINT, "best": BEST, "kept": f"{KEPT}/update_{state.updates}.pt"}
+        save(self.cfg, self.recipe, loss, optimizer, state, self.path / files[to], **parts)
         self.keep()
 
     def finish(
