@@ -74,6 +74,15 @@ def _weights(run_dir: Path) -> dict:
     return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
 
 
+def _assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:
+    """``run_dir`` (resumed) ended exactly like the uninterrupted run in ``straight_dir``."""
+    expected = json.loads((straight_dir / "summary.json").read_text())
+    for key in ("frames", "updates", "eval_mean_return"):
+        assert summary[key] == expected[key]
+    for key, value in _weights(straight_dir).items():
+        assert torch.equal(value, _weights(run_dir)[key]), key
+
+
 class TestTrain:
     def test_run_directory(self, tmp_path):
         summary = _train(_cfg(tmp_path))
@@ -211,11 +220,7 @@ class TestTrain:
         resumed = _train(
             _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=6, resume=True, **schedule)
         )
-        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
-        for key in ("frames", "updates", "eval_mean_return"):
-            assert resumed[key] == expected[key]
-        for key, value in _weights(tmp_path / "straight").items():
-            assert torch.equal(value, _weights(tmp_path / "split")[key]), key
+        _assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
 
     def test_segment_results_do_not_depend_on_the_checkpoint_interval(self, tmp_path):
         summaries, weights = [], []
@@ -241,11 +246,7 @@ class TestTrain:
         resumed = _train(
             _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=13, resume=True, **common)
         )
-        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
-        for key in ("frames", "updates", "eval_mean_return"):
-            assert resumed[key] == expected[key]
-        for key, value in _weights(tmp_path / "straight").items():
-            assert torch.equal(value, _weights(tmp_path / "split")[key]), key
+        _assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
         straight, split_run = (
             read_curve(tmp_path / run, "train/episode_return") for run in ("straight", "split")
         )
@@ -402,11 +403,7 @@ class TestKilledRun:
             _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True,
                  **extra)
         )  # fmt: skip
-        expected = json.loads((tmp_path / "straight" / "summary.json").read_text())
-        for key in ("frames", "updates", "eval_mean_return"):
-            assert resumed[key] == expected[key]
-        for key, value in _weights(tmp_path / "straight").items():
-            assert torch.equal(value, _weights(run)[key]), key
+        _assert_same_run(resumed, run, tmp_path / "straight")
 
 
 def test_training_episode_returns_are_summed_across_segments():
@@ -656,13 +653,10 @@ class TestInterruptedRun:
         gridworld = load("gridworld")
         common = {"checkpoint_interval": 1_000_000, "eval_interval": 100_000_000}
         common.update(progress=False, total_updates=stopped_at + 3)
-        straight = gridworld.train(gridworld.config(run_dir=tmp_path / "straight", **common))
+        gridworld.train(gridworld.config(run_dir=tmp_path / "straight", **common))
         resumed = gridworld.train(gridworld.config(run_dir=run, resume=True, **common))
         assert resumed["interrupted"] is False
-        for key in ("frames", "updates", "eval_mean_return"):
-            assert resumed[key] == straight[key]
-        for key, value in _weights(tmp_path / "straight").items():
-            assert torch.equal(value, _weights(run)[key]), key
+        _assert_same_run(resumed, run, tmp_path / "straight")
 
     def test_a_second_ctrl_c_stops_at_once(self):
         from rl_pg.training.interrupt import InterruptRequest
