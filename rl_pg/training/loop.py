@@ -21,14 +21,12 @@ seed would, however often either checkpointed (see
 from __future__ import annotations
 
 import math
-import random
 import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -36,7 +34,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import evaluate
-from rl_pg.training.checkpoints import RunState, restore, restore_rng
+from rl_pg.training.checkpoints import RunState, restore, restore_rng, seed_everything
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
@@ -162,7 +160,7 @@ class _Run:
         self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_flags
     ) -> None:
         self.cfg, self.directory, self.eval_flags = cfg, directory, eval_flags
-        _seed_everything(cfg.seed)
+        seed_everything(cfg.seed)
         env = make_env()
         if not isinstance(env, EnvBase):
             raise TypeError(
@@ -178,10 +176,9 @@ class _Run:
         if saved is not None:
             self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
         self.eval_env = (make_eval_env or make_env)()
-        resumed = saved.get("collection") if saved is not None else None
         self.collection = Collection(
             cfg, env, make_env, self.actor, updates=self.state.updates, device=device,
-            resumed=resumed,
+            resumed=saved.get("collection") if saved is not None else None,
         )  # fmt: skip
         self.logger = Loggers(
             cfg, directory.path, directory.recipe["recipe"],
@@ -286,12 +283,6 @@ def _models(make_models, env: EnvBase):
             f"Return (actor, None) to train without a critic."
         )
     return models
-
-
-def _seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def _evaluate(cfg, actor, eval_env, eval_flags, state: RunState, logger) -> None:
