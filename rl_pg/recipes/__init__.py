@@ -20,7 +20,7 @@ import importlib
 
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["NAMES", "load"]
+__all__ = ["NAMES", "load", "recipe_of"]
 
 NAMES = ("bandit", "gridworld", "cartpole", "lunarlander", "highway", "pong", "metadrive")
 """The built-in recipes, simplest first."""
@@ -63,3 +63,19 @@ def _find(name: str, module: str) -> Recipe | None:
         return None
     found = [v for v in namespace.values() if isinstance(v, Recipe) and v.name == name]
     return found[0] if found else None
+
+
+def recipe_of(saved: dict, run) -> Recipe:
+    """The recipe that trained ``run``, whose checkpoint is ``saved`` (``read_run``).
+
+    Raises:
+        ValueError: the run cannot be rebuilt; the message says how to load its weights.
+    """
+    try:
+        return load(saved["recipe"], saved.get("recipe_module"))
+    except ValueError as err:
+        raise ValueError(
+            f"{run} cannot be rebuilt: {err} Its weights load from Python: "
+            f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
+            f"and critic; rl_pg.training.load_models(saved, actor, critic)."
+        ) from None

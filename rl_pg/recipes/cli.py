@@ -20,7 +20,7 @@ from pathlib import Path
 import tyro
 
 from rl_pg.checkpoint import CheckpointError
-from rl_pg.recipes import NAMES, load
+from rl_pg.recipes import NAMES, load, recipe_of
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.cli import parse_config
 from rl_pg.training.console import format_comparison, format_summary
@@ -96,11 +96,10 @@ def _train(name: str, args: list[str]) -> None:
 
 
 def _resume(run_dir: Path, args: list[str]) -> None:
-    saved = read_run(run_dir)
     try:
-        recipe = load(saved["recipe"], saved.get("recipe_module"))
+        recipe = recipe_of(read_run(run_dir), run_dir)
     except ValueError as err:
-        sys.exit(f"rl-pg resume: {run_dir} cannot be rebuilt: {err}")
+        sys.exit(f"rl-pg resume: {err}")
     args = ["--resume", "--run-dir", str(run_dir), *args]
     cfg = parse_config(recipe.config, args, prog=f"rl-pg resume {run_dir}")
     _report(recipe.run(cfg))

@@ -15,7 +15,7 @@ import torch
 import tyro
 
 from rl_pg.evaluation import check_recording, play
-from rl_pg.recipes import load
+from rl_pg.recipes import recipe_of
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
 
 __all__ = ["Args", "main"]
@@ -49,15 +49,8 @@ class Args:
 def main(args: Args) -> list[float]:
     """Plays ``args.episodes`` episodes of the run's agent; returns their returns."""
     saved = read_run(args.run, which=args.checkpoint)
-    try:
-        recipe = load(saved["recipe"], saved.get("recipe_module"))
-    except ValueError as err:
-        raise ValueError(
-            f"{args.run} cannot be rebuilt: {err} Its weights load from Python: "
-            f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
-            f"and critic; rl_pg.training.load_models(saved, actor, critic)."
-        ) from None
-    cfg = recipe.config_from(saved["config"], num_envs=1)  # one environment, to watch
+    recipe = recipe_of(saved, args.run)
+    cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch
     env = recipe.make_env(cfg, render=args.gif is not None)
     actor, critic = recipe.make_models(env, cfg)
     load_models(saved, actor, critic)

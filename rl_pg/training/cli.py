@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,10 +11,11 @@ import tyro
 
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.training.checkpoints import read_run
+from rl_pg.training.config import TrainConfig
 
 __all__ = ["parse_config"]
 
-Config = TypeVar("Config")
+Config = TypeVar("Config", bound=TrainConfig)
 
 
 def parse_config(
@@ -54,13 +54,9 @@ def parse_config(
         return tyro.cli(config_class, args=args, prog=prog)
     try:
         stored = read_run(run_dir)["config"]
-    except CheckpointError:
-        return tyro.cli(
-            config_class, args=args, prog=prog
-        )  # train() reports the missing checkpoint
-    names = {field.name for field in dataclasses.fields(config_class)}
-    values = {key: value for key, value in stored.items() if key in names}
-    default = config_class(**{**values, "resume": True, "run_dir": Path(run_dir)})
+    except CheckpointError:  # train() reports the missing or corrupted checkpoint
+        return tyro.cli(config_class, args=args, prog=prog)
+    default = config_class.from_stored(stored, resume=True, run_dir=Path(run_dir))
     return tyro.cli(config_class, args=args, default=default, prog=prog)
 
 

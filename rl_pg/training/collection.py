@@ -77,7 +77,7 @@ class Collection:
         if self.local:
             if device is not None and device != env.device:
                 kwargs.update(policy_device=device, storing_device=device, env_device=env.device)
-            if self.replaying:
+            if resumed and resumed["actions"]:  # only a resumed run replays: no cost otherwise
                 actor = _ReplayingPolicy(actor, self._action_key)
             self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._batches = self._record(iter(self.collector))

@@ -182,6 +182,14 @@ class TrainConfig:
     def __post_init__(self) -> None:
         self.validate()
 
+    @classmethod
+    def from_stored(cls, stored: dict[str, Any], **changes: Any) -> TrainConfig:
+        """This config from a run's stored one (``config.json``, a checkpoint's
+        ``"config"``) with ``changes``; fields this class lacks are ignored, fields the
+        stored config lacks keep their defaults."""
+        names = {field.name for field in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in {**stored, **changes}.items() if k in names})
+
     def torch_device(self) -> torch.device:
         """``device`` as a ``torch.device`` ('auto' resolved).
 

@@ -124,11 +124,6 @@ class Recipe:
                 return command(cfg)
         return self.train(cfg)
 
-    def config_from(self, stored: dict[str, Any], **changes: Any) -> TrainConfig:
-        """The recipe's config from a run's stored config (fields it lacks keep defaults)."""
-        names = {field.name for field in dataclasses.fields(self.config)}
-        return self.config(**{k: v for k, v in {**stored, **changes}.items() if k in names})
-
 
 def _call_with_cfg(make_models, cfg, env):
     return make_models(env, cfg)
