@@ -19,17 +19,22 @@ from rl_pg._checks import check_bool, check_int, check_names, check_real
 __all__ = ["check_recording", "evaluate", "first_episodes", "play"]
 
 
-def first_episodes(rollout: TensorDictBase, flags: Sequence[str] = ()) -> dict[str, torch.Tensor]:
-    """Return, length and flags of the first episode of each environment in a rollout.
+def first_episodes(
+    rollout: TensorDictBase, flags: Sequence[str] = (), values: Sequence[str] = ()
+) -> dict[str, torch.Tensor]:
+    """Return, length, flags and final values of the first episode of each environment.
 
     Args:
         rollout (TensorDictBase): ``[T]`` or ``[*B, T]`` output of ``env.rollout``.
         flags (sequence of str): boolean ``("next", key)`` entries to report, true if set
             at any step of the episode (e.g. ``"crashed"``, ``"success"``).
+        values (sequence of str): ``("next", key)`` entries to report as their value at
+            the episode's last step (e.g. ``"route_completion"``; the rollout's last step
+            for an episode that did not finish).
 
     Returns:
         A dict of ``[N]`` tensors: ``return``, ``length``, ``finished`` and one per flag
-        found in the rollout.
+        and value found in the rollout.
 
     Examples:
         >>> import torch
@@ -57,6 +62,17 @@ def first_episodes(rollout: TensorDictBase, flags: Sequence[str] = ()) -> dict[s
         if value is not None:
             value = value.reshape(*rollout.shape, -1).any(-1).bool()
             out[flag] = (value & first).any(-1)
+    last = (out["length"] - 1).clamp(min=0)  # index of each first episode's last step
+    for key in values:
+        value = rollout.get(("next", key), None)
+        if value is not None:
+            value = value.reshape(*rollout.shape, -1)
+            if value.shape[-1] != 1:
+                raise ValueError(
+                    f"values are read as one number per step; {key!r} has "
+                    f"{value.shape[-1]} (pass it under flags if it is a boolean)."
+                )
+            out[key] = value[..., 0].float().gather(-1, last[:, None])[:, 0]
     return out
 
 
@@ -68,8 +84,9 @@ def evaluate(
     deterministic: bool = True,
     max_steps: int = 100_000,
     flags: Sequence[str] = (),
+    values: Sequence[str] = (),
 ) -> dict[str, float]:
-    """Plays ``episodes`` episodes and returns their mean and std return and flag rates.
+    """Plays ``episodes`` episodes; returns their mean and std return, flag rates, values.
 
     A batched ``env`` plays its environments in parallel; only the first episode of
     each counts, so the result does not favour short episodes.
@@ -81,9 +98,12 @@ def evaluate(
         max_steps (int): cap on an episode's length. Defaults to ``100_000``.
         flags (sequence of str): boolean entries to report as rates (see
             [`first_episodes`][rl_pg.evaluation.first_episodes]). Defaults to ``()``.
+        values (sequence of str): entries averaged at the episodes' last step, e.g.
+            ``"route_completion"``. Defaults to ``()``.
 
     Returns:
-        ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...}``.
+        ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...,
+        "mean_<value>", ...}``.
 
     Raises:
         ValueError: for ``episodes < 1`` or ``max_steps < 1``.
@@ -106,7 +126,7 @@ def evaluate(
         0.0
     """
     episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
-    flags = check_names("flags", flags)
+    flags, values = check_names("flags", flags), check_names("values", values)
     n_envs = max(1, math.prod(env.batch_size))
     results: dict[str, list[torch.Tensor]] = {}
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -120,7 +140,7 @@ def evaluate(
                 )
             else:
                 rollout = _until_each_done(policy, env, max_steps, cast=cast)
-            for key, value in first_episodes(rollout, flags).items():
+            for key, value in first_episodes(rollout, flags, values).items():
                 results.setdefault(key, []).append(value)
             played += n_envs
     stats = {key: torch.cat(value)[:episodes].float() for key, value in results.items()}
@@ -132,11 +152,15 @@ def evaluate(
     for flag in flags:
         if flag in stats:
             out[f"{flag}_rate"] = stats[flag].mean().item()
+    for key in values:
+        if key in stats:
+            out[f"mean_{key}"] = stats[key].mean().item()
     return out
 
 
 def _device_of(policy: TensorDictModuleBase) -> torch.device | None:
-    return next((p.device for p in policy.parameters()), None)
+    parameters = getattr(policy, "parameters", None)  # TorchRL's RandomPolicy has none
+    return None if parameters is None else next((p.device for p in parameters()), None)
 
 
 def _until_each_done(

@@ -79,3 +79,28 @@ class TestEvaluate:
             evaluate(
                 _fixed_actor(1, [0.0, 0.0]), BanditEnv(num_arms=2), **{"episodes": 1, **kwargs}
             )
+
+
+def test_values_are_read_at_the_end_of_each_first_episode():
+    # env 0 ends at step 1 then starts again; env 1 never ends within the rollout.
+    done = torch.tensor([[0, 1, 0, 0], [0, 0, 0, 0]], dtype=torch.bool)[..., None]
+    progress = torch.tensor([[0.1, 0.4, 0.0, 0.2], [0.1, 0.2, 0.3, 0.5]])[..., None]
+    rollout = TensorDict(
+        {"next": {"reward": torch.zeros(2, 4, 1), "done": done, "route_completion": progress}},
+        batch_size=[2, 4],
+    )
+    out = first_episodes(rollout, values=["route_completion", "absent"])
+    assert torch.allclose(out["route_completion"], torch.tensor([0.4, 0.5]))
+    assert "absent" not in out
+
+
+def test_evaluate_averages_values_and_takes_policies_without_parameters():
+    from torchrl.envs.utils import RandomPolicy
+
+    env = GridWorldEnv(batch_size=4)
+    result = evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=["reward"])
+    assert -1.0 <= result["mean_reward"] <= 1.0  # each episode's last reward: goal, pit or step
+    with pytest.raises(ValueError, match="one number per step; 'observation' has 16"):
+        evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=["observation"])
+    with pytest.raises(TypeError, match="values"):
+        evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=[3])

@@ -52,18 +52,21 @@ def main(args: Args) -> list[float]:
     recipe = recipe_of(saved, args.run)
     cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch
     env = recipe.make_env(cfg, render=args.gif is not None)
-    actor, critic = recipe.make_models(env, cfg)
-    load_models(saved, actor, critic)
-    torch.manual_seed(args.seed)
-    env.set_seed(args.seed)
-    returns = play(
-        actor,
-        env,
-        episodes=args.episodes,
-        deterministic=not args.sample,
-        record=args.gif,
-        fps=args.fps,
-    )
+    try:
+        actor, critic = recipe.make_models(env, cfg)
+        load_models(saved, actor, critic)
+        torch.manual_seed(args.seed)
+        env.set_seed(args.seed)
+        returns = play(
+            actor,
+            env,
+            episodes=args.episodes,
+            deterministic=not args.sample,
+            record=args.gif,
+            fps=args.fps,
+        )
+    finally:
+        env.close()  # some simulators (MetaDrive) allow one open environment per process
     for episode, value in enumerate(returns):
         print(f"episode {episode}: return {value:.2f}")
     print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episodes")

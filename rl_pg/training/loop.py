@@ -60,6 +60,7 @@ def train(
     make_models: Callable[[EnvBase], tuple[TensorDictModuleBase, TensorDictModuleBase | None]],
     make_eval_env: Callable[[], EnvBase] | None = None,
     eval_flags: Sequence[str] = (),
+    eval_values: Sequence[str] = (),
     recipe_module: str | None = None,
     summarise: Callable[[Path], dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
@@ -78,6 +79,8 @@ def train(
             Defaults to ``make_env``.
         eval_flags (sequence of str): boolean entries reported as rates by evaluations,
             e.g. ``("crashed",)``. Defaults to ``()``.
+        eval_values (sequence of str): entries whose value at an episode's end
+            evaluations average, e.g. ``("route_completion",)``. Defaults to ``()``.
         recipe_module (str, optional): the importable module that defines the recipe
             (a [`Recipe`][rl_pg.training.recipe.Recipe] passes its own); recorded so
             that ``rl-pg play`` can rebuild the run.
@@ -116,7 +119,10 @@ def train(
     if not isinstance(cfg, TrainConfig):
         raise TypeError(f"train needs a TrainConfig, got {type(cfg).__name__}.")
     cfg.validate()  # again: fields may have been changed since the config was made
-    eval_flags = check_names("eval_flags", eval_flags)
+    eval_entries = {
+        "flags": check_names("eval_flags", eval_flags),
+        "values": check_names("eval_values", eval_values),
+    }
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else new_run_dir(recipe, cfg.seed)
@@ -124,7 +130,7 @@ def train(
     # in progress, then the run saves and stops.
     with RunDirectory(run_dir) as directory, InterruptRequest() as interrupt:
         saved = directory.open(cfg, recipe, recipe_module)
-        run = _Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_flags)
+        run = _Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries)
         try:
             for batch in run.collection:
                 metrics = run.update(batch)
@@ -157,9 +163,9 @@ class _Run:
     """The pieces of one run and the steps the loop calls them through."""
 
     def __init__(
-        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_flags
+        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries
     ) -> None:
-        self.cfg, self.directory, self.eval_flags = cfg, directory, eval_flags
+        self.cfg, self.directory, self.eval_entries = cfg, directory, eval_entries
         seed_everything(cfg.seed)
         env = make_env()
         if not isinstance(env, EnvBase):
@@ -230,7 +236,7 @@ class _Run:
         cfg, state = self.cfg, self.state
         self._pause()
         self.next_eval = self._next_evaluation()
-        _evaluate(cfg, self.actor, self.eval_env, self.eval_flags, state, self.logger)
+        _evaluate(cfg, self.actor, self.eval_env, self.eval_entries, state, self.logger)
         if state.is_best():
             self._save(to="best")
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
@@ -263,7 +269,8 @@ class _Run:
         self.console.close()
         self.logger.close()
         self.collection.shutdown()
-        self.eval_env.close()
+        if not self.eval_env.is_closed:  # a process-backed one that never started is
+            self.eval_env.close()
 
     def _next_evaluation(self) -> int:
         return (self.state.frames // self.cfg.eval_interval + 1) * self.cfg.eval_interval
@@ -285,11 +292,11 @@ def _models(make_models, env: EnvBase):
     return models
 
 
-def _evaluate(cfg, actor, eval_env, eval_flags, state: RunState, logger) -> None:
+def _evaluate(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
     eval_env.set_seed(cfg.seed + 1_000_003)  # the same start states at every evaluation
     start = time.perf_counter()
     result = evaluate(
-        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, flags=eval_flags
+        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
     )
     result = {f"eval/{key}": value for key, value in result.items()}
     result["time/eval_s"] = time.perf_counter() - start

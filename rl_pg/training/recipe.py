@@ -52,6 +52,8 @@ class Recipe:
             Defaults to ``make_env``.
         eval_flags (sequence of str): boolean entries evaluations report as rates
             (``("crashed",)``). Defaults to ``()``.
+        eval_values (sequence of str): entries whose value at an episode's end
+            evaluations average (``("route_completion",)``). Defaults to ``()``.
         prepare (callable, optional): ``cfg -> cfg``, run before training (a default
             that depends on the environment, for example).
         summarise (callable, optional): ``(cfg, run_dir) -> dict``, fields the recipe
@@ -67,6 +69,7 @@ class Recipe:
     make_models: Callable[[EnvBase, Any], Models]
     make_eval_env: Callable[[Any], EnvBase] | None = None
     eval_flags: Sequence[str] = ()
+    eval_values: Sequence[str] = ()
     prepare: Callable[[Any], Any] | None = None
     summarise: Callable[[Any, Any], dict[str, Any]] | None = None
     commands: dict[str, Callable[[Any], dict[str, Any]]] = field(default_factory=dict)
@@ -77,6 +80,7 @@ class Recipe:
                 f"Recipe {self.name!r}: config must be a TrainConfig subclass, got {self.config!r}."
             )
         object.__setattr__(self, "eval_flags", check_names("eval_flags", self.eval_flags))
+        object.__setattr__(self, "eval_values", check_names("eval_values", self.eval_values))
         names = {f.name for f in dataclasses.fields(self.config)}
         unknown = sorted(set(self.commands) - names)
         if unknown:
@@ -114,6 +118,7 @@ class Recipe:
             make_models=partial(_call_with_cfg, self.make_models, cfg),
             make_eval_env=partial(eval_env, cfg),
             eval_flags=self.eval_flags,
+            eval_values=self.eval_values,
             summarise=None if self.summarise is None else partial(self.summarise, cfg),
         )
 

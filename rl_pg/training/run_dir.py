@@ -275,4 +275,6 @@ def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> d
     for key, value in state.last_eval.items():
         if key.endswith("_rate"):
             summary[key.removeprefix("eval/")] = value
+        elif key.startswith("eval/mean_") and key not in ("eval/mean_return", "eval/mean_length"):
+            summary[key.replace("/", "_")] = value  # a recipe's eval_values
     return summary
