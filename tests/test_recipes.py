@@ -10,9 +10,8 @@ from PIL import Image
 
 from rl_pg.recipes import load, play
 
-bandit, cartpole, gridworld, highway, lunarlander, metadrive, pong = (
-    load(name)
-    for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "metadrive", "pong")
+bandit, cartpole, gridworld, highway, lunarlander, pong = (
+    load(name) for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "pong")
 )
 
 TINY = {"eval_episodes": 1, "checkpoint_interval": 1, "progress": False}
@@ -172,25 +171,6 @@ def test_play_refuses_to_record_what_does_not_render(tmp_path):
     gridworld.train(gridworld.config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
-
-
-def _metadrive_installed() -> bool:
-    return importlib.util.find_spec("metadrive") is not None
-
-
-@pytest.mark.skipif(not _metadrive_installed(), reason="MetaDrive is not installed (optional)")
-def test_metadrive_trains(tmp_path):
-    summary = metadrive.train(
-        metadrive.config(run_dir=tmp_path, total_frames=200, eval_interval=200, **TINY)
-    )
-    assert summary["frames"] > 0
-
-
-@pytest.mark.skipif(_metadrive_installed(), reason="MetaDrive is installed")
-def test_metadrive_missing_says_how_to_install(tmp_path):
-    with pytest.raises(ImportError, match="pip install metadrive-simulator"):
-        metadrive.train(metadrive.config(run_dir=tmp_path / "run"))
-    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")

@@ -1,0 +1,230 @@
+"""MetaDrive offline and headless: the environment builder and the recipe, on the real simulator.
+
+MetaDrive runs one engine per process, so every test closes what it opens.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from rl_pg.envs import metadrive as md
+from rl_pg.recipes import load, play
+
+needs_metadrive = pytest.mark.skipif(
+    importlib.util.find_spec("metadrive") is None,
+    reason="MetaDrive is not installed (Python >= 3.12 has no MetaDrive package)",
+)
+recipe = load("metadrive")
+
+
+@pytest.fixture
+def scenarios():
+    """A MetaDriveScenarios over 5 scenarios, closed afterwards."""
+    opened = []
+
+    def make(**kwargs):
+        kwargs.setdefault("horizon", 30)
+        env = md.MetaDriveScenarios(kwargs.pop("start_seed", 0), kwargs.pop("num", 5), **kwargs)
+        opened.append(env)
+        return env
+
+    yield make
+    for env in opened:
+        env.close()
+
+
+def _site_packages_metadrive() -> Path:
+    return Path(importlib.util.find_spec("metadrive").origin).parent
+
+
+@needs_metadrive
+def test_resets_offline_without_assets_and_writes_nothing_into_metadrive(scenarios):
+    from metadrive.engine.base_engine import BaseEngine
+
+    package = _site_packages_metadrive()
+    if (package / "assets").exists():
+        pytest.skip("MetaDrive's assets are installed here: nothing to skip")
+    before = sorted(p.name for p in package.iterdir())
+    pull = BaseEngine.__dict__["try_pull_asset"]
+    env = scenarios()
+    observation, info = env.reset(seed=0)
+    observation, _, _, _, info = env.step(np.array([0.0, 1.0]))
+    assert observation.shape == (259,) and 0.0 <= observation.min() <= observation.max() <= 1.0
+    assert {"route_completion", "arrive_dest", "crash", "out_of_road"} <= set(info)
+    assert sorted(p.name for p in package.iterdir()) == before  # no assets, lock or zip
+    assert BaseEngine.__dict__["try_pull_asset"] is pull  # only skipped while starting
+
+
+@needs_metadrive
+@pytest.mark.parametrize(
+    ("assets_present", "config", "skipped"),
+    [
+        (False, {}, True),
+        (True, {}, False),  # a user who pulled the assets: MetaDrive checks their version
+        (False, "camera", False),  # 3-D camera observations need them
+    ],
+)
+def test_asset_pull_is_skipped_only_headless_and_without_assets(
+    assets_present, config, skipped, monkeypatch, tmp_path
+):
+    from metadrive.engine.asset_loader import AssetLoader
+    from metadrive.engine.base_engine import BaseEngine
+    from metadrive.envs import MetaDriveEnv
+
+    if config == "camera":
+        from metadrive.component.sensors.rgb_camera import RGBCamera
+
+        config = {
+            "image_observation": True,
+            "sensors": {"rgb_camera": (RGBCamera, 84, 84)},
+            "vehicle_config": {"image_source": "rgb_camera"},
+        }
+    monkeypatch.setattr(AssetLoader, "asset_path", tmp_path / ("assets" if assets_present else "x"))
+    (tmp_path / "assets").mkdir()
+    env = MetaDriveEnv(config)  # no engine until the first reset
+    pull = BaseEngine.try_pull_asset
+    with md._assets_pull_skipped(env):
+        assert (BaseEngine.try_pull_asset is not pull) == skipped
+    assert BaseEngine.try_pull_asset is pull
+
+
+@needs_metadrive
+def test_seeds_anywhere_map_into_the_scenarios_reproducibly(scenarios):
+    env = scenarios(start_seed=1000, num=5)
+    seen = []
+    for _ in range(2):
+        _, info = env.reset(seed=2**31 + 7)  # far outside 1000-1004
+        picks = [info["scenario"]] + [env.reset()[1]["scenario"] for _ in range(5)]
+        seen.append(picks)
+    assert seen[0] == seen[1]
+    assert set(seen[0]) <= set(range(1000, 1005))
+
+
+@needs_metadrive
+def test_sequential_order_visits_every_scenario_once(scenarios):
+    env = scenarios(start_seed=10, num=4, order="sequential")
+    _, info = env.reset(seed=6)
+    picks = [info["scenario"]] + [env.reset()[1]["scenario"] for _ in range(3)]
+    assert picks == [12, 13, 10, 11]
+    assert env.reset(options={"scenario": 11})[1]["scenario"] == 11
+    with pytest.raises(
+        ValueError, match="Scenario 14 is not in this environment's scenarios 10-13"
+    ):
+        env.reset(options={"scenario": 14})
+
+
+@needs_metadrive
+def test_time_limit_truncates(scenarios):
+    env = scenarios(horizon=12)
+    env.reset(seed=0)
+    for step in range(1, 13):  # brake and stand still: nothing else ends the episode
+        _, _, terminated, truncated, info = env.step(np.array([0.0, -1.0]))
+        assert not terminated
+        assert truncated == (step == 12)
+    assert info["max_step"]
+
+
+@needs_metadrive
+def test_a_second_engine_in_one_process_is_refused_clearly(scenarios):
+    first, second = scenarios(), scenarios()
+    first.reset(seed=0)
+    with pytest.raises(RuntimeError, match="one per process"):
+        second.reset(seed=0)
+
+
+@needs_metadrive
+def test_registered_ids_make_through_gymnasium():
+    import gymnasium as gym
+
+    env = gym.make("MetaDrive-validation-v0", horizon=5)
+    try:
+        assert env.unwrapped.config["start_seed"] == 0
+        assert env.unwrapped.config["num_scenarios"] == 1000
+        _, info = env.reset(seed=123, options={})  # gymnasium 1.x passes options
+        assert 0 <= info["scenario"] < 1000
+    finally:
+        env.close()
+    assert gym.spec(md.HELD_OUT).kwargs == {"start_seed": 10_000, "num_scenarios": 100}
+
+
+@needs_metadrive
+def test_torchrl_env_tutorial_action_table_reaches_metadrive_as_fed():
+    env = md.metadrive_env(md.HELD_OUT, horizon=5)
+    try:
+        assert env.action_spec.space.n == 9
+        env.set_seed(0)
+        td = env.reset()
+        td["action"] = torch.tensor(1)  # the tutorial's (+1, 0): steering +1, throttle 0
+        td = env.step(td)
+        raw = env.base_env._env.unwrapped.agent.last_current_action[-1]  # [steering, throttle]
+        assert list(np.round(raw, 3)) == [1.0, 0.0]
+        for key in ("route_completion", "arrive_dest", "crash", "out_of_road", "max_step"):
+            assert ("next", key) in td.keys(include_nested=True)
+    finally:
+        env.close()
+
+
+def test_missing_metadrive_says_how_to_install(monkeypatch, tmp_path):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "metadrive" else find_spec(name, *a),
+    )
+    install = r'pip install -c constraints.txt "rl_pg\[metadrive\]"'
+    with pytest.raises(ModuleNotFoundError, match=install):
+        md.require_metadrive()
+    with pytest.raises(ModuleNotFoundError, match=install):
+        recipe.train(recipe.config(run_dir=tmp_path / "run"))
+    assert not (tmp_path / "run").exists()
+    monkeypatch.setattr(sys, "version_info", (3, 12, 0))
+    with pytest.raises(ModuleNotFoundError, match=r"needs Python < 3.12.*rl-pg train highway"):
+        md.require_metadrive()
+
+
+@needs_metadrive
+def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
+    from metadrive.engine.base_engine import BaseEngine
+
+    run = tmp_path / "run"
+    cfg = recipe.config(
+        run_dir=run, workers=1, horizon=40, episodes_per_batch=2, total_updates=1,
+        eval_episodes=2, progress=False,
+    )  # fmt: skip
+    summary = recipe.train(cfg)
+    assert summary["updates"] == 1
+    for key in ("arrive_dest_rate", "crash_rate", "out_of_road_rate", "max_step_rate"):
+        assert 0.0 <= summary[key] <= 1.0
+    assert 0.0 <= summary["eval_mean_route_completion"] <= 1.0
+    assert BaseEngine.singleton is None  # training closed its engine
+    gif = tmp_path / "drive.gif"
+    returns = play.main(play.Args(run=run, episodes=1, gif=gif))
+    assert len(returns) == 1
+    with Image.open(gif) as image:
+        assert image.n_frames >= 2 and image.size == (400, 400)
+    assert BaseEngine.singleton is None
+    assert json.loads((run / "config.json").read_text())["actions"] == "tutorial"
+
+
+@needs_metadrive
+def test_references_measure_random_and_full_throttle(capsys):
+    cfg = recipe.config(references=True, eval_episodes=2, horizon=30)
+    results = recipe.run(cfg)
+    assert set(results) == {"random", "full throttle"}
+    for result in results.values():
+        assert 0.0 <= result["mean_route_completion"] <= 1.0
+        assert result["mean_length"] <= 30
+    # Full throttle drives further along the route than a random driver in 30 steps.
+    assert (
+        results["full throttle"]["mean_route_completion"]
+        > results["random"]["mean_route_completion"]
+    )
+    assert "full throttle:" in capsys.readouterr().out
