@@ -1,4 +1,4 @@
-"""The original driving set-up on MetaDrive (optional backend; docs/recipes/metadrive.md).
+"""REINFORCE on MetaDrive, offline and headless (the metadrive extra; docs/recipes/metadrive.md).
 
 In a checkout, `python recipes/metadrive.py [FLAGS]` is `rl-pg train metadrive [FLAGS]`;
 the recipe itself is rl_pg/recipes/metadrive.py.

@@ -13,18 +13,13 @@ the assets (``python -m metadrive.pull_asset``) keeps everything MetaDrive offer
 Importing this module registers gymnasium ids (MetaDrive itself no longer does since
 0.4.2), each a range of scenarios with a time limit of ``DEFAULT_HORIZON`` steps:
 
-=============================== ===================== ==============================
-id                              scenarios             what for
-=============================== ===================== ==============================
-``MetaDrive-validation-v0``     0 – 999               the id the driving tutorials
-                                                      train on (as MetaDrive <= 0.4.1
-                                                      registered it)
-``MetaDrive-10env-v0``          1000 – 1009           MetaDrive's former training sets
-``MetaDrive-100envs-v0``        1000 – 1099
-``MetaDrive-1000envs-v0``       1000 – 1999
-``rl_pg/MetaDrive-heldout-v0``  10000 – 10099         held out: in none of the sets
-                                                      above, for evaluation
-=============================== ===================== ==============================
+| id | scenarios | what for |
+|---|---|---|
+| ``MetaDrive-validation-v0`` | 0 - 999 | the driving tutorials' (as MetaDrive <= 0.4.1 had it) |
+| ``MetaDrive-10env-v0`` | 1000 - 1009 | MetaDrive's former training sets |
+| ``MetaDrive-100envs-v0`` | 1000 - 1099 | |
+| ``MetaDrive-1000envs-v0`` | 1000 - 1999 | |
+| ``rl_pg/MetaDrive-heldout-v0`` | 10000 - 10099 | evaluation: in none of the sets above |
 """
 
 from __future__ import annotations

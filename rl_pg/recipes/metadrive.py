@@ -86,7 +86,8 @@ def _heldout(actions: str | None, horizon: int) -> EnvBase:
     make = partial(
         md.metadrive_env, md.HELD_OUT, actions=actions, order="sequential", horizon=horizon
     )
-    return ParallelEnv(1, make, mp_start_method="spawn")
+    # Pipes, not shared buffers: with buffers this process spins on a core while it waits.
+    return ParallelEnv(1, make, mp_start_method="spawn", use_buffers=False)
 
 
 def make_models(env: EnvBase, cfg: Config):
