@@ -629,6 +629,28 @@ class TestInterruptedRun:
 
     FLAGS = ("--checkpoint-interval", "1000000", "--eval-interval", "100000000")
 
+    def test_ctrl_c_from_a_terminal_reaches_the_workers_too(self, tmp_path):
+        # A terminal signals the whole process group: worker processes must leave the
+        # interruption to the main process instead of dying under it.
+        recipes = Path(__file__).resolve().parents[1] / "recipes"
+        run = tmp_path / "run"
+        command = [sys.executable, str(recipes / "cartpole.py"), "--run-dir", str(run)]
+        command += ["--workers", "2", "--total-frames", "100000000", "--no-progress"]
+        command += ["--threshold", "100000", *self.FLAGS]
+        process = subprocess.Popen(
+            command, stderr=subprocess.PIPE, text=True, start_new_session=True
+        )
+        log = run / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+        deadline = time.monotonic() + 120
+        while not (log.is_file() and log.read_text().count("\n") >= 3):
+            assert process.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+        assert process.returncode == 130, stderr
+        assert "Traceback" not in stderr
+        assert f"Continue with: rl-pg resume {run}" in stderr
+
     def test_ctrl_c_saves_and_resumes_like_an_uninterrupted_run(self, tmp_path):
         recipes = Path(__file__).resolve().parents[1] / "recipes"
         run = tmp_path / "interrupted"

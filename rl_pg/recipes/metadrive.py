@@ -27,6 +27,7 @@ from rl_pg.envs import metadrive as md
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
+from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.recipe import Recipe
 
 
@@ -87,7 +88,7 @@ def _heldout(actions: str | None, horizon: int) -> EnvBase:
         md.metadrive_env, md.HELD_OUT, actions=actions, order="sequential", horizon=horizon
     )
     # Pipes, not shared buffers: with buffers this process spins on a core while it waits.
-    return ParallelEnv(1, make, mp_start_method="spawn", use_buffers=False)
+    return ParallelEnv(1, MainProcessInterrupts(make), mp_start_method="spawn", use_buffers=False)
 
 
 def make_models(env: EnvBase, cfg: Config):

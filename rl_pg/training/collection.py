@@ -28,6 +28,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
 from rl_pg.training.config import TrainConfig
+from rl_pg.training.interrupt import MainProcessInterrupts
 
 __all__ = ["Collection"]
 
@@ -102,7 +103,8 @@ class Collection:
             backend_options = inner
             kwargs["total_frames"] = -1
         self.collector = Collector(
-            [make_env] * cfg.workers,
+            # Worker processes leave Ctrl-C to this one, which shuts them down.
+            [make_env if cfg.ray else MainProcessInterrupts(make_env)] * cfg.workers,
             actor,
             backend="ray" if cfg.ray else "process",
             num_collectors=cfg.workers,

@@ -6,6 +6,11 @@ state is consistent: the loop then writes a checkpoint and the summary and raise
 second Ctrl-C interrupts at once. Command-line entry points wrap themselves in
 [`exit_quietly_on_interrupt`][rl_pg.training.interrupt.exit_quietly_on_interrupt] to
 exit with status 130 and the one line the loop printed, instead of a traceback.
+
+A terminal sends Ctrl-C to every process of the command, worker processes included;
+[`MainProcessInterrupts`][rl_pg.training.interrupt.MainProcessInterrupts] wraps the
+environment factories that run in workers so that only the main process reacts (it
+then shuts the workers down itself).
 """
 
 from __future__ import annotations
@@ -13,10 +18,11 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
-__all__ = ["InterruptRequest", "exit_quietly_on_interrupt"]
+__all__ = ["InterruptRequest", "MainProcessInterrupts", "exit_quietly_on_interrupt"]
 
 
 class InterruptRequest:
@@ -51,6 +57,27 @@ class InterruptRequest:
     def __exit__(self, *exc) -> None:
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
+
+
+class MainProcessInterrupts:
+    """An environment factory for a worker process, which then ignores Ctrl-C.
+
+    Called in the worker (as TorchRL's collectors and ``ParallelEnv`` call their
+    factories), it sets SIGINT to be ignored there, then builds the environment: the
+    main process handles the interruption and closes the worker. Picklable when
+    ``make_env`` is.
+
+    Args:
+        make_env (callable): the factory to wrap.
+    """
+
+    def __init__(self, make_env: Callable[[], Any]) -> None:
+        self.make_env = make_env
+
+    def __call__(self) -> Any:
+        if threading.current_thread() is threading.main_thread():  # not in a Ray thread
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        return self.make_env()
 
 
 @contextmanager
