@@ -28,6 +28,7 @@ from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
+from rl_pg.training.loop import evaluation_seed
 from rl_pg.training.recipe import Recipe
 
 
@@ -70,7 +71,7 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    """The training scenarios; with ``render``, the held-out ones, drawn from above."""
+    """The training scenarios; with ``render``, the held-out ones in order, seen from above."""
     if render:  # deployment: held-out scenarios in order
         return md.metadrive_env(
             md.HELD_OUT, actions=cfg.actions, order="sequential", horizon=cfg.horizon, render=True
@@ -109,7 +110,7 @@ def references(cfg: Config) -> dict:
         env = _heldout(actions, cfg.horizon)
         try:
             torch.manual_seed(cfg.seed)
-            env.set_seed(cfg.seed + 1_000_003)  # as training evaluations seed theirs
+            env.set_seed(evaluation_seed(cfg.seed))  # the scenarios training evaluations play
             start = time.perf_counter()
             result = evaluate(
                 make_policy(env), env, episodes=cfg.eval_episodes, flags=RECIPE.eval_flags,

@@ -49,7 +49,7 @@ from rl_pg.training.optimisation import (
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 
-__all__ = ["train"]
+__all__ = ["evaluation_seed", "train"]
 
 
 def train(
@@ -292,8 +292,13 @@ def _models(make_models, env: EnvBase):
     return models
 
 
+def evaluation_seed(seed: int) -> int:
+    """The seed of a run's evaluation environment (apart from its training seeds)."""
+    return seed + 1_000_003
+
+
 def _evaluate(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
-    eval_env.set_seed(cfg.seed + 1_000_003)  # the same start states at every evaluation
+    eval_env.set_seed(evaluation_seed(cfg.seed))  # the same start states at every evaluation
     start = time.perf_counter()
     result = evaluate(
         actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
