@@ -802,3 +802,14 @@ def test_keep_every_keeps_copies_without_changing_the_run(tmp_path):
     assert not (tmp_path / "plain" / "checkpoints").exists()
     for key, value in _weights(tmp_path / "plain").items():
         assert torch.equal(value, _weights(tmp_path / "kept")[key]), key
+
+
+def test_worker_factories_leave_the_main_process_ctrl_c_alone():
+    from rl_pg.training.interrupt import InterruptRequest, MainProcessInterrupts
+
+    with InterruptRequest() as interrupt:
+        before = signal.getsignal(signal.SIGINT)
+        MainProcessInterrupts(make_grid)()  # as ParallelEnv does to read specs
+        assert signal.getsignal(signal.SIGINT) is before
+        os.kill(os.getpid(), signal.SIGINT)
+        assert interrupt.requested

@@ -15,6 +15,7 @@ then shuts the workers down itself).
 
 from __future__ import annotations
 
+import multiprocessing
 import signal
 import sys
 import threading
@@ -62,10 +63,10 @@ class InterruptRequest:
 class MainProcessInterrupts:
     """An environment factory for a worker process, which then ignores Ctrl-C.
 
-    Called in the worker (as TorchRL's collectors and ``ParallelEnv`` call their
+    Called in a worker process (as TorchRL's collectors and ``ParallelEnv`` call their
     factories), it sets SIGINT to be ignored there, then builds the environment: the
-    main process handles the interruption and closes the worker. Picklable when
-    ``make_env`` is.
+    main process handles the interruption and closes the worker. Called in the main
+    process, it only builds the environment. Picklable when ``make_env`` is.
 
     Args:
         make_env (callable): the factory to wrap.
@@ -75,7 +76,10 @@ class MainProcessInterrupts:
         self.make_env = make_env
 
     def __call__(self) -> Any:
-        if threading.current_thread() is threading.main_thread():  # not in a Ray thread
+        # Only in a worker: TorchRL also calls factories in the main process (to read
+        # specs), whose Ctrl-C handling must stay; and not from a thread (Ray).
+        in_worker = multiprocessing.parent_process() is not None
+        if in_worker and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
         return self.make_env()
 
