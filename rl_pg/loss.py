@@ -600,6 +600,51 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"per step, shaped like the reward ([*B, 1])."
             ) from err
 
+    def value_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``loss_value`` alone, on a batch whose value targets ``forward`` already wrote.
+
+        Fits the critic with more gradient steps per batch than the policy takes (the
+        value-function iterations of "vanilla" policy gradient): each call evaluates
+        the critic afresh, while the targets stay those of the batch. Reduced (and
+        masked) as ``forward`` reduces ``loss_value``, and weighted by ``critic_coeff``.
+
+        Raises:
+            ValueError: the loss has no critic.
+            KeyError: the batch has no value target yet; call ``forward`` (or the
+                value estimator) on it first.
+
+        Examples:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> from tensordict.nn import TensorDictModule
+            >>> from torchrl.modules import ProbabilisticActor, ValueOperator
+            >>> from rl_pg import ReinforceLoss
+            >>> actor = ProbabilisticActor(
+            ...     TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"]),
+            ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+            ... )
+            >>> loss = ReinforceLoss(actor, ValueOperator(torch.nn.Linear(3, 1), ["observation"]))
+            >>> data = TensorDict({
+            ...     "observation": torch.randn(4, 3),
+            ...     "action": torch.tensor([0, 1, 1, 0]),
+            ...     "next": {"observation": torch.randn(4, 3), "reward": torch.ones(4, 1),
+            ...              "done": torch.tensor([[False], [True], [False], [True]]),
+            ...              "terminated": torch.tensor([[False], [True], [False], [True]])},
+            ... }, batch_size=[4])
+            >>> out = loss(data)
+            >>> bool(loss.value_loss(data) == out["loss_value"])
+            True
+        """
+        if not self.has_critic:
+            raise ValueError("This ReinforceLoss has no critic: value_loss needs a critic_network.")
+        if tensordict.get(self.tensor_keys.value_target, None) is None:
+            raise KeyError(
+                f"The batch has no value target {self.tensor_keys.value_target!r} yet: call "
+                f"the loss (or its value estimator) on it before value_loss."
+            )
+        loss_value, _ = self.loss_critic(tensordict)
+        return self._reduce_loss(self.critic_coeff * loss_value, tensordict).squeeze(-1)
+
     def _entropy(self, dist) -> torch.Tensor:
         try:
             entropy = dist.entropy()

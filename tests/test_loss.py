@@ -523,6 +523,46 @@ class TestReinforceLossKeysAndMasks:
             ReinforceLoss(categorical_actor)(categorical_batch)
 
 
+class TestValueLoss:
+    """``value_loss``: the critic's loss alone, for more critic steps per batch."""
+
+    @pytest.mark.parametrize("padded", [False, True])
+    def test_it_is_forwards_loss_value(self, categorical_actor, critic, categorical_batch, padded):
+        if padded:  # padding steps hold garbage that must not count
+            mask = torch.ones(3, 7, 1, dtype=torch.bool)
+            mask[0, 4:] = mask[2, 2:] = False
+            categorical_batch["collector", "mask"] = mask
+            categorical_batch["next", "reward"][~mask] = 1e6
+        loss = ReinforceLoss(categorical_actor, critic, critic_coeff=0.5)
+        out = loss(categorical_batch)
+        torch.testing.assert_close(loss.value_loss(categorical_batch), out["loss_value"])
+
+    def test_steps_on_it_fit_the_critic_and_leave_the_actor_alone(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        loss = ReinforceLoss(categorical_actor, critic)
+        first = loss(categorical_batch)["loss_value"].item()
+        actor_before = [p.detach().clone() for p in categorical_actor.parameters()]
+        optimizer = torch.optim.Adam(loss.parameters(), lr=0.05)
+        for _ in range(50):
+            optimizer.zero_grad(set_to_none=True)
+            loss.value_loss(categorical_batch).backward()
+            optimizer.step()
+        assert loss.value_loss(categorical_batch).item() < 0.9 * first
+        for before, after in zip(actor_before, categorical_actor.parameters(), strict=True):
+            assert torch.equal(before, after)
+
+    def test_without_a_critic(self, categorical_actor, categorical_batch):
+        loss = ReinforceLoss(categorical_actor)
+        loss(categorical_batch)
+        with pytest.raises(ValueError, match="no critic: value_loss needs a critic_network"):
+            loss.value_loss(categorical_batch)
+
+    def test_before_the_targets_are_computed(self, categorical_actor, critic, categorical_batch):
+        with pytest.raises(KeyError, match="no value target 'value_target' yet: call the loss"):
+            ReinforceLoss(categorical_actor, critic).value_loss(categorical_batch)
+
+
 class _SumObservation(torch.nn.Module):
     """A 'critic' that forgets the trailing value dimension."""
 

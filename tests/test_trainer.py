@@ -150,6 +150,26 @@ class TestTrain:
         summary = _train(_cfg(tmp_path, batch_mode="segments", segment_length=10))
         assert summary["frames"] == 6 * 10 * 8
 
+    def test_critic_steps_fit_the_baseline_and_leave_the_policy_to_one_step(self, tmp_path):
+        summaries, weights = {}, {}
+        for steps in (1, 20):
+            run = tmp_path / f"steps{steps}"
+            summaries[steps] = _train(
+                _cfg(tmp_path, run_dir=run, critic_steps=steps, total_updates=1)
+            )
+            weights[steps] = _weights(run)
+        actor = [key for key in weights[1] if key.startswith("actor_network")]
+        critic = [key for key in weights[1] if key.startswith("critic_network")]
+        assert actor and critic
+        for key in actor:  # the policy's one step is the same
+            assert torch.equal(weights[1][key], weights[20][key]), key
+        assert any(not torch.equal(weights[1][key], weights[20][key]) for key in critic)
+        fitted = tmp_path / "steps20" / "logs" / "csv" / "scalars" / "loss" / "value_fitted.csv"
+        first = tmp_path / "steps20" / "logs" / "csv" / "scalars" / "loss" / "value.csv"
+        before = float(first.read_text().split(",")[-1])
+        after = float(fitted.read_text().split(",")[-1])
+        assert after < 0.5 * before
+
     def test_linear_learning_rate_schedule(self, tmp_path):
         # 6 updates x 80 frames = total_frames: update k (0-based) starts at 80k frames.
         cfg = _cfg(
@@ -180,6 +200,18 @@ class TestTrain:
         _train(_cfg(tmp_path, total_updates=2))
         with pytest.raises(CheckpointError, match=r"different configuration \(lr: 0.02 -> 0.5\)"):
             _train(_cfg(tmp_path, resume=True, lr=0.5))
+
+    def test_a_run_from_before_a_new_field_resumes_as_that_fields_default(self, tmp_path):
+        from rl_pg.checkpoint import save_checkpoint
+
+        _train(_cfg(tmp_path, total_updates=2))
+        path = tmp_path / "run" / "checkpoint.pt"
+        saved = load_checkpoint(path)
+        del saved["config"]["critic_steps"]  # as a version without the field wrote it
+        save_checkpoint(saved, path)
+        with pytest.raises(CheckpointError, match=r"\(critic_steps: 1 -> 3\)"):
+            _train(_cfg(tmp_path, resume=True, total_updates=3, critic_steps=3))
+        assert _train(_cfg(tmp_path, resume=True, total_updates=3))["updates"] == 3
 
     def test_resume_from_another_recipe(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
@@ -323,6 +355,8 @@ class TestTrain:
             ({"seed": -1}, r"seed \(--seed\) must be an integer >= 0"),
             ({"total_updates": 0}, "total_updates .* must be an integer >= 1"),
             ({"ray": True}, "use --batch-mode segments with --ray"),
+            ({"critic_steps": 0}, r"critic_steps \(--critic-steps\) must be an integer >= 1"),
+            ({"critic_steps": 5, "baseline": "ema"}, "--critic-steps 5 fits a critic, but"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
         ],
     )

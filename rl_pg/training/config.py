@@ -103,6 +103,10 @@ class TrainConfig:
     """Entropy bonus weight."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
+    critic_steps: Count = 1
+    """Gradient steps of the critic on each batch (the policy takes one). The first is
+    taken with the policy's; more fit the baseline to the batch's returns, as
+    "vanilla" policy gradient fits its value function (needs baseline='critic')."""
     normalize_advantage: bool = False
     """Standardise the policy weights over each batch."""
     optimizer: Literal["adam", "sgd"] = "adam"
@@ -227,6 +231,11 @@ class TrainConfig:
         check_fields(self)
         if self.resume and self.run_dir is None:
             raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
+        if self.critic_steps > 1 and self.baseline != "critic":
+            raise ValueError(
+                f"--critic-steps {self.critic_steps} fits a critic, but --baseline is "
+                f"{self.baseline!r}: use --baseline critic, or leave --critic-steps at 1."
+            )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(
                 "The Ray collector yields fixed-length batches: use --batch-mode segments with "

@@ -94,6 +94,8 @@ def update(
     metrics = {
         f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
     }
+    if cfg.critic_steps > 1:
+        metrics["loss/value_fitted"] = _fit_critic(loss, optimizer, batch, cfg, max_norm)
     for key in ("entropy", "advantage_mean", "advantage_std", "explained_variance", "baseline"):
         value = losses.get(key, None)
         if value is not None:
@@ -101,6 +103,29 @@ def update(
     metrics["train/grad_norm"] = grad_norm.item()
     metrics["train/lr"] = lr
     return metrics
+
+
+def _fit_critic(loss: ReinforceLoss, optimizer, batch, cfg: TrainConfig, max_norm: float) -> float:
+    """The critic's further steps on the batch; returns its value loss after them.
+
+    Only the critic's parameters get gradients here (a trunk it shares with the policy
+    included), so the optimiser leaves the policy's own parameters alone.
+    """
+    params = [p for p in loss.critic_network.parameters() if p.requires_grad]
+    for _ in range(cfg.critic_steps - 1):
+        value_loss = loss.value_loss(batch)
+        if not torch.isfinite(value_loss):
+            raise TrainingDiverged(
+                f"The critic's loss became {value_loss.item()} while fitting it to the batch; "
+                f"training stopped and the last good checkpoint was kept. Lower the learning "
+                f"rate or --critic-steps."
+            )
+        optimizer.zero_grad(set_to_none=True)
+        value_loss.backward()
+        nn.utils.clip_grad_norm_(params, max_norm)
+        optimizer.step()
+    with torch.no_grad():
+        return loss.value_loss(batch).item()
 
 
 def _describe(losses: TensorDictBase) -> str:
