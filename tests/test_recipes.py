@@ -8,7 +8,8 @@ import json
 import pytest
 from PIL import Image
 
-from rl_pg.recipes import load, play
+from rl_pg.recipes import evaluate, load, play
+from rl_pg.training.loop import evaluation_seed
 
 bandit, cartpole, gridworld, highway, lunarlander, pong = (
     load(name) for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "pong")
@@ -101,6 +102,34 @@ def test_play_records_a_gif(tmp_path, capsys):
         image.seek(image.n_frames - 1)
         assert len(image.convert("RGB").getcolors(maxcolors=256)) > 2
     assert "mean return" in capsys.readouterr().out
+
+
+def test_evaluate_replays_the_runs_last_evaluation_and_defaults_to_fresh_episodes(tmp_path):
+    cfg = cartpole.config(run_dir=tmp_path, total_frames=600, **{**TINY, "eval_episodes": 4})
+    summary = cartpole.train(cfg)
+    # The last checkpoint, on the training evaluations' seed: the run's last evaluation.
+    again = evaluate.main(
+        evaluate.Args(run=tmp_path, checkpoint="last", episodes=4, seed=evaluation_seed(0))
+    )
+    assert again["mean_return"] == pytest.approx(summary["eval_mean_return"])
+    fresh = evaluate.main(evaluate.Args(run=tmp_path, episodes=5, sample=True))
+    assert fresh["seed"] == evaluate.fresh_seed(0) != evaluation_seed(0)
+    assert fresh["mode"] == "sampled" and fresh["episodes"] == 5
+    records = [
+        json.loads(line) for line in (tmp_path / evaluate.EVALUATIONS).read_text().splitlines()
+    ]
+    assert records == [again, fresh]
+
+
+def test_evaluate_reports_the_recipes_flags(tmp_path, capsys):
+    highway.train(
+        highway.config(
+            run_dir=tmp_path, total_frames=40, eval_interval=40, episodes_per_batch=1, **TINY
+        )
+    )
+    result = evaluate.main(evaluate.Args(run=tmp_path, episodes=2))
+    assert 0.0 <= result["crashed_rate"] <= 1.0
+    assert "crashed_rate" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("which", ["best", "last"])

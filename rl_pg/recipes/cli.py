@@ -1,8 +1,9 @@
-"""``rl-pg``: train a recipe, resume a run, play a trained agent, list the recipes.
+"""``rl-pg``: train a recipe, resume a run, evaluate or play a trained agent, list the recipes.
 
     rl-pg list
     rl-pg train cartpole --seed 1          # rl-pg train cartpole --help: every flag
     rl-pg resume runs/cartpole-seed1-...   # continue with the run's stored config
+    rl-pg evaluate runs/cartpole-seed1-... --sample
     rl-pg play runs/cartpole-seed1-... --gif cartpole.gif
 
 ``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
@@ -29,12 +30,13 @@ from rl_pg.training.run_dir import RunDirBusy
 
 __all__ = ["main", "run_checkout_script"]
 
-USAGE = """usage: rl-pg {list,train,resume,play} ...
+USAGE = """usage: rl-pg {list,train,resume,evaluate,play} ...
 
   rl-pg list                       the recipes and what they train
   rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
   rl-pg resume RUN_DIR [FLAGS]     continue a run with its stored config; FLAGS may
                                    change what is safe to change (budget, workers, ...)
+  rl-pg evaluate RUN_DIR [FLAGS]   evaluate a run's best agent on fresh episodes (--help)
   rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
 """
 
@@ -50,6 +52,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             _train(rest[0], rest[1:])
         elif command == "resume" and rest and not rest[0].startswith("-"):
             _resume(Path(rest[0]), rest[1:])
+        elif command == "evaluate":
+            _evaluate(rest)
         elif command == "play":
             _play(rest)
         elif command in ("-h", "--help"):
@@ -112,6 +116,15 @@ def _play(args: list[str]) -> None:
         play.main(tyro.cli(play.Args, args=args, prog="rl-pg play"))
     except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
         sys.exit(f"rl-pg play: {err}")
+
+
+def _evaluate(args: list[str]) -> None:
+    from rl_pg.recipes import evaluate
+
+    try:
+        evaluate.main(tyro.cli(evaluate.Args, args=args, prog="rl-pg evaluate"))
+    except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
+        sys.exit(f"rl-pg evaluate: {err}")
 
 
 def _report(result: dict) -> None:

@@ -1,0 +1,108 @@
+"""Evaluate a trained agent as its training evaluated it, on fresh episodes.
+
+rl-pg evaluate runs/lunarlander-seed0                 # best checkpoint, 100 greedy episodes
+rl-pg evaluate runs/lunarlander-seed0 --sample        # by sampling
+rl-pg evaluate runs/metadrive-seed0 --checkpoint last --episodes 20
+
+The recipe's evaluation environment, with its metrics (flag rates such as crashes,
+values such as route completion), rebuilt from the run directory alone. Each result is
+also appended to the run's ``evaluations.jsonl``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import torch
+import tyro
+
+from rl_pg.evaluation import evaluate
+from rl_pg.recipes import recipe_of
+from rl_pg.training import Count, Range, load_models, read_run
+from rl_pg.training.loop import evaluation_seed
+
+__all__ = ["EVALUATIONS", "Args", "fresh_seed", "main"]
+
+EVALUATIONS = "evaluations.jsonl"
+"""The file of a run directory that collects its ``rl-pg evaluate`` results."""
+
+
+@dataclass
+class Args:
+    """Evaluate a trained agent on the recipe's evaluation environment."""
+
+    run: tyro.conf.Positional[Path]
+    """Run directory (or checkpoint file) written by a recipe."""
+    episodes: Count = 100
+    """Episodes to evaluate on."""
+    checkpoint: Literal["best", "last"] = "best"
+    """Evaluate the best evaluated checkpoint, or the last one."""
+    sample: bool = False
+    """Sample actions from the policy instead of acting greedily."""
+    seed: Annotated[int, Range(low=0, high=2**32 - 1)] | None = None
+    """Seed of the evaluation environment and of sampled actions (default: one that no
+    evaluation during training used, so the episodes are fresh)."""
+
+
+def fresh_seed(run_seed: int) -> int:
+    """The default seed of ``rl-pg evaluate``: apart from the training evaluations'."""
+    return (evaluation_seed(run_seed) + 1_000_003) % 2**32
+
+
+def main(args: Args) -> dict[str, Any]:
+    """Evaluates the run's agent; prints and returns the result."""
+    saved = read_run(args.run, which=args.checkpoint)
+    recipe = recipe_of(saved, args.run)
+    cfg = recipe.config.from_stored(saved["config"])
+    seed = fresh_seed(cfg.seed) if args.seed is None else args.seed
+    env = (recipe.make_eval_env or recipe.make_env)(cfg)
+    try:
+        actor, critic = recipe.make_models(env, cfg)
+        load_models(saved, actor, critic)
+        torch.manual_seed(seed)
+        env.set_seed(seed)
+        start = time.perf_counter()
+        result = evaluate(
+            actor, env, episodes=args.episodes, deterministic=not args.sample,
+            flags=recipe.eval_flags, values=recipe.eval_values,
+        )  # fmt: skip
+        seconds = time.perf_counter() - start
+    finally:
+        env.close()  # some simulators (MetaDrive) allow one open environment per process
+    record = {
+        "checkpoint": args.checkpoint,
+        "frames": saved.get("state", {}).get("frames"),
+        "mode": "sampled" if args.sample else "greedy",
+        "episodes": args.episodes,
+        "seed": seed,
+        **result,
+        "seconds": seconds,
+    }
+    print(_describe(record))
+    if args.run.is_dir():
+        with open(args.run / EVALUATIONS, "a") as file:
+            file.write(json.dumps(record) + "\n")
+    return record
+
+
+def _describe(record: dict[str, Any]) -> str:
+    frames = "" if record["frames"] is None else f" at {record['frames']:,} frames"
+    head = (
+        f"{record['checkpoint']} checkpoint{frames}, {record['mode']}, "
+        f"{record['episodes']} episodes (seed {record['seed']}): "
+        f"return {record['mean_return']:.2f} ± {record['std_return']:.2f}, "
+        f"length {record['mean_length']:.1f}"
+    )
+    extra = [
+        f"{key} {value:.0%}" if key.endswith("_rate") else f"{key} {value:.3f}"
+        for key, value in record.items()
+        if key.endswith("_rate") or (key.startswith("mean_") and key not in _BASE)
+    ]
+    return head + "".join(f", {item}" for item in extra) + f" ({record['seconds']:.0f} s)"
+
+
+_BASE = {"mean_return", "mean_length"}
