@@ -170,6 +170,24 @@ class TestTrain:
         after = float(fitted.read_text().split(",")[-1])
         assert after < 0.5 * before
 
+    def test_gae_with_lambda_one_is_reward_to_go_minus_v(self, tmp_path):
+        # On whole episodes (truncations bootstrapped from V by both), GAE(lambda=1) is
+        # the Monte-Carlo reward-to-go minus V: the same update; a lambda below 1 is not.
+        weights = {}
+        for name, override in {
+            "rtg": {"returns": "reward_to_go"},
+            "gae1": {"returns": "gae", "gae_lambda": 1.0},
+            "gae05": {"returns": "gae", "gae_lambda": 0.5},
+        }.items():
+            run = tmp_path / name
+            _train(_cfg(tmp_path, run_dir=run, gamma=0.9, total_updates=1, **override))
+            weights[name] = _weights(run)
+        actor = [key for key in weights["rtg"] if key.startswith("actor_network")]
+        assert actor
+        for key in actor:
+            torch.testing.assert_close(weights["gae1"][key], weights["rtg"][key])
+        assert any(not torch.allclose(weights["gae05"][k], weights["rtg"][k]) for k in actor)
+
     def test_linear_learning_rate_schedule(self, tmp_path):
         # 6 updates x 80 frames = total_frames: update k (0-based) starts at 80k frames.
         cfg = _cfg(
@@ -357,6 +375,8 @@ class TestTrain:
             ({"ray": True}, "use --batch-mode segments with --ray"),
             ({"critic_steps": 0}, r"critic_steps \(--critic-steps\) must be an integer >= 1"),
             ({"critic_steps": 5, "baseline": "ema"}, "--critic-steps 5 fits a critic, but"),
+            ({"returns": "gae", "baseline": "running_mean"}, "--returns gae estimates"),
+            ({"gae_lambda": 1.5}, r"gae_lambda \(--gae-lambda\) must be a finite number"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
         ],
     )

@@ -91,8 +91,11 @@ class TrainConfig:
     """Updates between restarts of every environment (segments, one worker): episodes in
     flight are cut there. A resumed run replays the actions since the last restart, so
     the results do not depend on when, or how often, the run checkpoints."""
-    returns: Literal["reward_to_go", "discounted_return"] = "reward_to_go"
-    """Return that weights log pi: reward-to-go (causality) or the whole-episode return."""
+    returns: Literal["reward_to_go", "discounted_return", "gae"] = "reward_to_go"
+    """Return that weights log pi: reward-to-go (causality), the whole-episode return,
+    or TorchRL's generalised advantage estimate (GAE; needs baseline='critic')."""
+    gae_lambda: Annotated[float, Range(0, 1)] = 0.95
+    """GAE's lambda (returns='gae'): 1 is reward-to-go minus V, 0 the one-step TD error."""
     gamma: Annotated[float, Range(0, 1)] = 0.99
     """Discount factor."""
     baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
@@ -235,6 +238,11 @@ class TrainConfig:
             raise ValueError(
                 f"--critic-steps {self.critic_steps} fits a critic, but --baseline is "
                 f"{self.baseline!r}: use --baseline critic, or leave --critic-steps at 1."
+            )
+        if self.returns == "gae" and self.baseline != "critic":
+            raise ValueError(
+                f"--returns gae estimates advantages with a critic, but --baseline is "
+                f"{self.baseline!r}: use --baseline critic, or --returns reward_to_go."
             )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(

@@ -37,7 +37,10 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
         # The collector runs the actor itself: keep one set of parameters.
         functional=False,
     )
-    loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
+    if cfg.returns == "gae":
+        loss.make_value_estimator("gae", gamma=cfg.gamma, lmbda=cfg.gae_lambda)
+    else:
+        loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
     return loss
 
 
