@@ -15,16 +15,103 @@ from torchrl.modules import (
     IndependentNormal,
     OneHotCategorical,
     ProbabilisticActor,
+    RunningValueNorm,
     TanhNormal,
     ValueOperator,
 )
 
 from rl_pg._checks import check_int
 
-__all__ = ["mlp_actor", "mlp_actor_critic", "mlp_critic"]
+__all__ = ["RunningNorm", "mlp_actor", "mlp_actor_critic", "mlp_critic", "update_running_norms"]
 
 
-def _trunk(env: EnvBase, out_features: int, hidden: Sequence[int], activation, key: str):
+class RunningNorm(nn.Module):
+    """Standardises an observation with running statistics the learner keeps.
+
+    ``(x - mean) / std`` per feature, clipped to ``[-clip, clip]``, with the mean and
+    variance of every observation passed to [`update`][rl_pg.models.RunningNorm.update]
+    (TorchRL's ``RunningValueNorm``, Welford's algorithm); the identity until the first
+    update. Features of small spread (MetaDrive's heading and lane position vary by
+    about 0.04 around 0.5) then weigh as much as the others from the first layer on.
+
+    The statistics are buffers: they are saved with the model, reach collector workers
+    with the weights, and change only when ``update`` is called (the training loop calls
+    it after each optimiser step, on the batch's observations, see
+    [`update_running_norms`][rl_pg.models.update_running_norms]), never while acting.
+
+    Args:
+        shape (int or tuple of int): the shape of one observation.
+
+    Keyword Args:
+        key (str): the batch entry ``update_running_norms`` reads. Defaults to
+            ``"observation"``.
+        clip (float): bound of the standardised values. Defaults to ``5.0``.
+        min_std (float): floor of the standard deviation (a constant feature is not
+            blown up). Defaults to ``1e-2``.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.models import RunningNorm
+        >>> norm = RunningNorm(2)
+        >>> x = torch.tensor([[0.5, 10.0], [0.6, 30.0]])
+        >>> torch.equal(norm(x), x)  # no statistics yet
+        True
+        >>> norm.update(x)
+        >>> norm(x)
+        tensor([[-1., -1.],
+                [ 1.,  1.]])
+    """
+
+    def __init__(
+        self,
+        shape: int | Sequence[int],
+        *,
+        key: str = "observation",
+        clip: float = 5.0,
+        min_std: float = 1e-2,
+    ) -> None:
+        super().__init__()
+        self.stats = RunningValueNorm(shape=shape, epsilon=min_std**2)
+        self.key = key
+        self.clip = clip
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        normalised = self.stats.normalize(x).clamp(-self.clip, self.clip)
+        return torch.where(self.stats.count > 0, normalised, x)
+
+    def update(self, x: torch.Tensor) -> None:
+        """Adds the observations ``x`` (``[*batch, *shape]``) to the statistics."""
+        self.stats.update(x.detach().to(self.stats.mean.dtype))
+
+
+def update_running_norms(module: nn.Module, batch) -> None:
+    """Updates every [`RunningNorm`][rl_pg.models.RunningNorm] inside ``module`` (each
+    once, shared or not) with the batch's observations at its ``key``."""
+    seen = set()
+    for norm in module.modules():
+        if isinstance(norm, RunningNorm) and id(norm) not in seen:
+            seen.add(id(norm))
+            norm.update(batch.get(norm.key))
+
+
+def _running_norm(normalize, obs_shape, key: str) -> RunningNorm | None:
+    if isinstance(normalize, RunningNorm):
+        return normalize
+    if normalize is True:
+        return RunningNorm(tuple(obs_shape), key=key)
+    if normalize is False:
+        return None
+    raise TypeError(f"normalize must be True, False or a RunningNorm, got {normalize!r}.")
+
+
+def _trunk(
+    env: EnvBase,
+    out_features: int,
+    hidden: Sequence[int],
+    activation,
+    key: str,
+    normalize: bool | RunningNorm = False,
+):
     hidden = _check_hidden(hidden)
     if key not in env.observation_spec.keys(True, True):
         raise KeyError(
@@ -33,7 +120,16 @@ def _trunk(env: EnvBase, out_features: int, hidden: Sequence[int], activation, k
         )
     spec = env.observation_spec[key]
     obs_shape = spec.shape[len(env.batch_size) :]
+    norm = _running_norm(normalize, obs_shape, key)
     layers: list[nn.Module] = []
+    if norm is not None:
+        if tuple(norm.stats.shape) != tuple(obs_shape) or norm.key != key:
+            raise ValueError(
+                f"The RunningNorm passed as normalize= standardises {norm.key!r} of shape "
+                f"{tuple(norm.stats.shape)}, but the observation is {key!r} of shape "
+                f"{tuple(obs_shape)}: pass normalize=True to build a matching one."
+            )
+        layers.append(norm)
     if len(obs_shape) > 1:  # e.g. highway's [vehicles, features] table
         layers.append(nn.Flatten(start_dim=-len(obs_shape)))
     layers.append(
@@ -53,6 +149,7 @@ def mlp_actor(
     hidden: Sequence[int] = (64, 64),
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
+    normalize: bool | RunningNorm = False,
 ) -> ProbabilisticActor:
     """An MLP policy for ``env``'s action space.
 
@@ -65,6 +162,9 @@ def mlp_actor(
         hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
         activation (type): activation class. Defaults to ``nn.Tanh``.
         observation_key (str): the observation entry. Defaults to ``"observation"``.
+        normalize (bool or RunningNorm): standardise the observation first with a
+            [`RunningNorm`][rl_pg.models.RunningNorm] (``True``: a new one; a
+            ``RunningNorm``: that one, to share it). Defaults to ``False``.
 
     Raises:
         ValueError: for a hidden width < 1, an action space bounded in some dimensions
@@ -87,7 +187,7 @@ def mlp_actor(
     if isinstance(spec, Categorical):
         n_act = spec.space.n
     if isinstance(spec, (Categorical, OneHot)):
-        net = _trunk(env, n_act, hidden, activation, observation_key)
+        net = _trunk(env, n_act, hidden, activation, observation_key, normalize)
         distribution = (
             torch.distributions.Categorical if isinstance(spec, Categorical) else OneHotCategorical
         )
@@ -98,7 +198,8 @@ def mlp_actor(
             distribution_class=distribution,
         )
     net = nn.Sequential(
-        _trunk(env, 2 * n_act, hidden, activation, observation_key), NormalParamExtractor()
+        _trunk(env, 2 * n_act, hidden, activation, observation_key, normalize),
+        NormalParamExtractor(),
     )
     kwargs = {}
     distribution = IndependentNormal
@@ -159,6 +260,7 @@ def mlp_critic(
     hidden: Sequence[int] = (64, 64),
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
+    normalize: bool | RunningNorm = False,
 ) -> ValueOperator:
     """An MLP state-value network writing ``"state_value"``.
 
@@ -166,6 +268,9 @@ def mlp_critic(
         hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
         activation (type): activation class. Defaults to ``nn.Tanh``.
         observation_key (str): the observation entry. Defaults to ``"observation"``.
+        normalize (bool or RunningNorm): standardise the observation first with a
+            [`RunningNorm`][rl_pg.models.RunningNorm] (``True``: a new one; a
+            ``RunningNorm``: that one, to share it). Defaults to ``False``.
 
     Examples:
         >>> from rl_pg.envs import GridWorldEnv
@@ -175,7 +280,7 @@ def mlp_critic(
         torch.Size([1])
     """
     return ValueOperator(
-        _trunk(env, 1, hidden, activation, observation_key), in_keys=[observation_key]
+        _trunk(env, 1, hidden, activation, observation_key, normalize), in_keys=[observation_key]
     )
 
 
@@ -185,8 +290,10 @@ def mlp_actor_critic(
     hidden: Sequence[int] = (64, 64),
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
+    normalize: bool = False,
 ) -> tuple[ProbabilisticActor, ValueOperator]:
-    """An actor and a critic with the same layers (separate weights).
+    """An actor and a critic with the same layers (separate weights; with
+    ``normalize=True``, one [`RunningNorm`][rl_pg.models.RunningNorm] for both).
 
     See [`mlp_actor`][rl_pg.models.mlp_actor] and [`mlp_critic`][rl_pg.models.mlp_critic].
 
@@ -198,4 +305,7 @@ def mlp_actor_critic(
         ('ProbabilisticActor', 'ValueOperator')
     """
     kwargs = {"hidden": hidden, "activation": activation, "observation_key": observation_key}
-    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
+    actor = mlp_actor(env, normalize=normalize, **kwargs)
+    if normalize is True:  # the critic shares the actor's statistics
+        normalize = next(m for m in actor.modules() if isinstance(m, RunningNorm))
+    return actor, mlp_critic(env, normalize=normalize, **kwargs)

@@ -12,7 +12,13 @@ from torchrl.modules import IndependentNormal, TanhNormal
 
 from rl_pg import ReinforceLoss
 from rl_pg.envs import GridWorldEnv, gym_env
-from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
+from rl_pg.models import (
+    RunningNorm,
+    mlp_actor,
+    mlp_actor_critic,
+    mlp_critic,
+    update_running_norms,
+)
 
 
 class _BoxEnv(gym.Env):
@@ -114,3 +120,42 @@ class TestMlpActor:
     def test_missing_observation_key(self):
         with pytest.raises(KeyError, match="no observation 'pixels'"):
             mlp_actor(GridWorldEnv(), observation_key="pixels")
+
+
+class TestRunningNorm:
+    def test_standardises_with_the_statistics_of_every_update(self):
+        torch.manual_seed(0)
+        norm = RunningNorm(3, clip=100.0)
+        x = torch.randn(50, 3) * torch.tensor([0.04, 1.0, 30.0]) + torch.tensor([0.5, 0, -7])
+        assert torch.equal(norm(x), x)  # the identity before any statistics
+        norm.update(x[:20])
+        norm.update(x[20:])  # in two parts: the same as in one
+        expected = (x - x.mean(0)) / x.std(0, unbiased=False)
+        torch.testing.assert_close(norm(x), expected, atol=1e-4, rtol=1e-4)
+
+    def test_clips_and_floors_the_spread(self):
+        norm = RunningNorm(2, clip=5.0, min_std=0.01)
+        norm.update(torch.tensor([[0.5, 0.0], [0.5, 2.0]]))  # feature 0 never varies
+        out = norm(torch.tensor([[0.51, 1000.0]]))
+        torch.testing.assert_close(out, torch.tensor([[1.0, 5.0]]))
+
+    def test_actor_and_critic_share_one_set_of_statistics_saved_with_them(self):
+        env = GridWorldEnv(batch_size=4)
+        actor, critic = mlp_actor_critic(env, hidden=(8,), normalize=True)
+        norms = [m for net in (actor, critic) for m in net.modules() if isinstance(m, RunningNorm)]
+        assert len(norms) == 2 and norms[0] is norms[1]
+        loss = ReinforceLoss(actor, critic, functional=False)
+        batch = env.rollout(5, actor)
+        update_running_norms(loss, batch)
+        assert norms[0].stats.count.item() == 4 * 5  # updated once, not once per network
+        assert any(key.endswith("stats.mean") for key in actor.state_dict())
+        fresh = mlp_actor(env, hidden=(8,), normalize=True)
+        fresh.load_state_dict(actor.state_dict())
+        td = env.reset()
+        torch.testing.assert_close(fresh(td.clone())["logits"], actor(td.clone())["logits"])
+
+    def test_a_norm_of_another_shape_or_key_is_refused(self):
+        with pytest.raises(ValueError, match=r"standardises 'observation' of shape \(3,\)"):
+            mlp_actor(GridWorldEnv(), normalize=RunningNorm(3))
+        with pytest.raises(TypeError, match="normalize must be True, False or a RunningNorm"):
+            mlp_critic(GridWorldEnv(), normalize="yes")

@@ -26,7 +26,7 @@ from torchrl.modules import ValueOperator
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.evaluation import evaluate
-from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.models import RunningNorm, mlp_actor, mlp_critic, update_running_norms
 from rl_pg.recipes import load
 from rl_pg.training import (
     RunDirBusy,
@@ -351,6 +351,27 @@ class TestTrain:
         if actions.shape[-1] == 4:  # one-hot
             actions = actions.argmax(-1)
         assert (actions == 2).all()
+
+    def test_observation_statistics_reach_the_worker_processes(self, tmp_path):
+        from rl_pg.training.collection import Collection
+
+        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU, normalize=True)
+        collection = Collection(cfg, env, make_grid, actor, updates=0)
+        try:
+            batches = iter(collection)
+            update_running_norms(actor, next(batches))  # as the training loop does
+            assert next(m for m in actor.modules() if isinstance(m, RunningNorm)).stats.count > 0
+            collection.after_update(1)
+            next(batches)  # at most one batch in flight may predate the new statistics
+            batch = next(batches)
+        finally:
+            collection.shutdown()
+        # The workers acted with the learner's statistics: their logits are the learner's.
+        with torch.no_grad():
+            recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
+        torch.testing.assert_close(recomputed, batch["logits"])
 
     def test_multi_process_collection(self, tmp_path):
         summary = _train(_cfg(tmp_path, workers=2, total_updates=3))

@@ -8,6 +8,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.loss import ReinforceLoss
+from rl_pg.models import update_running_norms
 from rl_pg.training.config import TrainConfig
 
 __all__ = [
@@ -99,6 +100,9 @@ def update(
     }
     if cfg.critic_steps > 1:
         metrics["loss/value_fitted"] = _fit_critic(loss, optimizer, batch, cfg, max_norm)
+    # Observation statistics move after the step: the batch was collected, and its
+    # loss computed, with the ones before it.
+    update_running_norms(loss, batch)
     for key in ("entropy", "advantage_mean", "advantage_std", "explained_variance", "baseline"):
         value = losses.get(key, None)
         if value is not None:
