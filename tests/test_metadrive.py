@@ -17,6 +17,7 @@ from PIL import Image
 
 from rl_pg.envs import metadrive as md
 from rl_pg.recipes import evaluate, load, play
+from rl_pg.training import read_run
 
 needs_metadrive = pytest.mark.skipif(
     importlib.util.find_spec("metadrive") is None,
@@ -205,6 +206,9 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
         assert 0.0 <= summary[key] <= 1.0
     assert 0.0 <= summary["eval_mean_route_completion"] <= 1.0
     assert BaseEngine.singleton is None  # training closed its engine
+    # The deployed agent standardises what it sees as it did in training.
+    counts = [v for k, v in read_run(run)["loss"].items() if k.endswith("stats.count")]
+    assert counts and all(count == summary["frames"] for count in counts)
     result = evaluate.main(evaluate.Args(run=run, episodes=1))
     assert 0.0 <= result["mean_route_completion"] <= 1.0 and "crash_rate" in result
     assert BaseEngine.singleton is None
