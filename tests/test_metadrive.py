@@ -16,7 +16,7 @@ import torch
 from PIL import Image
 
 from rl_pg.envs import metadrive as md
-from rl_pg.recipes import evaluate, load, play
+from rl_pg.recipes import cli, evaluate, load, play
 from rl_pg.training import read_run
 
 needs_metadrive = pytest.mark.skipif(
@@ -223,8 +223,13 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
 
 @needs_metadrive
 def test_references_measure_random_and_full_throttle(capsys):
-    cfg = recipe.config(references=True, eval_episodes=2, horizon=30)
-    results = recipe.run(cfg)
+    # As a user runs it: the command prints one line per driver, and nothing else.
+    cli.main(["train", "metadrive", "--references", "--eval-episodes", "2", "--horizon", "30"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    results = {}
+    for line in lines:
+        name, _, values = line.partition(": ")
+        results[name] = {k: float(v) for k, v in (item.split() for item in values.split(", "))}
     assert set(results) == {"random", "full throttle"}
     for result in results.values():
         assert 0.0 <= result["mean_route_completion"] <= 1.0
@@ -234,4 +239,3 @@ def test_references_measure_random_and_full_throttle(capsys):
         results["full throttle"]["mean_route_completion"]
         > results["random"]["mean_route_completion"]
     )
-    assert "full throttle:" in capsys.readouterr().out

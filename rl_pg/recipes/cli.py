@@ -128,4 +128,8 @@ def _evaluate(args: list[str]) -> None:
 
 
 def _report(result: dict) -> None:
-    print(format_summary(result) if "frames" in result else format_comparison(result))
+    """A run's summary, or a comparison's; a recipe command printed its own result."""
+    if "frames" in result:
+        print(format_summary(result))
+    elif result and all(isinstance(runs, list) for runs in result.values()):
+        print(format_comparison(result))
