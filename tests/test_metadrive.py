@@ -154,6 +154,25 @@ def test_registered_ids_make_through_gymnasium():
     finally:
         env.close()
     assert gym.spec(md.HELD_OUT).kwargs == {"start_seed": 10_000, "num_scenarios": 100}
+    assert gym.spec(md.SELECTION).kwargs == {"start_seed": 10_100, "num_scenarios": 100}
+
+
+@needs_metadrive
+def test_checkpoints_are_picked_and_scored_on_scenarios_apart_from_each_other_and_training():
+    def scenarios(env_id):
+        start, count = md.SCENARIO_SETS[env_id]
+        return set(range(start, start + count))
+
+    training = set().union(*(scenarios(i) for i in md.SCENARIO_SETS if not i.startswith("rl_pg/")))
+    selection, held_out = scenarios(md.SELECTION), scenarios(md.HELD_OUT)
+    assert not selection & held_out and not (selection | held_out) & training
+    # The recipe picks on the selection scenarios and scores on the held-out ones (the
+    # environments are built in processes of their own: read what they will build).
+    cfg = recipe.config()
+    for make, env_id in ((recipe.make_eval_env, md.SELECTION), (recipe.test_env, md.HELD_OUT)):
+        env = make(cfg)
+        assert env.create_env_fn[0].make_env.args == (env_id,)
+        assert env.is_closed  # nothing started
 
 
 @needs_metadrive

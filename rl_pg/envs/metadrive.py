@@ -19,7 +19,11 @@ Importing this module registers gymnasium ids (MetaDrive itself no longer does s
 | ``MetaDrive-10env-v0`` | 1000 - 1009 | MetaDrive's former training sets |
 | ``MetaDrive-100envs-v0`` | 1000 - 1099 | |
 | ``MetaDrive-1000envs-v0`` | 1000 - 1999 | |
-| ``rl_pg/MetaDrive-heldout-v0`` | 10000 - 10099 | evaluation: in none of the sets above |
+| ``rl_pg/MetaDrive-selection-v0`` | 10100 - 10199 | picking the checkpoint to deploy |
+| ``rl_pg/MetaDrive-heldout-v0`` | 10000 - 10099 | scoring the deployed agent |
+
+The last two share no scenario with the sets above or with each other, so that the
+agent is scored on scenarios it was neither trained nor chosen on.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ __all__ = [
     "HELD_OUT",
     "METADRIVE_FLAGS",
     "SCENARIO_SETS",
+    "SELECTION",
     "MetaDriveScenarios",
     "driving_actions",
     "metadrive_env",
@@ -57,7 +62,11 @@ no limit; a uniformly random driver wanders for 500 to more than 5 000 steps, wh
 route driven at full speed takes 100 to 300."""
 
 HELD_OUT = "rl_pg/MetaDrive-heldout-v0"
-"""The id of the held-out scenarios (10000 - 10099)."""
+"""The id of the held-out scenarios (10000 - 10099), which score a trained agent."""
+
+SELECTION = "rl_pg/MetaDrive-selection-v0"
+"""The id of the scenarios (10100 - 10199) that evaluations during training play to pick
+the checkpoint to deploy, apart from those that score it."""
 
 SCENARIO_SETS: dict[str, tuple[int, int]] = {
     "MetaDrive-validation-v0": (0, 1000),
@@ -65,6 +74,7 @@ SCENARIO_SETS: dict[str, tuple[int, int]] = {
     "MetaDrive-100envs-v0": (1000, 100),
     "MetaDrive-1000envs-v0": (1000, 1000),
     HELD_OUT: (10_000, 100),
+    SELECTION: (10_100, 100),
 }
 """``id -> (first scenario index, number of scenarios)``."""
 

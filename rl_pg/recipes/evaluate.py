@@ -4,9 +4,10 @@ rl-pg evaluate runs/lunarlander-seed0                 # best checkpoint, 100 gre
 rl-pg evaluate runs/lunarlander-seed0 --sample        # by sampling
 rl-pg evaluate runs/metadrive-seed0 --checkpoint last --episodes 20
 
-The recipe's evaluation environment, with its metrics (flag rates such as crashes,
-values such as route completion), rebuilt from the run directory alone. Each result is
-also appended to the run's ``evaluations.jsonl``.
+The recipe's test environment (its evaluation environment, on fresh seeds, unless the
+recipe keeps scenarios apart for scoring, as MetaDrive's does), with its metrics (flag
+rates such as crashes, values such as route completion), rebuilt from the run directory
+alone. Each result is also appended to the run's ``evaluations.jsonl``.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ EVALUATIONS = "evaluations.jsonl"
 
 @dataclass
 class Args:
-    """Evaluate a trained agent on the recipe's evaluation environment."""
+    """Evaluate a trained agent on the recipe's test environment."""
 
     run: tyro.conf.Positional[Path]
     """Run directory (or checkpoint file) written by a recipe."""
@@ -59,7 +60,7 @@ def main(args: Args) -> dict[str, Any]:
     recipe = recipe_of(saved, args.run)
     cfg = recipe.config.from_stored(saved["config"])
     seed = fresh_seed(cfg.seed) if args.seed is None else args.seed
-    env = (recipe.make_eval_env or recipe.make_env)(cfg)
+    env = recipe.test_env(cfg)
     try:
         actor, critic = recipe.make_models(env, cfg)
         load_models(saved, actor, critic)

@@ -1,12 +1,14 @@
 """REINFORCE on MetaDrive, the driving tutorials' own simulator (docs/recipes/metadrive.md).
 
 Trains on the tutorials' ``MetaDrive-validation-v0`` (scenarios 0 - 999; a
-259-dimensional observation in [0, 1]; 9 joint [steering, throttle] actions) and
-evaluates greedily on 100 held-out scenarios, each once, in a process of its own.
-MetaDrive runs offline and headless (its asset download is skipped)::
+259-dimensional observation in [0, 1]; 9 joint [steering, throttle] actions). Greedy
+evaluations during training, each in a process of its own, play 100 selection scenarios
+and keep the best checkpoint; ``rl-pg evaluate`` scores it on 100 held-out scenarios,
+apart from both. MetaDrive runs offline and headless (its asset download is skipped)::
 
     pip install -c constraints.txt "rl_pg[metadrive]"    # Python < 3.12
-    rl-pg train metadrive
+    rl-pg train metadrive --run-dir runs/metadrive
+    rl-pg evaluate runs/metadrive                        # the best checkpoint, held out
     rl-pg train metadrive --references                   # random and full-throttle drivers
 """
 
@@ -52,18 +54,19 @@ class Config(
     workers=2,  # one MetaDrive engine per process: collection on both cores
     checkpoint_interval=100,
     eval_interval=250_000,
-    eval_episodes=100,  # every held-out scenario once
+    eval_episodes=100,  # every selection scenario once
     threshold=None,  # solved is judged on route completion and success, not the return
     stop_when_solved=False,
 ):
     """REINFORCE on MetaDrive: 9 discrete driving actions, standardised observations,
-    GAE over 256-step segments, held-out evaluation."""
+    GAE over 256-step segments, evaluated on held-out scenarios."""
 
     env_id: Literal[
         "MetaDrive-validation-v0", "MetaDrive-10env-v0", "MetaDrive-100envs-v0",
         "MetaDrive-1000envs-v0",
     ] = "MetaDrive-validation-v0"  # fmt: skip
-    """Training scenarios (evaluation: the held-out scenarios 10000-10099)."""
+    """Training scenarios (the best checkpoint is picked on scenarios 10100-10199 and
+    scored on the held-out 10000-10099)."""
     actions: Literal["tutorial", "swapped"] = "tutorial"
     """The 9-action table as the tutorial fed it to MetaDrive (steering +-1, throttle
     +-0.6), or swapped (steering +-0.6, throttle +-1)."""
@@ -89,15 +92,18 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
 
 
 def make_eval_env(cfg: Config) -> EnvBase:
-    """The held-out scenarios in order, in a process of their own (one engine per process)."""
-    return _heldout(cfg.actions, cfg.horizon)
+    """The selection scenarios in order, in a process of their own (one engine per process)."""
+    return _in_order(md.SELECTION, cfg.actions, cfg.horizon)
 
 
-def _heldout(actions: str | None, horizon: int) -> EnvBase:
+def make_test_env(cfg: Config) -> EnvBase:
+    """The held-out scenarios in order, in a process of their own."""
+    return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon)
+
+
+def _in_order(env_id: str, actions: str | None, horizon: int) -> EnvBase:
     md.require_metadrive()  # here, rather than as a worker's traceback
-    make = partial(
-        md.metadrive_env, md.HELD_OUT, actions=actions, order="sequential", horizon=horizon
-    )
+    make = partial(md.metadrive_env, env_id, actions=actions, order="sequential", horizon=horizon)
     # Pipes, not shared buffers: with buffers this process spins on a core while it waits.
     return ParallelEnv(1, MainProcessInterrupts(make), mp_start_method="spawn", use_buffers=False)
 
@@ -109,7 +115,8 @@ def make_models(env: EnvBase, cfg: Config):
 
 
 def references(cfg: Config) -> dict:
-    """Evaluates a random and an always-full-throttle driver as training runs are evaluated."""
+    """Scores a random and an always-full-throttle driver as ``rl-pg evaluate`` scores
+    trained agents: on the held-out scenarios."""
     drivers = (
         # uniformly among the 9 actions of the table, as an untrained policy starts
         ("random", cfg.actions, lambda env: RandomPolicy(env.action_spec)),
@@ -118,7 +125,7 @@ def references(cfg: Config) -> dict:
     )
     results = {}
     for name, actions, make_policy in drivers:
-        env = _heldout(actions, cfg.horizon)
+        env = _in_order(md.HELD_OUT, actions, cfg.horizon)
         try:
             torch.manual_seed(cfg.seed)
             env.set_seed(evaluation_seed(cfg.seed))  # the scenarios training evaluations play
@@ -148,6 +155,7 @@ RECIPE = Recipe(
     make_env=make_env,
     make_models=make_models,
     make_eval_env=make_eval_env,
+    make_test_env=make_test_env,
     eval_flags=md.METADRIVE_FLAGS,
     eval_values=("route_completion",),
     commands={"references": references},

@@ -48,8 +48,13 @@ class Recipe:
             (for recordings). Module-level functions keep multi-process collection
             possible (they are pickled).
         make_models (callable): ``(env, cfg) -> (actor, critic or None)``.
-        make_eval_env (callable, optional): ``cfg -> EnvBase`` for evaluations.
-            Defaults to ``make_env``.
+        make_eval_env (callable, optional): ``cfg -> EnvBase`` for the evaluations
+            during training, which pick the best checkpoint. Defaults to ``make_env``.
+        make_test_env (callable, optional): ``cfg -> EnvBase`` that scores a trained
+            agent (``rl-pg evaluate``), when it must differ from the one that picked
+            the checkpoint (a fixed set of levels, say: scored on those it was chosen
+            on, the best checkpoint looks better than it is). Defaults to
+            ``make_eval_env``, which fresh seeds then keep apart.
         eval_flags (sequence of str): boolean entries evaluations report as rates
             (``("crashed",)``). Defaults to ``()``.
         eval_values (sequence of str): entries whose value at an episode's end
@@ -68,6 +73,7 @@ class Recipe:
     make_env: Callable[..., EnvBase]
     make_models: Callable[[EnvBase, Any], Models]
     make_eval_env: Callable[[Any], EnvBase] | None = None
+    make_test_env: Callable[[Any], EnvBase] | None = None
     eval_flags: Sequence[str] = ()
     eval_values: Sequence[str] = ()
     prepare: Callable[[Any], Any] | None = None
@@ -93,6 +99,11 @@ class Recipe:
     def module(self) -> str:
         """The module that defines the recipe's functions (recorded in its runs)."""
         return self.make_env.__module__
+
+    def test_env(self, cfg: TrainConfig) -> EnvBase:
+        """The environment that scores a trained agent (see ``make_test_env``)."""
+        make = self.make_test_env or self.make_eval_env or self.make_env
+        return make(cfg)
 
     @property
     def description(self) -> str:
