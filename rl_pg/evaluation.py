@@ -66,13 +66,8 @@ def first_episodes(
     for key in values:
         value = rollout.get(("next", key), None)
         if value is not None:
-            value = value.reshape(*rollout.shape, -1)
-            if value.shape[-1] != 1:
-                raise ValueError(
-                    f"values are read as one number per step; {key!r} has "
-                    f"{value.shape[-1]} (pass it under flags if it is a boolean)."
-                )
-            out[key] = value[..., 0].float().gather(-1, last[:, None])[:, 0]
+            value = _one_per_step(key, value.reshape(*rollout.shape, -1))
+            out[key] = value.float().gather(-1, last[:, None])[:, 0]
     return out
 
 
@@ -88,8 +83,11 @@ def evaluate(
 ) -> dict[str, float]:
     """Plays ``episodes`` episodes; returns their mean and std return, flag rates, values.
 
-    A batched ``env`` plays its environments in parallel; only the first episode of
-    each counts, so the result does not favour short episodes.
+    A batched ``env`` plays its environments side by side, each its share of the
+    ``episodes`` back to back: its first ``episodes // n`` (one more for the first
+    ``episodes % n`` environments), so the result does not favour short episodes.
+    Environments are reset only when their episode ends, so one that walks through a
+    fixed list of start states (an in-order scenario set) skips none.
 
     Keyword Args:
         episodes (int): number of episodes.
@@ -127,23 +125,21 @@ def evaluate(
     """
     episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
     flags, values = check_names("flags", flags), check_names("values", values)
-    n_envs = max(1, math.prod(env.batch_size))
-    results: dict[str, list[torch.Tensor]] = {}
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     cast = _device_of(policy) not in (None, env.device)  # a policy on a GPU, say
     with set_exploration_type(exploration), torch.no_grad():
-        played = 0
-        while played < episodes:
-            if n_envs == 1:
+        if math.prod(env.batch_size) > 1:
+            stats = _side_by_side(policy, env, episodes, max_steps, flags, values, cast=cast)
+        else:
+            results: dict[str, list[torch.Tensor]] = {}
+            for _ in range(episodes):
                 rollout = env.rollout(
                     max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast
                 )
-            else:
-                rollout = _until_each_done(policy, env, max_steps, cast=cast)
-            for key, value in first_episodes(rollout, flags, values).items():
-                results.setdefault(key, []).append(value)
-            played += n_envs
-    stats = {key: torch.cat(value)[:episodes].float() for key, value in results.items()}
+                for key, value in first_episodes(rollout, flags, values).items():
+                    results.setdefault(key, []).append(value)
+            stats = {key: torch.cat(value) for key, value in results.items()}
+    stats = {key: value.float() for key, value in stats.items()}
     out = {
         "mean_return": stats["return"].mean().item(),
         "std_return": stats["return"].std(unbiased=False).item(),
@@ -163,32 +159,91 @@ def _device_of(policy: TensorDictModuleBase) -> torch.device | None:
     return None if parameters is None else next((p.device for p in parameters()), None)
 
 
-def _until_each_done(
-    policy: TensorDictModuleBase, env: EnvBase, max_steps: int, *, cast: bool, chunk: int = 64
-) -> TensorDictBase:
-    """``[*B, T]`` rollout of a batched env until each of its envs has ended an episode.
+def _side_by_side(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    episodes: int,
+    max_steps: int,
+    flags: Sequence[str],
+    values: Sequence[str],
+    *,
+    cast: bool,
+    chunk: int = 64,
+) -> dict[str, torch.Tensor]:
+    """``episodes`` episodes of a batched ``env``, each of its environments playing its
+    share back to back; returns one entry per episode, as ``first_episodes`` does.
 
-    Finished environments are reset (as in training) rather than stepped past their
-    end, which vector environments without auto-reset do not allow.
+    Environment ``i`` contributes its first ``episodes // n`` episodes (one more for the
+    first ``episodes % n``), whatever their lengths, so short episodes are not favoured;
+    one that has played its share plays on uncounted until the others have. Each
+    environment is reset only when its episode ends (or is cut at ``max_steps``), so an
+    environment that walks through a fixed list of start states, like an in-order
+    scenario set, skips none of them.
     """
+    n = math.prod(env.batch_size)
+    share = torch.full((n,), episodes // n)
+    share[: episodes % n] += 1
+    played = torch.zeros(n, dtype=torch.long)
+    running = {"return": torch.zeros(n), "length": torch.zeros(n, dtype=torch.long)}
+    episodes_out: dict[str, list[torch.Tensor]] = {"finished": []}
     tensordict = env.reset()
-    parts, steps = [], 0
-    finished = torch.zeros(env.batch_size, dtype=torch.bool)
-    while steps < max_steps and not finished.all():
+    while (played < share).any():
+        steps = min(chunk, max_steps - int(running["length"].max()))
         part = env.rollout(
-            min(chunk, max_steps - steps),
+            steps,
             policy,
             auto_reset=False,
             tensordict=tensordict,
             break_when_any_done=False,
             auto_cast_to_device=cast,
         )
-        parts.append(part)
-        steps += part.shape[-1]
-        done = part["next", "done"].reshape(*part.shape, -1).any(-1)
-        finished |= done.any(-1)
-        tensordict = env.maybe_reset(step_mdp(part[..., -1]))
-    return torch.cat(parts, dim=-1)
+        nxt = part["next"].reshape(n, steps)
+        per_step = {
+            "return": nxt["reward"].reshape(n, steps, -1).sum(-1).float(),
+            "done": nxt["done"].reshape(n, steps, -1).any(-1),
+        }
+        for flag in flags:
+            if (value := nxt.get(flag, None)) is not None:
+                per_step[flag] = value.reshape(n, steps, -1).any(-1)
+                running.setdefault(flag, torch.zeros(n, dtype=torch.bool))
+        for key in values:
+            if (value := nxt.get(key, None)) is not None:
+                per_step[key] = _one_per_step(key, value.reshape(n, steps, -1)).float()
+                running.setdefault(key, torch.zeros(n))
+        for t in range(steps):
+            running["return"] += per_step["return"][:, t]
+            running["length"] += 1
+            for key in running.keys() - {"return", "length"}:
+                if key in flags:
+                    running[key] |= per_step[key][:, t]
+                else:
+                    running[key] = per_step[key][:, t].clone()
+            done = per_step["done"][:, t]
+            ended = done | (running["length"] >= max_steps)
+            if ended.any():
+                counted = ended & (played < share)
+                for key, value in running.items():
+                    episodes_out.setdefault(key, []).append(value[counted].clone())
+                    value[ended] = 0
+                episodes_out["finished"].append(done[counted])
+                played += ended.long()
+        cut = (running["length"] == 0) & ~per_step["done"][:, -1]  # at max_steps, not done
+        tensordict = step_mdp(part[..., -1])
+        if cut.any():  # end those episodes as a time limit would, so they are reset
+            for key in ("done", "truncated"):
+                if key in tensordict.keys():
+                    tensordict[key] = tensordict[key] | cut.reshape(tensordict[key].shape)
+        tensordict = env.maybe_reset(tensordict)
+    return {key: torch.cat(value) for key, value in episodes_out.items()}
+
+
+def _one_per_step(key: str, value: torch.Tensor) -> torch.Tensor:
+    if value.shape[-1] != 1:
+        raise ValueError(
+            f"values are read as one number per step; {key!r} has "
+            f"{value.shape[-1]} (pass it under flags if it is a boolean)."
+        )
+    return value[..., 0]
 
 
 def play(

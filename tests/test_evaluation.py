@@ -6,6 +6,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from torchrl.data import Binary, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
 from rl_pg.envs import BanditEnv, GridWorldEnv
@@ -104,3 +106,58 @@ def test_evaluate_averages_values_and_takes_policies_without_parameters():
         evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=["observation"])
     with pytest.raises(TypeError, match="values"):
         evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=[3])
+
+
+class _Scenarios(EnvBase):
+    """Walks through scenarios ``first, first + 1, ...``, one per reset; scenario ``k``
+    lasts ``1 + k % 4`` steps, pays ``k`` per step and is "odd" when ``k`` is."""
+
+    def __init__(self, first: int):
+        super().__init__()
+        self.next_scenario, self.scenario, self.t = first, -1, 0
+        flag = Binary(1, shape=(1,), dtype=torch.bool)
+        self.observation_spec = Composite(observation=Unbounded(shape=(1,)), odd=flag)
+        self.action_spec = Categorical(2, shape=())
+        self.reward_spec = Unbounded(shape=(1,))
+        self.full_done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone())
+
+    def _reset(self, tensordict):
+        self.scenario, self.t = self.next_scenario, 0
+        self.next_scenario += 1
+        return TensorDict(
+            {"observation": torch.zeros(1), "done": torch.zeros(1, dtype=torch.bool),
+             "terminated": torch.zeros(1, dtype=torch.bool),
+             "truncated": torch.zeros(1, dtype=torch.bool),
+             "odd": torch.zeros(1, dtype=torch.bool)},
+        )  # fmt: skip
+
+    def _step(self, tensordict):
+        self.t += 1
+        k = self.scenario
+        done = torch.tensor([self.t == 1 + k % 4])
+        return TensorDict(
+            {"observation": torch.full((1,), float(self.t)), "reward": torch.full((1,), float(k)),
+             "done": done, "terminated": done, "truncated": torch.zeros(1, dtype=torch.bool),
+             "odd": done & (k % 2 == 1)},
+        )  # fmt: skip
+
+    def _set_seed(self, seed):
+        return seed
+
+
+@pytest.mark.parametrize(
+    ("max_steps", "lengths"),
+    [(100, [1, 2, 3, 3, 4]), (2, [1, 2, 2, 2, 2])],  # scenarios 0, 1, 2 and 10, 11
+)
+def test_a_batched_env_plays_each_environments_share_in_order_skipping_nothing(max_steps, lengths):
+    from torchrl.envs import SerialEnv
+    from torchrl.envs.utils import RandomPolicy
+
+    env = SerialEnv(2, [lambda: _Scenarios(0), lambda: _Scenarios(10)])
+    scenarios = [0, 1, 2, 10, 11]  # env 0 plays 3 of the 5 episodes, env 1 plays 2
+    out = evaluate(RandomPolicy(env.action_spec), env, episodes=5, max_steps=max_steps,
+                   flags=["odd"])  # fmt: skip
+    assert out["mean_length"] == pytest.approx(sum(lengths) / 5)
+    returns = [k * n for k, n in zip(scenarios, lengths, strict=True)]
+    assert out["mean_return"] == pytest.approx(sum(returns) / 5)
+    assert out["odd_rate"] == pytest.approx(0.4 if max_steps == 100 else 0.2)  # 11 is cut

@@ -168,11 +168,34 @@ def test_checkpoints_are_picked_and_scored_on_scenarios_apart_from_each_other_an
     assert not selection & held_out and not (selection | held_out) & training
     # The recipe picks on the selection scenarios and scores on the held-out ones (the
     # environments are built in processes of their own: read what they will build).
-    cfg = recipe.config()
+    # Each evaluation worker plays its own part of the set: together, each scenario once.
+    cfg = recipe.config(workers=3)
     for make, env_id in ((recipe.make_eval_env, md.SELECTION), (recipe.test_env, md.HELD_OUT)):
         env = make(cfg)
-        assert env.create_env_fn[0].make_env.args == (env_id,)
         assert env.is_closed  # nothing started
+        assert len(env.create_env_fn) == 3
+        assert {fn.make_env.args for fn in env.create_env_fn} == {(env_id,)}
+        parts = [fn.make_env.keywords["scenarios"] for fn in env.create_env_fn]
+        assert sorted(k for part in parts for k in part) == sorted(scenarios(env_id))
+
+
+@needs_metadrive
+def test_a_scenario_is_the_same_whichever_part_of_its_set_it_is_played_from(scenarios):
+    def drive(env, **reset):
+        observations = [env.reset(**reset)[0]]
+        for step in range(40):  # steer a little, full throttle: the road and traffic move
+            observations.append(env.step(np.array([0.3 * (step % 3 - 1), 1.0]))[0])
+        env.close()
+        return np.stack(observations)
+
+    whole = drive(scenarios(start_seed=10_000, num=100), options={"scenario": 10_067})
+    part = md.split_scenarios(md.HELD_OUT, 3)[2]  # range(10067, 10100)
+    alone = drive(scenarios(start_seed=part.start, num=len(part), order="sequential"), seed=0)
+    np.testing.assert_allclose(whole, alone, atol=1e-5)
+    with pytest.raises(ValueError, match="consecutive scenarios of rl_pg/MetaDrive-heldout-v0"):
+        md.metadrive_env(md.HELD_OUT, scenarios=range(10_090, 10_110))
+    with pytest.raises(ValueError, match="cannot be cut into 101 parts"):
+        md.split_scenarios(md.HELD_OUT, 101)
 
 
 @needs_metadrive

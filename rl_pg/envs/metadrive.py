@@ -54,6 +54,7 @@ __all__ = [
     "driving_actions",
     "metadrive_env",
     "require_metadrive",
+    "split_scenarios",
 ]
 
 DEFAULT_HORIZON = 1000
@@ -284,6 +285,7 @@ def metadrive_env(
     horizon: int = DEFAULT_HORIZON,
     flags: Sequence[str] = METADRIVE_FLAGS,
     render: bool = False,
+    scenarios: range | None = None,
     config: dict[str, Any] | None = None,
 ) -> EnvBase:
     """A registered MetaDrive scenario set as a TorchRL environment.
@@ -303,10 +305,16 @@ def metadrive_env(
         flags (sequence of str): MetaDrive's boolean ``info`` entries to expose.
             ``route_completion`` (a float, the share of the route driven) always is.
         render (bool): add top-down frames under ``"pixels"``. Defaults to ``False``.
+        scenarios (range, optional): play only these scenarios of the set (e.g. one
+            evaluation worker's part, see
+            [`split_scenarios`][rl_pg.envs.metadrive.split_scenarios]); a scenario is
+            the same map and traffic whichever range it is played from. Defaults to
+            the whole set.
         config (dict, optional): other MetaDrive settings.
 
     Raises:
-        ValueError: an id that is not one of ``SCENARIO_SETS``.
+        ValueError: an id that is not one of ``SCENARIO_SETS``, or ``scenarios`` that
+            are not a consecutive part of it.
         ModuleNotFoundError: MetaDrive is not installed.
     """
     if env_id not in SCENARIO_SETS:
@@ -315,6 +323,21 @@ def metadrive_env(
         )
     require_metadrive()
     kwargs: dict[str, Any] = {"order": order, "horizon": horizon, "config": config}
+    if scenarios is not None:
+        start, count = SCENARIO_SETS[env_id]
+        whole = range(start, start + count)
+        if (
+            not isinstance(scenarios, range)
+            or scenarios.step != 1
+            or len(scenarios) == 0
+            or scenarios.start not in whole
+            or scenarios[-1] not in whole
+        ):
+            raise ValueError(
+                f"scenarios must be a non-empty range of consecutive scenarios of {env_id} "
+                f"(range({start}, {start + count})), got {scenarios!r}."
+            )
+        kwargs.update(start_seed=scenarios.start, num_scenarios=len(scenarios))
     if render:
         kwargs.update(from_pixels=True, pixels_only=False)
     env = GymEnv(env_id, **kwargs)
@@ -324,6 +347,33 @@ def metadrive_env(
     if actions is None:
         return env
     return TransformedEnv(env, DiscretizeAction(actions=driving_actions(actions)))
+
+
+def split_scenarios(env_id: str, parts: int) -> list[range]:
+    """Cuts a scenario set into ``parts`` consecutive ranges, the first ones one longer
+    when it does not divide evenly: the shares of an evaluation whose ``parts``
+    environments play the set once, side by side (see
+    [`evaluate`][rl_pg.evaluation.evaluate]).
+
+    Examples:
+        >>> from rl_pg.envs.metadrive import HELD_OUT, split_scenarios
+        >>> split_scenarios(HELD_OUT, 3)
+        [range(10000, 10034), range(10034, 10067), range(10067, 10100)]
+    """
+    if env_id not in SCENARIO_SETS:
+        raise ValueError(
+            f"Unknown MetaDrive scenario set {env_id!r}; choose one of {list(SCENARIO_SETS)}."
+        )
+    start, count = SCENARIO_SETS[env_id]
+    parts = check_int("parts", parts, low=1)
+    if parts > count:
+        raise ValueError(f"{env_id} has {count} scenarios: it cannot be cut into {parts} parts.")
+    out, first = [], start
+    for i in range(parts):
+        size = count // parts + (i < count % parts)
+        out.append(range(first, first + size))
+        first += size
+    return out
 
 
 def _register() -> None:

@@ -92,20 +92,30 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
 
 
 def make_eval_env(cfg: Config) -> EnvBase:
-    """The selection scenarios in order, in a process of their own (one engine per process)."""
-    return _in_order(md.SELECTION, cfg.actions, cfg.horizon)
+    """The selection scenarios in order, split among ``cfg.workers`` processes."""
+    return _in_order(md.SELECTION, cfg.actions, cfg.horizon, workers=cfg.workers)
 
 
 def make_test_env(cfg: Config) -> EnvBase:
-    """The held-out scenarios in order, in a process of their own."""
-    return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon)
+    """The held-out scenarios in order, split among ``cfg.workers`` processes."""
+    return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon, workers=cfg.workers)
 
 
-def _in_order(env_id: str, actions: str | None, horizon: int) -> EnvBase:
+def _in_order(env_id: str, actions: str | None, horizon: int, *, workers: int = 1) -> EnvBase:
+    """Each worker plays its consecutive part of the set in order, in a process of its
+    own (one engine per process): an evaluation of as many episodes as the set has
+    scenarios plays each once."""
     md.require_metadrive()  # here, rather than as a worker's traceback
-    make = partial(md.metadrive_env, env_id, actions=actions, order="sequential", horizon=horizon)
+    parts = md.split_scenarios(env_id, workers)
+    makers = [
+        MainProcessInterrupts(
+            partial(md.metadrive_env, env_id, actions=actions, order="sequential",
+                    horizon=horizon, scenarios=part)
+        )
+        for part in parts
+    ]  # fmt: skip
     # Pipes, not shared buffers: with buffers this process spins on a core while it waits.
-    return ParallelEnv(1, MainProcessInterrupts(make), mp_start_method="spawn", use_buffers=False)
+    return ParallelEnv(len(parts), makers, mp_start_method="spawn", use_buffers=False)
 
 
 def make_models(env: EnvBase, cfg: Config):
@@ -125,7 +135,7 @@ def references(cfg: Config) -> dict:
     )
     results = {}
     for name, actions, make_policy in drivers:
-        env = _in_order(md.HELD_OUT, actions, cfg.horizon)
+        env = _in_order(md.HELD_OUT, actions, cfg.horizon, workers=cfg.workers)
         try:
             torch.manual_seed(cfg.seed)
             env.set_seed(evaluation_seed(cfg.seed))  # the scenarios training evaluations play
