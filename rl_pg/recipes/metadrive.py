@@ -50,10 +50,15 @@ class Config(
     # The tutorial's 0.1 kept the policy near uniform here (see the docs page).
     entropy_coeff=0.01,
     lr=1e-3,
+    # Decayed to 0: at a constant 1e-3 the greedy policy moved by up to 0.15 route
+    # completion between evaluations to the end (see the docs page).
+    lr_schedule="linear",
     normalize_advantage=True,
     workers=2,  # one MetaDrive engine per process: collection on both cores
     checkpoint_interval=100,
-    eval_interval=250_000,
+    # 16 candidates for the best checkpoint; with both workers evaluating, they cost
+    # the wall-clock 8 did on one.
+    eval_interval=125_000,
     eval_episodes=100,  # every selection scenario once
     threshold=None,  # solved is judged on route completion and success, not the return
     stop_when_solved=False,
