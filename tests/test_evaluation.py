@@ -11,7 +11,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
 from rl_pg.envs import BanditEnv, GridWorldEnv
-from rl_pg.evaluation import evaluate, first_episodes
+from rl_pg.evaluation import EpisodeWorkers, evaluate, first_episodes
 
 
 def _fixed_actor(n_obs, logits):
@@ -145,19 +145,52 @@ class _Scenarios(EnvBase):
         return seed
 
 
+def _raise():
+    raise ValueError("no such scenario set")
+
+
+@pytest.mark.parametrize("batched", ["serial", "processes"])
 @pytest.mark.parametrize(
     ("max_steps", "lengths"),
     [(100, [1, 2, 3, 3, 4]), (2, [1, 2, 2, 2, 2])],  # scenarios 0, 1, 2 and 10, 11
 )
-def test_a_batched_env_plays_each_environments_share_in_order_skipping_nothing(max_steps, lengths):
+def test_a_batched_env_plays_each_environments_share_in_order_skipping_nothing(
+    max_steps, lengths, batched
+):
+    from functools import partial
+
     from torchrl.envs import SerialEnv
     from torchrl.envs.utils import RandomPolicy
 
-    env = SerialEnv(2, [lambda: _Scenarios(0), lambda: _Scenarios(10)])
+    makers = [partial(_Scenarios, 0), partial(_Scenarios, 10)]
+    env = SerialEnv(2, makers) if batched == "serial" else EpisodeWorkers(makers)
     scenarios = [0, 1, 2, 10, 11]  # env 0 plays 3 of the 5 episodes, env 1 plays 2
-    out = evaluate(RandomPolicy(env.action_spec), env, episodes=5, max_steps=max_steps,
-                   flags=["odd"])  # fmt: skip
+    try:
+        out = evaluate(RandomPolicy(env.action_spec), env, episodes=5, max_steps=max_steps,
+                       flags=["odd"])  # fmt: skip
+    finally:
+        env.close()
     assert out["mean_length"] == pytest.approx(sum(lengths) / 5)
     returns = [k * n for k, n in zip(scenarios, lengths, strict=True)]
     assert out["mean_return"] == pytest.approx(sum(returns) / 5)
     assert out["odd_rate"] == pytest.approx(0.4 if max_steps == 100 else 0.2)  # 11 is cut
+
+
+def test_episode_workers_keep_their_environments_and_report_a_worker_s_failure():
+    from functools import partial
+
+    env = EpisodeWorkers([partial(_Scenarios, 0), partial(_Scenarios, 10)])
+    policy = _fixed_actor(1, [0.0, 1.0])
+    try:
+        first = evaluate(policy, env, episodes=2)  # scenarios 0 and 10
+        second = evaluate(policy, env, episodes=2)  # 1 and 11: the same processes go on
+    finally:
+        env.close()
+    assert (first["mean_return"], second["mean_return"]) == ((0 + 10 * 3) / 2, (1 * 2 + 11 * 4) / 2)
+    assert env.is_closed
+    broken = EpisodeWorkers([partial(_Scenarios, 0), _raise])
+    with pytest.raises(RuntimeError, match=r"worker 1 failed:(.|\n)*no such scenario set"):
+        evaluate(policy, broken, episodes=2)
+    assert broken.is_closed
+    with pytest.raises(TypeError, match="make_envs must be"):
+        EpisodeWorkers([])

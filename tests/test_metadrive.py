@@ -173,9 +173,9 @@ def test_checkpoints_are_picked_and_scored_on_scenarios_apart_from_each_other_an
     for make, env_id in ((recipe.make_eval_env, md.SELECTION), (recipe.test_env, md.HELD_OUT)):
         env = make(cfg)
         assert env.is_closed  # nothing started
-        assert len(env.create_env_fn) == 3
-        assert {fn.make_env.args for fn in env.create_env_fn} == {(env_id,)}
-        parts = [fn.make_env.keywords["scenarios"] for fn in env.create_env_fn]
+        assert len(env.make_envs) == 3
+        assert {make.args for make in env.make_envs} == {(env_id,)}
+        parts = [make.keywords["scenarios"] for make in env.make_envs]
         assert sorted(k for part in parts for k in part) == sorted(scenarios(env_id))
 
 

@@ -22,14 +22,13 @@ from typing import Literal
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import EnvBase, ParallelEnv
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import RandomPolicy
 
 from rl_pg.envs import metadrive as md
-from rl_pg.evaluation import evaluate
+from rl_pg.evaluation import EpisodeWorkers, evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
-from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.loop import evaluation_seed
 from rl_pg.training.recipe import Recipe
 
@@ -56,8 +55,8 @@ class Config(
     normalize_advantage=True,
     workers=2,  # one MetaDrive engine per process: collection on both cores
     checkpoint_interval=100,
-    # 16 candidates for the best checkpoint; with both workers evaluating, they cost
-    # the wall-clock 8 did on one.
+    # 16 candidates for the best checkpoint; each evaluation plays whole episodes inside
+    # the workers' processes.
     eval_interval=125_000,
     eval_episodes=100,  # every selection scenario once
     threshold=None,  # solved is judged on route completion and success, not the return
@@ -96,31 +95,30 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     return md.metadrive_env(cfg.env_id, actions=cfg.actions, horizon=cfg.horizon)
 
 
-def make_eval_env(cfg: Config) -> EnvBase:
+def make_eval_env(cfg: Config) -> EpisodeWorkers:
     """The selection scenarios in order, split among ``cfg.workers`` processes."""
     return _in_order(md.SELECTION, cfg.actions, cfg.horizon, workers=cfg.workers)
 
 
-def make_test_env(cfg: Config) -> EnvBase:
+def make_test_env(cfg: Config) -> EpisodeWorkers:
     """The held-out scenarios in order, split among ``cfg.workers`` processes."""
     return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon, workers=cfg.workers)
 
 
-def _in_order(env_id: str, actions: str | None, horizon: int, *, workers: int = 1) -> EnvBase:
+def _in_order(
+    env_id: str, actions: str | None, horizon: int, *, workers: int = 1
+) -> EpisodeWorkers:
     """Each worker plays its consecutive part of the set in order, in a process of its
     own (one engine per process): an evaluation of as many episodes as the set has
     scenarios plays each once."""
     md.require_metadrive()  # here, rather than as a worker's traceback
-    parts = md.split_scenarios(env_id, workers)
-    makers = [
-        MainProcessInterrupts(
+    return EpisodeWorkers(
+        [
             partial(md.metadrive_env, env_id, actions=actions, order="sequential",
                     horizon=horizon, scenarios=part)
-        )
-        for part in parts
-    ]  # fmt: skip
-    # Pipes, not shared buffers: with buffers this process spins on a core while it waits.
-    return ParallelEnv(len(parts), makers, mp_start_method="spawn", use_buffers=False)
+            for part in md.split_scenarios(env_id, workers)
+        ]
+    )  # fmt: skip
 
 
 def make_models(env: EnvBase, cfg: Config):
@@ -157,11 +155,19 @@ def references(cfg: Config) -> dict:
     return results
 
 
+class _Constant(nn.Module):
+    """The same action in every state (a module, so it can be sent to a process)."""
+
+    def __init__(self, action: list[float]) -> None:
+        super().__init__()
+        self.register_buffer("action", torch.tensor(action))
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return self.action.expand(*observation.shape[:-1], -1)
+
+
 def _constant(action: list[float]) -> TensorDictModule:
-    value = torch.tensor(action)
-    return TensorDictModule(
-        lambda obs: value.expand(*obs.shape[:-1], -1), ["observation"], ["action"]
-    )
+    return TensorDictModule(_Constant(action), ["observation"], ["action"])
 
 
 RECIPE = Recipe(

@@ -75,7 +75,8 @@ def train(
             ``workers > 1`` or ``ray``).
         make_models (callable): ``env -> (actor, critic or None)``; sizes come from the
             environment's specs.
-        make_eval_env (callable, optional): builds the evaluation environment.
+        make_eval_env (callable, optional): builds the evaluation environment (an
+            ``EnvBase`` or an [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers]).
             Defaults to ``make_env``.
         eval_flags (sequence of str): boolean entries reported as rates by evaluations,
             e.g. ``("crashed",)``. Defaults to ``()``.

@@ -48,12 +48,15 @@ class Recipe:
             (for recordings). Module-level functions keep multi-process collection
             possible (they are pickled).
         make_models (callable): ``(env, cfg) -> (actor, critic or None)``.
-        make_eval_env (callable, optional): ``cfg -> EnvBase`` for the evaluations
-            during training, which pick the best checkpoint. Defaults to ``make_env``.
-        make_test_env (callable, optional): ``cfg -> EnvBase`` that scores a trained
-            agent (``rl-pg evaluate``), when it must differ from the one that picked
-            the checkpoint (a fixed set of levels, say: scored on those it was chosen
-            on, the best checkpoint looks better than it is). Defaults to
+        make_eval_env (callable, optional): ``cfg -> EnvBase`` (or an
+            [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers], whose processes play
+            whole episodes each) for the evaluations during training, which pick the
+            best checkpoint. Defaults to ``make_env``.
+        make_test_env (callable, optional): ``cfg -> EnvBase`` (or ``EpisodeWorkers``)
+            that scores a trained agent (``rl-pg evaluate``), when it must differ
+            from the one that picked the checkpoint (a fixed set of levels, say:
+            scored on those it was chosen on, the best checkpoint looks better than it
+            is). Defaults to
             ``make_eval_env``, which fresh seeds then keep apart.
         eval_flags (sequence of str): boolean entries evaluations report as rates
             (``("crashed",)``). Defaults to ``()``.
