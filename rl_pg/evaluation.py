@@ -11,7 +11,7 @@ import signal
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -133,10 +133,11 @@ def evaluate(
     """
     episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
     flags, values = check_names("flags", flags), check_names("values", values)
+    wanted = _Wanted(episodes, deterministic, max_steps, flags, values)
     if isinstance(env, EpisodeWorkers):
-        stats = env.play(policy, episodes, deterministic, max_steps, flags, values)
+        stats = env.play(policy, wanted)
     else:
-        stats = _episodes(policy, env, episodes, deterministic, max_steps, flags, values)
+        stats = _episodes(policy, env, wanted)
     stats = {key: value.float() for key, value in stats.items()}
     out = {
         "mean_return": stats["return"].mean().item(),
@@ -152,16 +153,21 @@ def evaluate(
     return out
 
 
+class _Wanted(NamedTuple):
+    """Which episodes to play, how, and what to report of them (see ``evaluate``)."""
+
+    episodes: int
+    deterministic: bool
+    max_steps: int
+    flags: Sequence[str]
+    values: Sequence[str]
+
+
 def _episodes(
-    policy: TensorDictModuleBase,
-    env: EnvBase,
-    episodes: int,
-    deterministic: bool,
-    max_steps: int,
-    flags: Sequence[str],
-    values: Sequence[str],
+    policy: TensorDictModuleBase, env: EnvBase, wanted: _Wanted
 ) -> dict[str, torch.Tensor]:
     """One entry per episode: ``return``, ``length``, ``finished``, flags and values."""
+    episodes, deterministic, max_steps, flags, values = wanted
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     cast = _device_of(policy) not in (None, env.device)  # a policy on a GPU, say
     with set_exploration_type(exploration), torch.no_grad():
@@ -243,24 +249,16 @@ class EpisodeWorkers:
         self._seed = seed
         return seed
 
-    def play(
-        self,
-        policy: TensorDictModuleBase,
-        episodes: int,
-        deterministic: bool,
-        max_steps: int,
-        flags: Sequence[str],
-        values: Sequence[str],
-    ) -> dict[str, torch.Tensor]:
+    def play(self, policy: TensorDictModuleBase, wanted: _Wanted) -> dict[str, torch.Tensor]:
         """One entry per episode, as the processes played them; see ``evaluate``."""
         self._start()
         policy = _cpu_copy(policy)
-        n = self.num_workers
+        n, episodes = self.num_workers, wanted.episodes
         shares = [episodes // n + (i < episodes % n) for i in range(n)]
         for i, ((_, pipe), share) in enumerate(zip(self._workers, shares, strict=True)):
             if share:
                 seed = None if self._seed is None else self._seed + i
-                pipe.send((policy, seed, (share, deterministic, max_steps, flags, values)))
+                pipe.send((policy, seed, wanted._replace(episodes=share)))
         results = [self._receive(i) for i, share in enumerate(shares) if share]
         keys = set.intersection(*(set(result) for result in results))
         return {key: torch.cat([result[key] for result in results]) for key in keys}
@@ -329,11 +327,11 @@ def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
         return
     try:
         while (message := pipe.recv()) is not None:
-            policy, seed, arguments = message
+            policy, seed, wanted = message
             try:
                 if seed is not None:
                     env.set_seed(seed)
-                pipe.send(("done", _episodes(policy, env, *arguments)))
+                pipe.send(("done", _episodes(policy, env, wanted)))
             except Exception:
                 pipe.send(("error", traceback.format_exc()))
     except EOFError:  # the main process is gone
