@@ -6,6 +6,7 @@ The numbers themselves are machine-dependent: they are read, never asserted, her
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -100,3 +101,18 @@ def test_contention(tmp_path):
         "floor: SyncVectorEnv(32) + MLP",
     }
     assert out["rl_pg_slowdown_over_floor"] > 0
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("metadrive") is None, reason="MetaDrive is not installed"
+)
+def test_evaluation(tmp_path):
+    evaluation = _script("evaluation")
+    cfg = evaluation.Config(episodes=2, horizon=20, repeats=1, json_path=tmp_path / "v.json")
+    out = evaluation.main(cfg)
+    assert json.loads((tmp_path / "v.json").read_text()) == out
+    scores = out["scores"]  # the same scenarios and policy: the same score either way
+    assert scores["EpisodeWorkers"]["mean_return"] == pytest.approx(
+        scores["ParallelEnv"]["mean_return"]
+    )
+    assert out["parallel_env_over_workers"] > 0
