@@ -33,7 +33,7 @@ from common import REPO, table, write_json
 from torchrl.envs import ParallelEnv
 
 from rl_pg.envs import metadrive as md
-from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.evaluation import EpisodeWorkers, episode_shares, evaluate
 from rl_pg.recipes import load
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import load_models
@@ -67,12 +67,12 @@ def main(cfg: Config) -> dict:
     saved = None if cfg.run is None else read_run(cfg.run, which="last")
     config = recipe.config() if saved is None else recipe.config.from_stored(saved["config"])
     # The first `episodes` held-out scenarios, cut into one consecutive part per worker.
-    start, _ = md.SCENARIO_SETS[md.HELD_OUT]
-    bounds = [start + cfg.episodes * i // cfg.workers for i in range(cfg.workers + 1)]
+    start = md.SCENARIO_SETS[md.HELD_OUT][0]
+    ends = itertools.accumulate(episode_shares(cfg.episodes, cfg.workers), initial=start)
     makers = [
         partial(md.metadrive_env, md.HELD_OUT, actions=config.actions, order="sequential",
                 horizon=cfg.horizon, scenarios=range(a, b))
-        for a, b in itertools.pairwise(bounds)
+        for a, b in itertools.pairwise(ends)
     ]  # fmt: skip
     contenders = {
         "EpisodeWorkers": EpisodeWorkers(makers),

@@ -22,7 +22,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from rl_pg._checks import check_bool, check_int, check_names, check_real
 
-__all__ = ["EpisodeWorkers", "check_recording", "evaluate", "first_episodes", "play"]
+__all__ = [
+    "EpisodeWorkers",
+    "check_recording",
+    "episode_shares",
+    "evaluate",
+    "first_episodes",
+    "play",
+]
 
 
 def first_episodes(
@@ -90,8 +97,8 @@ def evaluate(
     """Plays ``episodes`` episodes; returns their mean and std return, flag rates, values.
 
     A batched ``env`` plays its environments side by side, each its share of the
-    ``episodes`` back to back: its first ``episodes // n`` (one more for the first
-    ``episodes % n`` environments), so the result does not favour short episodes.
+    ``episodes`` ([`episode_shares`][rl_pg.evaluation.episode_shares]) back to back:
+    a fixed number of episodes each, so the result does not favour short episodes.
     Environments are reset only when their episode ends, so one that walks through a
     fixed list of start states (an in-order scenario set) skips none. An
     [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers] shares the episodes the same
@@ -153,6 +160,18 @@ def evaluate(
     return out
 
 
+def episode_shares(episodes: int, n: int) -> list[int]:
+    """How ``n`` environments share ``episodes`` episodes in an evaluation: ``episodes //
+    n`` each, one more for the first ``episodes % n``.
+
+    Examples:
+        >>> from rl_pg.evaluation import episode_shares
+        >>> episode_shares(100, 3)
+        [34, 33, 33]
+    """
+    return [episodes // n + (i < episodes % n) for i in range(n)]
+
+
 class _Wanted(NamedTuple):
     """Which episodes to play, how, and what to report of them (see ``evaluate``)."""
 
@@ -187,9 +206,9 @@ class EpisodeWorkers:
     """Evaluation environments that each play whole episodes in a process of their own.
 
     Pass it to [`evaluate`][rl_pg.evaluation.evaluate] as the environment: each
-    process receives a CPU copy of the policy and plays its share of the episodes (as
-    the environments of a batched env do: ``episodes // n``, one more for the first
-    ``episodes % n``) back to back on its own environment, then sends back one result
+    process receives a CPU copy of the policy and plays its share of the episodes
+    ([`episode_shares`][rl_pg.evaluation.episode_shares], as the environments of a
+    batched env do) back to back on its own environment, then sends back one result
     per episode. Nothing crosses processes at each step, unlike a ``ParallelEnv``
     (MetaDrive with random actions: 503 steps/s inside a process, 155 driven step by
     step through a one-worker ``ParallelEnv``). The environments are
@@ -253,8 +272,7 @@ class EpisodeWorkers:
         """One entry per episode, as the processes played them; see ``evaluate``."""
         self._start()
         policy = _cpu_copy(policy)
-        n, episodes = self.num_workers, wanted.episodes
-        shares = [episodes // n + (i < episodes % n) for i in range(n)]
+        shares = episode_shares(wanted.episodes, self.num_workers)
         for i, ((_, pipe), share) in enumerate(zip(self._workers, shares, strict=True)):
             if share:
                 seed = None if self._seed is None else self._seed + i
@@ -359,16 +377,15 @@ def _side_by_side(
     """``episodes`` episodes of a batched ``env``, each of its environments playing its
     share back to back; returns one entry per episode, as ``first_episodes`` does.
 
-    Environment ``i`` contributes its first ``episodes // n`` episodes (one more for the
-    first ``episodes % n``), whatever their lengths, so short episodes are not favoured;
+    Environment ``i`` contributes its first ``episode_shares(episodes, n)[i]`` episodes,
+    whatever their lengths, so short episodes are not favoured;
     one that has played its share plays on uncounted until the others have. Each
     environment is reset only when its episode ends (or is cut at ``max_steps``), so an
     environment that walks through a fixed list of start states, like an in-order
     scenario set, skips none of them.
     """
     n = math.prod(env.batch_size)
-    share = torch.full((n,), episodes // n)
-    share[: episodes % n] += 1
+    share = torch.tensor(episode_shares(episodes, n))
     played = torch.zeros(n, dtype=torch.long)
     running = {"return": torch.zeros(n), "length": torch.zeros(n, dtype=torch.long)}
     episodes_out: dict[str, list[torch.Tensor]] = {"finished": []}
@@ -396,14 +413,15 @@ def _side_by_side(
             if (value := nxt.get(key, None)) is not None:
                 per_step[key] = _one_per_step(key, value.reshape(n, steps, -1)).float()
                 running.setdefault(key, torch.zeros(n))
+        seen_flags = [flag for flag in flags if flag in per_step]
+        seen_values = [key for key in values if key in per_step]
         for t in range(steps):
             running["return"] += per_step["return"][:, t]
             running["length"] += 1
-            for key in running.keys() - {"return", "length"}:
-                if key in flags:
-                    running[key] |= per_step[key][:, t]
-                else:
-                    running[key] = per_step[key][:, t].clone()
+            for flag in seen_flags:
+                running[flag] |= per_step[flag][:, t]
+            for key in seen_values:
+                running[key] = per_step[key][:, t].clone()
             done = per_step["done"][:, t]
             ended = done | (running["length"] >= max_steps)
             if ended.any():

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import itertools
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -43,6 +44,7 @@ from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
 from rl_pg.envs.gym import DRIVING_ACTIONS
 from rl_pg.envs.info import InfoFlags, InfoValues
+from rl_pg.evaluation import episode_shares
 
 __all__ = [
     "DEFAULT_HORIZON",
@@ -317,15 +319,10 @@ def metadrive_env(
             are not a consecutive part of it.
         ModuleNotFoundError: MetaDrive is not installed.
     """
-    if env_id not in SCENARIO_SETS:
-        raise ValueError(
-            f"Unknown MetaDrive scenario set {env_id!r}; choose one of {list(SCENARIO_SETS)}."
-        )
+    whole = _scenario_range(env_id)
     require_metadrive()
     kwargs: dict[str, Any] = {"order": order, "horizon": horizon, "config": config}
     if scenarios is not None:
-        start, count = SCENARIO_SETS[env_id]
-        whole = range(start, start + count)
         if (
             not isinstance(scenarios, range)
             or scenarios.step != 1
@@ -335,7 +332,7 @@ def metadrive_env(
         ):
             raise ValueError(
                 f"scenarios must be a non-empty range of consecutive scenarios of {env_id} "
-                f"(range({start}, {start + count})), got {scenarios!r}."
+                f"({whole!r}), got {scenarios!r}."
             )
         kwargs.update(start_seed=scenarios.start, num_scenarios=len(scenarios))
     if render:
@@ -360,20 +357,23 @@ def split_scenarios(env_id: str, parts: int) -> list[range]:
         >>> split_scenarios(HELD_OUT, 3)
         [range(10000, 10034), range(10034, 10067), range(10067, 10100)]
     """
+    whole = _scenario_range(env_id)
+    parts = check_int("parts", parts, low=1)
+    if parts > len(whole):
+        raise ValueError(
+            f"{env_id} has {len(whole)} scenarios: it cannot be cut into {parts} parts."
+        )
+    ends = list(itertools.accumulate(episode_shares(len(whole), parts), initial=whole.start))
+    return [range(a, b) for a, b in itertools.pairwise(ends)]
+
+
+def _scenario_range(env_id: str) -> range:
     if env_id not in SCENARIO_SETS:
         raise ValueError(
             f"Unknown MetaDrive scenario set {env_id!r}; choose one of {list(SCENARIO_SETS)}."
         )
     start, count = SCENARIO_SETS[env_id]
-    parts = check_int("parts", parts, low=1)
-    if parts > count:
-        raise ValueError(f"{env_id} has {count} scenarios: it cannot be cut into {parts} parts.")
-    out, first = [], start
-    for i in range(parts):
-        size = count // parts + (i < count % parts)
-        out.append(range(first, first + size))
-        first += size
-    return out
+    return range(start, start + count)
 
 
 def _register() -> None:

@@ -33,7 +33,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import evaluate
+from rl_pg.evaluation import EpisodeWorkers, evaluate
 from rl_pg.training.checkpoints import RunState, restore, restore_rng, seed_everything
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
@@ -58,7 +58,7 @@ def train(
     recipe: str,
     make_env: Callable[[], EnvBase],
     make_models: Callable[[EnvBase], tuple[TensorDictModuleBase, TensorDictModuleBase | None]],
-    make_eval_env: Callable[[], EnvBase] | None = None,
+    make_eval_env: Callable[[], EnvBase | EpisodeWorkers] | None = None,
     eval_flags: Sequence[str] = (),
     eval_values: Sequence[str] = (),
     recipe_module: str | None = None,

@@ -28,6 +28,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
+from rl_pg.evaluation import EpisodeWorkers
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.loop import train
 
@@ -56,8 +57,7 @@ class Recipe:
             that scores a trained agent (``rl-pg evaluate``), when it must differ
             from the one that picked the checkpoint (a fixed set of levels, say:
             scored on those it was chosen on, the best checkpoint looks better than it
-            is). Defaults to
-            ``make_eval_env``, which fresh seeds then keep apart.
+            is). Defaults to ``make_eval_env``, which fresh seeds then keep apart.
         eval_flags (sequence of str): boolean entries evaluations report as rates
             (``("crashed",)``). Defaults to ``()``.
         eval_values (sequence of str): entries whose value at an episode's end
@@ -75,8 +75,8 @@ class Recipe:
     config: type[TrainConfig]
     make_env: Callable[..., EnvBase]
     make_models: Callable[[EnvBase, Any], Models]
-    make_eval_env: Callable[[Any], EnvBase] | None = None
-    make_test_env: Callable[[Any], EnvBase] | None = None
+    make_eval_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
+    make_test_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
     eval_flags: Sequence[str] = ()
     eval_values: Sequence[str] = ()
     prepare: Callable[[Any], Any] | None = None
@@ -103,7 +103,7 @@ class Recipe:
         """The module that defines the recipe's functions (recorded in its runs)."""
         return self.make_env.__module__
 
-    def test_env(self, cfg: TrainConfig) -> EnvBase:
+    def test_env(self, cfg: TrainConfig) -> EnvBase | EpisodeWorkers:
         """The environment that scores a trained agent (see ``make_test_env``)."""
         make = self.make_test_env or self.make_eval_env or self.make_env
         return make(cfg)
