@@ -71,6 +71,12 @@ def _train(cfg, **kwargs):
     return train(cfg, recipe="grid", make_env=make_grid, make_models=make_grid_models, **kwargs)
 
 
+def _logged(run_dir: Path, name: str) -> list[float]:
+    """The values of scalar ``name`` in the order the run logged them."""
+    rows = (run_dir / "logs" / "csv" / "scalars" / f"{name}.csv").read_text().split()
+    return [float(row.split(",")[1]) for row in rows]
+
+
 def _weights(run_dir: Path) -> dict:
     return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
 
@@ -195,13 +201,32 @@ class TestTrain:
         )
         summary = _train(replace(cfg, lr_schedule="linear"))
         assert summary["frames"] == 480
-        csv = tmp_path / "run" / "logs" / "csv" / "scalars" / "train" / "lr.csv"
-        logged = [float(row.split(",")[1]) for row in csv.read_text().split()]
-        assert logged == pytest.approx([0.02 * (1 - k / 6) for k in range(6)])
+        assert _logged(tmp_path / "run", "train/lr") == pytest.approx(
+            [0.02 * (1 - k / 6) for k in range(6)]
+        )
         constant = _train(replace(cfg, run_dir=tmp_path / "constant"))
-        csv = tmp_path / "constant" / "logs" / "csv" / "scalars" / "train" / "lr.csv"
-        assert [float(row.split(",")[1]) for row in csv.read_text().split()] == [0.02] * 6
+        assert _logged(tmp_path / "constant", "train/lr") == [0.02] * 6
         assert constant["eval_mean_return"] is not None
+
+    def test_linear_entropy_schedule(self, tmp_path):
+        cfg = _cfg(
+            tmp_path,
+            batch_mode="segments",
+            segment_length=10,
+            total_frames=480,
+            total_updates=None,
+            entropy_coeff=0.05,
+            entropy_schedule="linear",
+        )
+        _train(cfg)
+        run = tmp_path / "run"
+        coeff = _logged(run, "train/entropy_coeff")
+        assert coeff == pytest.approx([0.05 * (1 - k / 6) for k in range(6)])
+        # The entropy term the update minimised is the decayed bonus times the entropy.
+        entropy = _logged(run, "train/entropy")
+        expected = [-c * h for c, h in zip(coeff, entropy, strict=True)]
+        assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
+        assert _logged(run, "train/lr") == [0.02] * 6  # its own, constant, schedule
 
     def test_refuses_to_overwrite_a_run(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=1))
@@ -260,8 +285,12 @@ class TestTrain:
 
     @pytest.mark.parametrize(
         "schedule",
-        [{}, {"lr_schedule": "linear", "total_frames": 1500}],
-        ids=["constant", "linear"],
+        [
+            {},
+            {"lr_schedule": "linear", "total_frames": 1500},
+            {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
+        ],
+        ids=["constant", "linear", "linear_entropy"],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
         straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)

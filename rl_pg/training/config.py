@@ -104,6 +104,9 @@ class TrainConfig:
     """Rate of the 'ema' baseline."""
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
+    entropy_schedule: Literal["constant", "linear"] = "constant"
+    """'linear': decay the entropy bonus from entropy_coeff at frame 0 to 0 at
+    total_frames, as lr_schedule does the learning rate."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     critic_steps: Count = 1

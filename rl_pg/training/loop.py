@@ -41,6 +41,7 @@ from rl_pg.training.console import Console
 from rl_pg.training.interrupt import InterruptRequest
 from rl_pg.training.metrics import EpisodeReturns, Loggers
 from rl_pg.training.optimisation import (
+    entropy_coeff,
     learning_rate,
     make_loss,
     make_optimizer,
@@ -207,8 +208,14 @@ class _Run:
     def update(self, batch: TensorDictBase) -> dict[str, float] | None:
         """One optimiser step on ``batch``; returns the metrics when this update logs."""
         cfg, state = self.cfg, self.state
-        lr = learning_rate(cfg, state.frames)
-        metrics = update(cfg, self.loss, self.optimizer, batch, lr=lr)
+        metrics = update(
+            cfg,
+            self.loss,
+            self.optimizer,
+            batch,
+            lr=learning_rate(cfg, state.frames),
+            entropy_coeff=entropy_coeff(cfg, state.frames),
+        )
         self.episode_returns.add(batch)
         state.updates += 1
         self.spent = self.collection.frames_spent(batch)

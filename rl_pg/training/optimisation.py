@@ -13,6 +13,7 @@ from rl_pg.training.config import TrainConfig
 
 __all__ = [
     "TrainingDiverged",
+    "entropy_coeff",
     "learning_rate",
     "make_loss",
     "make_optimizer",
@@ -67,14 +68,40 @@ def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimiz
 
 def learning_rate(cfg: TrainConfig, frames: int) -> float:
     """The learning rate of the update that follows ``frames`` environment steps."""
-    if cfg.lr_schedule == "linear":
-        return cfg.lr * max(0.0, 1.0 - frames / cfg.total_frames)
-    return cfg.lr
+    return _scheduled(cfg.lr, cfg.lr_schedule, frames, cfg.total_frames)
+
+
+def entropy_coeff(cfg: TrainConfig, frames: int) -> float:
+    """The entropy bonus of the update that follows ``frames`` environment steps."""
+    return _scheduled(cfg.entropy_coeff, cfg.entropy_schedule, frames, cfg.total_frames)
+
+
+def _scheduled(value: float, schedule: str, frames: int, total_frames: int) -> float:
+    """``value`` at ``frames``: constant, or decayed linearly to 0 at ``total_frames``.
+
+    Computed from the frames seen so far, so a resumed run continues the same schedule.
+    """
+    if schedule == "linear":
+        return value * max(0.0, 1.0 - frames / total_frames)
+    return value
 
 
 def update(
-    cfg: TrainConfig, loss: ReinforceLoss, optimizer, batch: TensorDictBase, *, lr: float
+    cfg: TrainConfig,
+    loss: ReinforceLoss,
+    optimizer,
+    batch: TensorDictBase,
+    *,
+    lr: float,
+    entropy_coeff: float | None = None,
 ) -> dict:
+    """One step of the optimiser on ``batch`` at learning rate ``lr``.
+
+    ``entropy_coeff`` replaces the loss's entropy bonus from this update on (None keeps
+    it); it takes effect only where the loss has one (``cfg.entropy_coeff > 0``).
+    """
+    if entropy_coeff is not None and loss.entropy_coeff is not None:
+        loss.entropy_coeff = entropy_coeff
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
     if not torch.isfinite(total):
@@ -109,6 +136,8 @@ def update(
             metrics[f"train/{key}"] = value.item()
     metrics["train/grad_norm"] = grad_norm.item()
     metrics["train/lr"] = lr
+    if loss.entropy_coeff is not None:
+        metrics["train/entropy_coeff"] = loss.entropy_coeff
     return metrics
 
 
