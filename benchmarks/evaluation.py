@@ -20,7 +20,6 @@ ParallelEnv's time over EpisodeWorkers'.
 
 from __future__ import annotations
 
-import itertools
 import statistics
 import time
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ from common import REPO, table, write_json
 from torchrl.envs import ParallelEnv
 
 from rl_pg.envs import metadrive as md
-from rl_pg.evaluation import EpisodeWorkers, episode_shares, evaluate
+from rl_pg.evaluation import EpisodeWorkers, evaluate
 from rl_pg.recipes import load
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import load_models
@@ -58,21 +57,14 @@ class Config:
 
 
 def main(cfg: Config) -> dict:
-    if not 1 <= cfg.workers <= cfg.episodes <= md.SCENARIO_SETS[md.HELD_OUT][1]:
-        raise ValueError(
-            f"Need 1 <= workers ({cfg.workers}) <= episodes ({cfg.episodes}) <= 100 "
-            "(the held-out scenarios): each worker plays at least one."
-        )
     recipe = load("metadrive")
     saved = None if cfg.run is None else read_run(cfg.run, which="last")
     config = recipe.config() if saved is None else recipe.config.from_stored(saved["config"])
     # The first `episodes` held-out scenarios, cut into one consecutive part per worker.
-    start = md.SCENARIO_SETS[md.HELD_OUT][0]
-    ends = itertools.accumulate(episode_shares(cfg.episodes, cfg.workers), initial=start)
     makers = [
         partial(md.metadrive_env, md.HELD_OUT, actions=config.actions, order="sequential",
-                horizon=cfg.horizon, scenarios=range(a, b))
-        for a, b in itertools.pairwise(ends)
+                horizon=cfg.horizon, scenarios=part)
+        for part in md.split_scenarios(md.HELD_OUT, cfg.workers, count=cfg.episodes)
     ]  # fmt: skip
     contenders = {
         "EpisodeWorkers": EpisodeWorkers(makers),

@@ -196,6 +196,8 @@ def test_a_scenario_is_the_same_whichever_part_of_its_set_it_is_played_from(scen
         md.metadrive_env(md.HELD_OUT, scenarios=range(10_090, 10_110))
     with pytest.raises(ValueError, match="cannot be cut into 101 parts"):
         md.split_scenarios(md.HELD_OUT, 101)
+    with pytest.raises(ValueError, match="its first 101 cannot be cut"):
+        md.split_scenarios(md.HELD_OUT, 2, count=101)
 
 
 @needs_metadrive

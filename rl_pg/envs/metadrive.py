@@ -346,24 +346,28 @@ def metadrive_env(
     return TransformedEnv(env, DiscretizeAction(actions=driving_actions(actions)))
 
 
-def split_scenarios(env_id: str, parts: int) -> list[range]:
-    """Cuts a scenario set into ``parts`` consecutive ranges, the first ones one longer
-    when it does not divide evenly: the shares of an evaluation whose ``parts``
-    environments play the set once, side by side (see
-    [`evaluate`][rl_pg.evaluation.evaluate]).
+def split_scenarios(env_id: str, parts: int, count: int | None = None) -> list[range]:
+    """Cuts the first ``count`` scenarios of a set (all of them by default) into
+    ``parts`` consecutive ranges, the first ones one longer when it does not divide
+    evenly: the shares of an evaluation whose ``parts`` environments play those
+    scenarios once, side by side (see [`evaluate`][rl_pg.evaluation.evaluate]).
 
     Examples:
         >>> from rl_pg.envs.metadrive import HELD_OUT, split_scenarios
         >>> split_scenarios(HELD_OUT, 3)
         [range(10000, 10034), range(10034, 10067), range(10067, 10100)]
+        >>> split_scenarios(HELD_OUT, 2, count=5)
+        [range(10000, 10003), range(10003, 10005)]
     """
     whole = _scenario_range(env_id)
     parts = check_int("parts", parts, low=1)
-    if parts > len(whole):
+    count = len(whole) if count is None else check_int("count", count, low=1)
+    if not parts <= count <= len(whole):
         raise ValueError(
-            f"{env_id} has {len(whole)} scenarios: it cannot be cut into {parts} parts."
+            f"{env_id} has {len(whole)} scenarios: its first {count} cannot be cut into "
+            f"{parts} parts (need parts <= count <= {len(whole)})."
         )
-    ends = list(itertools.accumulate(episode_shares(len(whole), parts), initial=whole.start))
+    ends = itertools.accumulate(episode_shares(count, parts), initial=whole.start)
     return [range(a, b) for a, b in itertools.pairwise(ends)]
 
 
