@@ -63,6 +63,31 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(batch["advantage"], expected - value)
         assert not batch["value_target"].requires_grad
 
+    @pytest.mark.parametrize("shape", ["batched", "flat"])
+    def test_one_call_of_the_value_network_matches_torchrl_vmapped_pair(
+        self, cls, fn, batch, shape
+    ):
+        """The estimator calls the critic once on root and next inputs laid end to end;
+        TorchRL vmaps two calls. Same values, NaN next observations replaced alike."""
+        torch.manual_seed(0)
+        critic = make_critic()
+        batch = batch.reshape(-1) if shape == "flat" else batch
+        batch["next", "observation"][..., 1, :] = float("nan")  # e.g. compact observations
+        estimator = cls(gamma=0.9, value_network=critic)
+        with torch.no_grad():
+            value, next_value, _ = estimator._call_value_nets(
+                data=batch.clone(),
+                params=None,
+                next_params=None,
+                single_call=False,
+                value_key="state_value",
+                detach_next=True,
+            )
+        estimator(batch)
+        torch.testing.assert_close(batch["state_value"], value, rtol=0, atol=1e-6)
+        torch.testing.assert_close(batch["next", "state_value"], next_value, rtol=0, atol=1e-6)
+        assert torch.isfinite(next_value).all()
+
     def test_named_time_dimension(self, cls, fn, batch):
         time_major = batch.transpose(0, 1).contiguous()
         time_major.names = ["time", None]

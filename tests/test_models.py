@@ -6,14 +6,18 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
 from torchrl.envs import GymWrapper
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import IndependentNormal, TanhNormal
+from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
 
 from rl_pg import ReinforceLoss
 from rl_pg.envs import GridWorldEnv, gym_env
 from rl_pg.models import (
+    LeanCategoricalPolicy,
     RunningNorm,
+    lean_policy,
     mlp_actor,
     mlp_actor_critic,
     mlp_critic,
@@ -159,3 +163,66 @@ class TestRunningNorm:
             mlp_actor(GridWorldEnv(), normalize=RunningNorm(3))
         with pytest.raises(TypeError, match="normalize must be True, False or a RunningNorm"):
             mlp_critic(GridWorldEnv(), normalize="yes")
+
+
+class TestLeanPolicy:
+    """``lean_policy``: the actor's own actions, sampled with less overhead."""
+
+    @staticmethod
+    def _trunk_and_head(env):
+        """A shared trunk then a head, as ActorValueOperator builds (the Pong recipe)."""
+        n_obs = env.observation_spec["observation"].shape[-1]
+        trunk = TensorDictModule(
+            nn.Sequential(nn.Linear(n_obs, 16), nn.ReLU()), ["observation"], ["hidden"]
+        )
+        head = TensorDictModule(nn.Linear(16, env.action_spec.space.n), ["hidden"], ["logits"])
+        return ProbabilisticActor(
+            TensorDictSequential(trunk, head),
+            in_keys=["logits"],
+            spec=env.action_spec,
+            distribution_class=torch.distributions.Categorical,
+        )
+
+    @pytest.mark.parametrize("structure", ["mlp", "trunk_and_head"])
+    def test_same_actions_and_entries_as_the_actor(self, structure):
+        env = GridWorldEnv(batch_size=64)
+        actor = mlp_actor(env, hidden=(16,)) if structure == "mlp" else self._trunk_and_head(env)
+        lean = lean_policy(actor)
+        assert isinstance(lean, LeanCategoricalPolicy)
+        td = env.reset()
+        with set_exploration_type(ExplorationType.RANDOM):
+            for seed in range(5):
+                torch.manual_seed(seed)
+                expected = actor(td.clone())
+                torch.manual_seed(seed)
+                got = lean(td.clone())
+                assert set(got.keys(True, True)) == set(expected.keys(True, True))
+                for key in expected.keys(True, True):
+                    torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)
+        assert len(set(got["action"].tolist())) > 1  # it samples, not argmax
+
+    def test_greedy_play_defers_to_the_actor(self):
+        env = GridWorldEnv(batch_size=16)
+        actor = mlp_actor(env, hidden=(8,))
+        td = env.reset()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            greedy = lean_policy(actor)(td.clone())["action"]
+        logits = actor.module[0](td.clone())["logits"]
+        assert torch.equal(greedy, logits.argmax(-1))
+
+    def test_training_gradients_flow_to_the_same_parameters(self):
+        env = GridWorldEnv(batch_size=4)
+        actor = mlp_actor(env, hidden=(8,))
+        lean = lean_policy(actor)
+        assert {id(p) for p in lean.parameters()} == {id(p) for p in actor.parameters()}
+
+    def test_other_actors_are_kept_as_they_are(self):
+        pendulum = gym_env("Pendulum-v1")
+        gaussian = mlp_actor(pendulum)
+        assert lean_policy(gaussian) is gaussian
+        with pytest.raises(TypeError, match="lean_policy"):
+            LeanCategoricalPolicy(gaussian)
+        env = GridWorldEnv(batch_size=2)
+        with_log_prob = mlp_actor(env)
+        with_log_prob.module[-1].return_log_prob = True
+        assert lean_policy(with_log_prob) is with_log_prob

@@ -6,11 +6,12 @@ from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
-from torchrl.envs import EnvBase, GymEnv, GymWrapper, TransformedEnv
+from torchrl.envs import EnvBase, GymEnv, TransformedEnv
 
 from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
 from rl_pg.envs.info import InfoFlags
+from rl_pg.envs.vector import VectorGymEnv
 
 __all__ = ["DRIVING_ACTIONS", "driving_env", "gym_env"]
 
@@ -24,9 +25,10 @@ def gym_env(
     """A gymnasium environment as a TorchRL env, with index (not one-hot) discrete actions.
 
     With ``num_envs`` the environments are stepped together in this process by
-    gymnasium's ``SyncVectorEnv`` (batch size ``[num_envs]``). Its auto-reset is
-    disabled: TorchRL resets the finished environments itself, so no final
-    observation is lost and no step is spent on resets. TorchRL's own
+    gymnasium's ``SyncVectorEnv`` (batch size ``[num_envs]``) behind a
+    [`VectorGymEnv`][rl_pg.envs.VectorGymEnv]. Its auto-reset is disabled: the finished
+    environments are reset when TorchRL asks, so no final observation is lost and no
+    step is spent on resets. TorchRL's own
     ``GymEnv(num_envs=N)`` runs one sub-process per environment instead, which costs
     more than it saves for cheap environments such as CartPole.
 
@@ -63,7 +65,7 @@ def gym_env(
         vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.DISABLED},
         **kwargs,
     )
-    return GymWrapper(vector_env, categorical_action_encoding=True)
+    return VectorGymEnv(vector_env)
 
 
 def driving_env(

@@ -27,6 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
+from rl_pg.models import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
 
@@ -76,8 +77,14 @@ class Collection:
         # Our policies need no extra environment transform (no recurrent state).
         inner = {"auto_register_policy_transforms": False}
         if self.local:
-            if device is not None and device != env.device:
+            # An environment without a device makes CPU tensors: a CPU policy needs no
+            # device arguments, which would copy every step's data (`.to(device)`) twice.
+            if device is not None and device != (env.device or torch.device("cpu")):
                 kwargs.update(policy_device=device, storing_device=device, env_device=env.device)
+            if cfg.batch_mode == "segments":  # nothing reads trajectory ids then
+                kwargs["track_traj_ids"] = False
+            # The same actions as the actor, with less overhead per step where it can.
+            actor = lean_policy(actor)
             if resumed and resumed["actions"]:  # only a resumed run replays: no cost otherwise
                 actor = _ReplayingPolicy(actor, self._action_key)
             self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)

@@ -1,0 +1,155 @@
+"""``rl_pg.envs.VectorGymEnv``: gymnasium vector environments as a lean TorchRL env."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs import GymWrapper, check_env_specs
+from torchrl.envs.utils import RandomPolicy
+
+from rl_pg.envs import VectorGymEnv, gym_env
+
+DISABLED = {"autoreset_mode": gym.vector.AutoresetMode.DISABLED}
+
+
+def _vector(env_id: str, n: int, **kwargs) -> gym.vector.VectorEnv:
+    return gym.make_vec(
+        env_id, num_envs=n, vectorization_mode="sync", vector_kwargs=DISABLED, **kwargs
+    )
+
+
+def _collect(env, seed: int, batches: int = 3, frames: int = 240):
+    """Batches a collector gathers from ``env`` with a seeded uniformly random policy."""
+    torch.manual_seed(seed)
+    collector = Collector(
+        env,
+        RandomPolicy(env.action_spec),
+        frames_per_batch=frames,
+        total_frames=-1,
+        auto_register_policy_transforms=False,
+    )
+    collector.set_seed(seed)
+    collector.reset()
+    batches = [b.clone() for _, b in zip(range(batches), collector, strict=False)]
+    collector.shutdown()
+    return torch.cat(batches, dim=-1)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "kwargs"),
+    [
+        ("CartPole-v1", {}),  # terminations every few steps: many partial resets
+        ("Pendulum-v1", {"max_episode_steps": 50}),  # truncations, continuous actions
+        ("LunarLander-v3", {"continuous": True}),  # Box(-1, 1, (2,)) actions
+    ],
+)
+def test_same_data_as_torchrl_gym_wrapper(env_id, kwargs):
+    """Same specs, same keys, same values, step for step, as TorchRL's GymWrapper."""
+    ours = VectorGymEnv(_vector(env_id, 4, **kwargs))
+    theirs = GymWrapper(_vector(env_id, 4, **kwargs), categorical_action_encoding=True)
+    assert ours.observation_spec == theirs.observation_spec
+    assert ours.action_spec == theirs.action_spec
+    assert ours.full_done_spec == theirs.full_done_spec
+    assert ours.reward_spec == theirs.reward_spec
+    a, b = _collect(ours, seed=3), _collect(theirs, seed=3)
+    assert set(a.keys(True, True)) == set(b.keys(True, True))
+    for key in b.keys(True, True):
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"entry {key}")
+    assert a["next", "done"].any()  # the comparison crossed episode ends
+
+
+def test_final_observation_kept_and_only_finished_envs_reset():
+    """At a step that ends an episode, ``next`` holds that episode's last observation;
+    the next root holds the reset one, and the other environments are not reset."""
+    env = VectorGymEnv(_vector("CartPole-v1", 3))
+    env.set_seed(0)
+    td = env.reset()
+    always_left = torch.zeros(3, dtype=torch.long)
+    for _ in range(100):
+        td["action"] = always_left
+        stepped, root = env.step_and_maybe_reset(td)
+        done = stepped["next", "done"].squeeze(-1)
+        if done.any():
+            break
+        td = root
+    assert done.any() and not done.all()
+    final = stepped["next", "observation"]
+    assert (final[done, 2].abs() > 0.2).all()  # the pole fell: the final state
+    assert (root["observation"][done].abs() <= 0.05).all()  # a fresh start
+    torch.testing.assert_close(root["observation"][~done], final[~done], rtol=0, atol=0)
+    assert not root["done"].any() and not root["terminated"].any()
+
+
+def test_specs_pass_torchrl_checks_and_seeding_is_reproducible():
+    env = VectorGymEnv(_vector("CartPole-v1", 5))
+    check_env_specs(env)
+    first = _collect(env, seed=11, batches=1)
+    again = _collect(env, seed=11, batches=1)
+    other = _collect(env, seed=12, batches=1)
+    assert torch.equal(first["observation"], again["observation"])
+    assert not torch.equal(first["observation"], other["observation"])
+
+
+class _DictObsEnv(gym.Env):
+    """Two observation entries; ends after ``length`` steps."""
+
+    def __init__(self, length: int = 3):
+        self.observation_space = gym.spaces.Dict(
+            {
+                "position": gym.spaces.Box(-10, 10, (2,), np.float32),
+                "count": gym.spaces.Box(0, 100, (), np.int64),
+            }
+        )
+        self.action_space = gym.spaces.Discrete(3)
+        self.length = length
+
+    def _obs(self):
+        return {"position": np.full(2, self.t, np.float32), "count": np.int64(self.t)}
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        self.t += 1
+        return self._obs(), float(action), self.t >= self.length, False, {}
+
+
+def test_dict_observations_are_read_under_their_keys():
+    vector = gym.vector.SyncVectorEnv([_DictObsEnv] * 2, autoreset_mode=DISABLED["autoreset_mode"])
+    env = VectorGymEnv(vector)
+    check_env_specs(env)
+    assert set(env.observation_spec.keys()) == {"position", "count"}
+    rollout = env.rollout(4, break_when_any_done=False)
+    assert rollout["next", "count"].squeeze(-1).tolist() == [[1, 2, 3, 1]] * 2  # shape [1]
+    assert rollout["next", "position"].dtype == torch.float32
+    assert rollout["next", "done"].squeeze(-1).tolist() == [[False, False, True, False]] * 2
+
+
+def test_bad_environments_are_refused_with_the_fix():
+    with pytest.raises(TypeError, match=r"gymnasium\.vector\.VectorEnv.*make_vec"):
+        VectorGymEnv(gym.make("CartPole-v1"))
+    autoreset = gym.make_vec("CartPole-v1", num_envs=2, vectorization_mode="sync")
+    with pytest.raises(ValueError, match=r"AutoresetMode\.DISABLED"):
+        VectorGymEnv(autoreset)
+    tuple_obs = gym.vector.SyncVectorEnv(
+        [lambda: gym.make("Blackjack-v1")], autoreset_mode=DISABLED["autoreset_mode"]
+    )
+    with pytest.raises(TypeError, match=r"Box or Dict observations.*Tuple"):
+        VectorGymEnv(tuple_obs)
+
+
+def test_close_closes_the_gymnasium_environments():
+    vector = _vector("CartPole-v1", 2)
+    env = VectorGymEnv(vector)
+    env.close()
+    assert env.is_closed and vector.closed
+
+
+def test_gym_env_builds_it_for_several_environments():
+    assert isinstance(gym_env("CartPole-v1", num_envs=3), VectorGymEnv)
+    assert not isinstance(gym_env("CartPole-v1"), VectorGymEnv)
