@@ -34,6 +34,14 @@ RECIPES = {
         lunarlander,
         {"total_frames": 1_500, "eval_interval": 1_500, "continuous": True},
     ),
+    "cartpole-envpool": (
+        cartpole,
+        {"total_frames": 600, "eval_interval": 600, "backend": "envpool"},
+    ),
+    "lunarlander-continuous-envpool": (
+        lunarlander,
+        {"total_frames": 1_500, "eval_interval": 1_500, "continuous": True, "backend": "envpool"},
+    ),
     "highway": (highway, {"total_frames": 60, "eval_interval": 60, "episodes_per_batch": 1}),
     "pong": (
         pong,
@@ -53,6 +61,33 @@ def test_recipe_trains_to_a_complete_run(name, tmp_path):
     assert summary["frames"] > 0 and summary["eval_mean_return"] is not None
     assert (run / "checkpoint.pt").is_file() and (run / "learning_curve.png").is_file()
     assert (run / "logs" / "csv" / "scalars" / "eval" / "mean_return.csv").is_file()
+
+
+@pytest.mark.parametrize("backend", ["gymnasium", "envpool"])
+def test_vectorised_cartpole_resumes_exactly(tmp_path, backend):
+    """Killed between two environment restarts and resumed, a run ends as the
+    uninterrupted one: the environments replay the recorded actions exactly."""
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    import torch
+
+    from rl_pg.checkpoint import load_checkpoint
+
+    common = {**TINY, "checkpoint_interval": 1000, "backend": backend, "num_envs": 4}
+    common |= {"env_restart_interval": 4, "eval_interval": 10**6, "threshold": None}
+    straight = cartpole.train(
+        cartpole.config(run_dir=tmp_path / "straight", total_updates=10, **common)
+    )
+    cartpole.train(cartpole.config(run_dir=tmp_path / "split", total_updates=6, **common))
+    resumed = cartpole.train(
+        cartpole.config(run_dir=tmp_path / "split", total_updates=10, resume=True, **common)
+    )
+    assert resumed["frames"] == straight["frames"]
+    assert resumed["eval_mean_return"] == straight["eval_mean_return"]
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")["loss"]
+    b = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["loss"]
+    for key, value in a.items():
+        assert torch.equal(value, b[key]), key
 
 
 def test_highway_reports_the_crash_rate(tmp_path):

@@ -10,7 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import GymWrapper, check_env_specs
 from torchrl.envs.utils import RandomPolicy
 
-from rl_pg.envs import VectorGymEnv, gym_env
+from rl_pg.envs import EnvPoolEnv, VectorGymEnv, gym_env
 
 DISABLED = {"autoreset_mode": gym.vector.AutoresetMode.DISABLED}
 
@@ -61,10 +61,20 @@ def test_same_data_as_torchrl_gym_wrapper(env_id, kwargs):
     assert a["next", "done"].any()  # the comparison crossed episode ends
 
 
-def test_final_observation_kept_and_only_finished_envs_reset():
+def _cartpoles(backend: str, n: int):
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    return gym_env("CartPole-v1", num_envs=n, backend=backend)
+
+
+BACKENDS = ["gymnasium", "envpool"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_final_observation_kept_and_only_finished_envs_reset(backend):
     """At a step that ends an episode, ``next`` holds that episode's last observation;
     the next root holds the reset one, and the other environments are not reset."""
-    env = VectorGymEnv(_vector("CartPole-v1", 3))
+    env = _cartpoles(backend, 3)
     env.set_seed(0)
     td = env.reset()
     always_left = torch.zeros(3, dtype=torch.long)
@@ -83,8 +93,9 @@ def test_final_observation_kept_and_only_finished_envs_reset():
     assert not root["done"].any() and not root["terminated"].any()
 
 
-def test_specs_pass_torchrl_checks_and_seeding_is_reproducible():
-    env = VectorGymEnv(_vector("CartPole-v1", 5))
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_specs_pass_torchrl_checks_and_seeding_is_reproducible(backend):
+    env = _cartpoles(backend, 5)
     check_env_specs(env)
     first = _collect(env, seed=11, batches=1)
     again = _collect(env, seed=11, batches=1)
@@ -153,3 +164,39 @@ def test_close_closes_the_gymnasium_environments():
 def test_gym_env_builds_it_for_several_environments():
     assert isinstance(gym_env("CartPole-v1", num_envs=3), VectorGymEnv)
     assert not isinstance(gym_env("CartPole-v1"), VectorGymEnv)
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "LunarLander-v3", "Pendulum-v1"])
+def test_envpool_has_the_specs_of_gymnasium(env_id):
+    pytest.importorskip("envpool")
+    ours = gym_env(env_id, num_envs=3, backend="envpool")
+    reference = gym_env(env_id, num_envs=3)
+    assert isinstance(ours, EnvPoolEnv)
+    assert ours.observation_spec == reference.observation_spec
+    assert ours.action_spec == reference.action_spec
+    assert ours.full_done_spec == reference.full_done_spec
+
+
+def test_envpool_spends_no_step_on_its_own_resets():
+    """EnvPool resets an environment at the step after its end (reward 0, action
+    ignored); EnvPoolEnv resets it at once, so every CartPole step earns its 1."""
+    pytest.importorskip("envpool")
+    env = gym_env("CartPole-v1", num_envs=4, backend="envpool")
+    steps = _collect(env, seed=0, batches=2, frames=400)
+    assert steps["next", "done"].sum() > 10  # many episodes ended
+    assert (steps["next", "reward"] == 1).all()
+    length = torch.zeros(4)
+    for t in range(steps.shape[-1]):  # episodes start at the cart's rest position
+        length += 1
+        assert (steps["observation"][:, t].abs()[length == 1] <= 0.05).all()
+        length[steps["next", "done"][:, t, 0]] = 0
+
+
+def test_envpool_errors_name_the_fix():
+    pytest.importorskip("envpool")
+    with pytest.raises(ValueError, match="EnvPool has no task 'NoSuchEnv-v0'"):
+        gym_env("NoSuchEnv-v0", num_envs=2, backend="envpool")
+    with pytest.raises(ValueError, match="give num_envs"):
+        gym_env("CartPole-v1", backend="envpool")
+    with pytest.raises(ValueError, match="backend must be 'gymnasium' or 'envpool'"):
+        gym_env("CartPole-v1", num_envs=2, backend="gym")

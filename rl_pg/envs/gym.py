@@ -11,7 +11,7 @@ from torchrl.envs import EnvBase, GymEnv, TransformedEnv
 from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
 from rl_pg.envs.info import InfoFlags
-from rl_pg.envs.vector import VectorGymEnv
+from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
 
 __all__ = ["DRIVING_ACTIONS", "driving_env", "gym_env"]
 
@@ -20,7 +20,12 @@ DRIVING_ACTIONS = [[x, y] for x in (1.0, 0.0, -1.0) for y in (0.6, 0.0, -0.6)]
 
 
 def gym_env(
-    env_id: str, *, num_envs: int | None = None, render: bool = False, **kwargs: Any
+    env_id: str,
+    *,
+    num_envs: int | None = None,
+    render: bool = False,
+    backend: str = "gymnasium",
+    **kwargs: Any,
 ) -> EnvBase:
     """A gymnasium environment as a TorchRL env, with index (not one-hot) discrete actions.
 
@@ -37,7 +42,10 @@ def gym_env(
             Defaults to ``None`` (one environment, batch size ``[]``).
         render (bool): add the rendered frames under ``"pixels"`` (for recordings; one
             environment only). Defaults to ``False``.
-        **kwargs: passed to ``gymnasium.make``.
+        backend (str): ``"gymnasium"``, or ``"envpool"`` to step ``num_envs`` copies in
+            EnvPool's C++ threads instead (an [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv];
+            ``pip install "rl_pg[envpool]"``). Defaults to ``"gymnasium"``.
+        **kwargs: passed to ``gymnasium.make`` (``envpool.make_gymnasium`` with EnvPool).
 
     Examples:
         >>> from rl_pg.envs import gym_env
@@ -46,6 +54,15 @@ def gym_env(
         >>> gym_env("CartPole-v1", num_envs=8).batch_size
         torch.Size([8])
     """
+    if backend not in ("gymnasium", "envpool"):
+        raise ValueError(f"backend must be 'gymnasium' or 'envpool', got {backend!r}.")
+    if backend == "envpool":
+        if num_envs is None or render:
+            raise ValueError(
+                "backend='envpool' steps batches of environments and renders nothing: give "
+                "num_envs and leave render=False (use gymnasium for one watched episode)."
+            )
+        return EnvPoolEnv(env_id, check_int("num_envs", num_envs, low=1), **kwargs)
     if num_envs is None:
         if render:
             kwargs.update(from_pixels=True, pixels_only=False)

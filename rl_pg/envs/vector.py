@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 # wrappers give an environment the same specs.
 from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
 
-__all__ = ["VectorGymEnv"]
+__all__ = ["EnvPoolEnv", "VectorGymEnv"]
 
 
 class VectorGymEnv(EnvBase):
@@ -65,19 +65,12 @@ class VectorGymEnv(EnvBase):
                 f"Build one with gymnasium.make_vec(..., vector_kwargs={{'autoreset_mode': "
                 f"gymnasium.vector.AutoresetMode.DISABLED}}), or use rl_pg.envs.gym_env."
             )
-        mode = env.metadata.get("autoreset_mode", getattr(env, "autoreset_mode", None))
-        if mode != gym.vector.AutoresetMode.DISABLED:
-            raise ValueError(
-                f"The vector environment resets its environments itself (autoreset mode "
-                f"{mode}); VectorGymEnv resets finished environments when TorchRL asks. "
-                f"Build it with vector_kwargs={{'autoreset_mode': "
-                f"gymnasium.vector.AutoresetMode.DISABLED}}."
-            )
+        self._check_autoreset(env)
         n = env.num_envs
         super().__init__(batch_size=torch.Size([n]), device=device)
         self._env = env
         self._n = n
-        spaces = env.single_observation_space
+        spaces = self._spaces(env)[0]
         if isinstance(spaces, gym.spaces.Box):
             self._obs_keys = ("observation",)
             spaces = {"observation": spaces}
@@ -91,7 +84,7 @@ class VectorGymEnv(EnvBase):
         self.observation_spec = Composite(
             {key: self._spec(space) for key, space in spaces.items()}, shape=self.batch_size
         )
-        self.action_spec = self._spec(env.single_action_space)
+        self.action_spec = self._spec(self._spaces(env)[1])
         self.reward_spec = Unbounded(shape=(n, 1), device=self.device)
         done = Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
@@ -103,6 +96,35 @@ class VectorGymEnv(EnvBase):
             for key in self._obs_keys
         }
         self._seed: int | None = None
+
+    @staticmethod
+    def _check_autoreset(env: gym.vector.VectorEnv) -> None:
+        mode = env.metadata.get("autoreset_mode", getattr(env, "autoreset_mode", None))
+        if mode != gym.vector.AutoresetMode.DISABLED:
+            raise ValueError(
+                f"The vector environment resets its environments itself (autoreset mode "
+                f"{mode}); VectorGymEnv resets finished environments when TorchRL asks. "
+                f"Build it with vector_kwargs={{'autoreset_mode': "
+                f"gymnasium.vector.AutoresetMode.DISABLED}}."
+            )
+
+    def _spaces(self, env: gym.vector.VectorEnv) -> tuple[gym.Space, gym.Space]:
+        """One environment's observation and action spaces."""
+        return env.single_observation_space, env.single_action_space
+
+    # The three calls into the vector environment; EnvPoolEnv overrides them.
+
+    def _env_step(self, actions: np.ndarray):
+        obs, reward, terminated, truncated, _ = self._env.step(actions)
+        return obs, reward, terminated, truncated
+
+    def _env_reset(self, seed: int | None):
+        """Resets every environment (with seeds ``seed, seed + 1, ...`` if given)."""
+        return self._env.reset(seed=seed)[0]
+
+    def _env_reset_some(self, mask: np.ndarray):
+        """Resets the environments where ``mask``; returns every environment's observation."""
+        return self._env.reset(options={"reset_mask": mask})[0]
 
     def _spec(self, space: gym.Space):
         spec = _gym_to_torchrl_spec_transform(
@@ -120,7 +142,7 @@ class VectorGymEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
-        obs, reward, terminated, truncated, _ = self._env.step(action.cpu().numpy())
+        obs, reward, terminated, truncated = self._env_step(action.cpu().numpy())
         out = self._observations(obs)
         shape = (self._n, 1)
         out["reward"] = torch.from_numpy(np.asarray(reward, dtype=np.float32)).view(shape)
@@ -152,8 +174,7 @@ class VectorGymEnv(EnvBase):
             tensordict, next_root = self._post_step_mdp_hooks(tensordict, next_root)
         done = next_root.get("done")
         if done.any():
-            mask = done.reshape(self._n).cpu().numpy()
-            obs, _ = self._env.reset(options={"reset_mask": mask})
+            obs = self._env_reset_some(done.reshape(self._n).cpu().numpy())
             for key, value in self._observations(obs).items():
                 next_root.set(key, value.to(done.device))
             for key in ("done", "terminated", "truncated"):
@@ -163,11 +184,10 @@ class VectorGymEnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
         if reset is not None and not reset.all():
-            mask = reset.reshape(self._n).cpu().numpy()
-            obs, _ = self._env.reset(options={"reset_mask": mask})
+            obs = self._env_reset_some(reset.reshape(self._n).cpu().numpy())
         else:
             seed, self._seed = self._seed, None
-            obs, _ = self._env.reset(seed=seed)
+            obs = self._env_reset(seed)
         out = self._observations(obs)
         for key in ("done", "terminated", "truncated"):
             out[key] = torch.zeros(self._n, 1, dtype=torch.bool, device=self.device)
@@ -180,3 +200,83 @@ class VectorGymEnv(EnvBase):
     def close(self, *, raise_if_closed: bool = True) -> None:
         super().close(raise_if_closed=raise_if_closed)
         self._env.close()
+
+
+class EnvPoolEnv(VectorGymEnv):
+    """`EnvPool <https://envpool.readthedocs.io>`_'s C++ environments as a TorchRL
+    environment of batch size ``[num_envs]``: a [`VectorGymEnv`][rl_pg.envs.VectorGymEnv]
+    whose environments step in EnvPool's own threads.
+
+    Same data layout and reset rules: a finished environment is reset at once (EnvPool's
+    ``reset(env_ids)``), so its final observation is kept and no step is spent on
+    EnvPool's own next-step reset. EnvPool seeds its environments when it builds them:
+    ``set_seed(s)`` rebuilds the pool with seed ``s``. Specs come from gymnasium's
+    registration of ``task_id`` when there is one (EnvPool declares some observation
+    bounds wrongly, e.g. LunarLander's), else from EnvPool.
+
+    Args:
+        task_id (str): an EnvPool task, e.g. ``"CartPole-v1"``.
+        num_envs (int): environments in the pool.
+
+    Keyword Args:
+        device (torch.device, optional): where the tensors are put. Defaults to the CPU.
+        **kwargs: passed to ``envpool.make_gymnasium`` (e.g. ``num_threads``).
+
+    Raises:
+        ImportError: EnvPool is not installed (``pip install "rl_pg[envpool]"``).
+    """
+
+    def __init__(
+        self, task_id: str, num_envs: int, *, device: torch.device | str | None = None, **kwargs
+    ) -> None:
+        try:
+            import envpool
+        except ImportError as err:
+            raise ImportError(
+                'EnvPoolEnv needs EnvPool: pip install -c constraints.txt -e ".[envpool]" '
+                "(Linux wheels; gymnasium's vector environments need nothing more)."
+            ) from err
+        if task_id not in envpool.list_all_envs():
+            raise ValueError(
+                f"EnvPool has no task {task_id!r}; among its classic tasks: "
+                f"{[t for t in envpool.list_all_envs() if '/' not in t][:12]}..."
+            )
+        self._task_id = task_id
+        self._make = lambda seed: envpool.make_gymnasium(
+            task_id, num_envs=num_envs, seed=seed, **kwargs
+        )
+        self._last_obs = None
+        super().__init__(self._make(0), device=device)
+
+    @staticmethod
+    def _check_autoreset(env) -> None:
+        pass  # EnvPool resets at the step after an end; resetting at once pre-empts it
+
+    def _spaces(self, env):
+        if self._task_id in gym.registry:
+            reference = gym.make(self._task_id)
+            spaces = reference.observation_space, reference.action_space
+            reference.close()
+            if spaces[0].shape == env.single_observation_space.shape:
+                return spaces
+        return env.single_observation_space, env.single_action_space
+
+    def _env_step(self, actions: np.ndarray):
+        obs, reward, terminated, truncated, _ = self._env.step(actions)
+        self._last_obs = obs
+        return obs, reward, terminated, truncated
+
+    def _env_reset(self, seed: int | None):
+        if seed is not None:
+            self._env.close()
+            self._env = self._make(seed)
+        self._last_obs = self._env.reset()[0]
+        return self._last_obs
+
+    def _env_reset_some(self, mask: np.ndarray):
+        ids = np.flatnonzero(mask)
+        fresh = self._env.reset(ids)[0]
+        obs = self._last_obs.copy()
+        obs[ids] = fresh
+        self._last_obs = obs
+        return obs

@@ -13,6 +13,7 @@ episodes from one environment::
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from torchrl.envs import EnvBase
 
@@ -43,12 +44,15 @@ class Config(
     """Width of the two hidden layers of the actor and of the critic."""
     num_envs: Count = 32
     """CartPoles stepped together as one batch (1: a single unbatched environment)."""
+    backend: Literal["gymnasium", "envpool"] = "gymnasium"
+    """What steps the training CartPoles: gymnasium in this process, or EnvPool's C++
+    threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if render or cfg.num_envs == 1:
         return gym_env(cfg.env_id, render=render)
-    return gym_env(cfg.env_id, num_envs=cfg.num_envs)
+    return gym_env(cfg.env_id, num_envs=cfg.num_envs, backend=cfg.backend)
 
 
 def make_eval_env(cfg: Config) -> EnvBase:

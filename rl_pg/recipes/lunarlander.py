@@ -13,6 +13,7 @@ Gaussian (TanhNormal) policy. Needs the box2d extra::
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from torchrl.envs import EnvBase
 
@@ -47,6 +48,9 @@ class Config(
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
     """Width of the two hidden layers of the actor and of the critic."""
+    backend: Literal["gymnasium", "envpool"] = "gymnasium"
+    """What steps the training landers: gymnasium in this process, or EnvPool's C++
+    threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
 
 def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase:
@@ -60,6 +64,9 @@ def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    if cfg.backend == "envpool" and not render and cfg.num_envs > 1:
+        task = "LunarLanderContinuous-v3" if cfg.continuous else "LunarLander-v3"
+        return gym_env(task, num_envs=cfg.num_envs, backend="envpool")
     return make_landers(cfg, 1 if render else cfg.num_envs, render=render)
 
 
