@@ -1,31 +1,37 @@
-"""How many CartPole-v1 frames per second does each way of training (or just stepping) take?
+"""How close does rl_pg's training loop run to the speed of its environments?
 
 One run, every contender timed in turn, repetitions interleaved (so machine noise hits
-all alike), medians of frames/s reported with ratios:
+all alike), medians of frames/s reported with ratios to the floor measured in the same
+run at the same number of environments:
 
-* rl_pg's training loop: the ``cartpole`` recipe with its defaults (collection,
-  returns, loss, optimiser step; evaluation excluded), frames / training wall-clock.
-* TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` and
-  ``Collector(GymEnv("CartPole-v1", num_envs=8))``, collection only, same MLP policy.
-* Stable-Baselines3 A2C's training loop (8 environments, its defaults).
-* The floor: plain gymnasium ``SyncVectorEnv`` stepped by the same MLP policy (sampled
-  actions, no learning, no TensorDict), with 8 environments (the set-up users compare
-  with) and with as many environments as the recipe uses.
+* rl_pg's training loop: a recipe with its defaults except the number of environments
+  and the backend (collection, returns, loss, optimiser step; evaluation excluded),
+  frames / training wall-clock.
+* The floors, what the environments cost with no framework and no learning:
+  CartPole: plain gymnasium ``SyncVectorEnv`` (or EnvPool) stepped by the recipe's
+  MLP policy (sampled actions, no TensorDict); LunarLander: the vectorised landers
+  stepped with uniformly random actions.
+* For context: TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` (collection only,
+  same MLP policy) and Stable-Baselines3 A2C's training loop (8 environments).
 
-    pip install -c constraints.txt -e ".[bench]"
+EnvPool contenders run when EnvPool is installed (``pip install -e ".[envpool]"``).
+
+    pip install -c constraints.txt -e ".[bench,envpool]"
     python benchmarks/throughput.py
 """
 
 from __future__ import annotations
 
+import importlib.util
 import statistics
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import torch
 import tyro
 from common import REPO, table, write_json
@@ -34,12 +40,13 @@ from torchrl.envs import GymEnv
 
 from rl_pg.recipes import load
 
-cartpole = load("cartpole")
+cartpole, lunarlander = load("cartpole"), load("lunarlander")
+HAS_ENVPOOL = importlib.util.find_spec("envpool") is not None
 
 
 @dataclass
 class Config:
-    """CartPole-v1 frames/s: rl_pg's loop vs TorchRL's stock collectors, SB3 A2C, raw gym."""
+    """Training frames/s of rl_pg's loop against its environments' own speed."""
 
     seconds: float = 3.0
     """Target duration of one repetition of one contender."""
@@ -47,56 +54,104 @@ class Config:
     """Interleaved repetitions per contender (the median is reported)."""
     probe_frames: int = 2_000
     """Frames of the first, untimed-for-the-result run that sizes each repetition."""
+    cartpole_envs: list[int] = field(default_factory=lambda: [8, 32])
+    """CartPole environment counts compared (32 is the recipe's default)."""
+    lunarlander_envs: list[int] = field(default_factory=lambda: [8])
+    """LunarLander environment counts compared (8 is the recipe's default)."""
+    peers: bool = True
+    """Also time TorchRL's stock collector and SB3 A2C (context, no ratio target)."""
     threads: int = 1
     """torch threads for every contender."""
     json_path: Path = REPO / "benchmarks/results/throughput.json"
     """Where the results are written."""
 
 
-def recipe_actor():
-    """The recipe's MLP policy (same architecture for every contender that needs one)."""
-    recipe = cartpole.config()
-    return cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
-
-
-def rl_pg_training(frames: int) -> float:
-    with tempfile.TemporaryDirectory() as run_dir:
-        summary = cartpole.train(
-            cartpole.config(
-                run_dir=Path(run_dir),
-                total_frames=frames,
-                threshold=None,
-                eval_interval=10**12,  # one evaluation, at the end, outside the timer
-                eval_episodes=1,
-                checkpoint_interval=10**12,
-                progress=False,
-            )
-        )
-    return summary["frames"] / summary["train_wall_s"]
-
-
-def torchrl_collector(num_envs: int | None) -> Callable[[int], float]:
+def recipe_training(recipe, **overrides) -> Callable[[int], float]:
     def run(frames: int) -> float:
-        kwargs = {} if num_envs is None else {"num_envs": num_envs}
-        env = GymEnv("CartPole-v1", categorical_action_encoding=True, **kwargs)
-        batch = 200 * (num_envs or 1)
-        collector = Collector(
-            env,
-            recipe_actor(),
-            frames_per_batch=batch,
-            total_frames=-1,
-            auto_register_policy_transforms=False,
-        )
-        iterator = iter(collector)
-        next(iterator)  # start-up outside the timer
-        start, done = time.perf_counter(), 0
-        while done < frames:
-            done += next(iterator).numel()
-        rate = done / (time.perf_counter() - start)
-        collector.shutdown()
+        with tempfile.TemporaryDirectory() as run_dir:
+            summary = recipe.train(
+                recipe.config(
+                    run_dir=Path(run_dir),
+                    total_frames=frames,
+                    threshold=None,
+                    eval_interval=10**12,  # one evaluation, at the end, outside the timer
+                    eval_episodes=1,
+                    checkpoint_interval=10**12,
+                    progress=False,
+                    **overrides,
+                )
+            )
+        return summary["frames"] / summary["train_wall_s"]
+
+    return run
+
+
+def _vector(env_id: str, n: int, backend: str, **kwargs):
+    if backend == "envpool":
+        import envpool
+
+        return envpool.make_gymnasium(env_id, num_envs=n, seed=0, **kwargs)
+    return gym.make_vec(env_id, num_envs=n, vectorization_mode="sync", **kwargs)
+
+
+def cartpole_floor(n: int, backend: str) -> Callable[[int], float]:
+    """The recipe's MLP stepping ``n`` CartPoles: no TensorDict, no learning."""
+
+    def run(frames: int) -> float:
+        envs = _vector("CartPole-v1", n, backend)
+        recipe = cartpole.config()
+        actor = cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
+        net = actor.module[0].module  # the policy's plain nn.Module (logits)
+        obs, _ = envs.reset(seed=0) if backend == "gymnasium" else envs.reset()
+        steps = max(1, frames // n)
+        start = time.perf_counter()
+        with torch.inference_mode():
+            for _ in range(steps):
+                logits = net(torch.as_tensor(obs))
+                action = torch.distributions.Categorical(logits=logits).sample()
+                obs, *_ = envs.step(action.numpy())
+        rate = steps * n / (time.perf_counter() - start)
+        envs.close()
         return rate
 
     return run
+
+
+def random_floor(env_id: str, n: int, backend: str) -> Callable[[int], float]:
+    """``n`` environments stepped with uniformly random actions."""
+
+    def run(frames: int) -> float:
+        envs = _vector(env_id, n, backend)
+        envs.reset()
+        rng = np.random.default_rng(0)
+        steps = max(1, frames // n)
+        count = envs.single_action_space.n
+        actions = rng.integers(0, count, size=(steps, n))
+        start = time.perf_counter()
+        for action in actions:
+            envs.step(action)
+        rate = steps * n / (time.perf_counter() - start)
+        envs.close()
+        return rate
+
+    return run
+
+
+def torchrl_collector(frames: int) -> float:
+    recipe = cartpole.config()
+    actor = cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
+    env = GymEnv("CartPole-v1", categorical_action_encoding=True)
+    collector = Collector(
+        env, actor, frames_per_batch=200, total_frames=-1, auto_register_policy_transforms=False
+    )
+    iterator = iter(collector)
+    next(iterator)  # start-up outside the timer
+    start, done = time.perf_counter(), 0
+    while done < frames:
+        done += next(iterator).numel()
+    rate = done / (time.perf_counter() - start)
+    collector.shutdown()
+    return rate
 
 
 def sb3_a2c(frames: int) -> float:
@@ -109,59 +164,68 @@ def sb3_a2c(frames: int) -> float:
     return model.num_timesteps / (time.perf_counter() - start)
 
 
-def gym_floor(num_envs: int) -> Callable[[int], float]:
-    def run(frames: int) -> float:
-        envs = gym.make_vec("CartPole-v1", num_envs=num_envs, vectorization_mode="sync")
-        net = recipe_actor().module[0].module  # the policy's plain nn.Module (logits)
-        obs, _ = envs.reset(seed=0)
-        steps = max(1, frames // num_envs)
-        start = time.perf_counter()
-        with torch.inference_mode():
-            for _ in range(steps):
-                logits = net(torch.as_tensor(obs))
-                action = torch.distributions.Categorical(logits=logits).sample()
-                obs, *_ = envs.step(action.numpy())
-        return steps * num_envs / (time.perf_counter() - start)
-
-    return run
+def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tuple[str, str]]]:
+    """The runs to time, and the (loop, floor) pairs whose ratio is reported."""
+    runs: dict[str, Callable[[int], float]] = {}
+    pairs: list[tuple[str, str]] = []
+    backends = ["gymnasium", "envpool"] if HAS_ENVPOOL else ["gymnasium"]
+    for task, recipe, counts in (
+        ("CartPole", cartpole, cfg.cartpole_envs),
+        ("LunarLander", lunarlander, cfg.lunarlander_envs),
+    ):
+        for n in counts:
+            for backend in backends:
+                loop = f"{task} x{n} rl_pg training loop ({backend})"
+                runs[loop] = recipe_training(recipe, num_envs=n, backend=backend)
+                if task == "CartPole":
+                    floor = f"{task} x{n} floor: {backend} + MLP, no learning"
+                    runs[floor] = cartpole_floor(n, backend)
+                else:
+                    floor = f"{task} x{n} floor: {backend}, random actions"
+                    runs[floor] = random_floor("LunarLander-v3", n, backend)
+                pairs.append((loop, floor))
+            if "envpool" in backends:  # the other backend's floor, from the default loop
+                pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", floor))
+    if cfg.peers:
+        runs["CartPole x1 TorchRL Collector(GymEnv), collection only"] = torchrl_collector
+        if importlib.util.find_spec("stable_baselines3") is not None:
+            runs["CartPole x8 SB3 A2C training loop"] = sb3_a2c
+    return runs, pairs
 
 
 def main(cfg: Config) -> dict:
     torch.set_num_threads(cfg.threads)
-    n = cartpole.config().num_envs
-    contenders: dict[str, Callable[[int], float]] = {
-        "rl_pg training loop (recipe)": rl_pg_training,
-        "TorchRL Collector(GymEnv), collection only": torchrl_collector(None),
-        "TorchRL Collector(GymEnv(num_envs=8)), collection only": torchrl_collector(8),
-        "SB3 A2C training loop (8 envs)": sb3_a2c,
-        "floor: SyncVectorEnv(8) + MLP, no learning": gym_floor(8),
-        f"floor: SyncVectorEnv({n}) + MLP, no learning": gym_floor(n),
-    }
+    runs, pairs = contenders(cfg)
     # Size each contender's repetition to about cfg.seconds from a short probe.
-    frames = {}
-    for name, run in contenders.items():
-        frames[name] = max(cfg.probe_frames, int(run(cfg.probe_frames) * cfg.seconds))
-    rates: dict[str, list[float]] = {name: [] for name in contenders}
+    frames = {
+        name: max(cfg.probe_frames, int(run(cfg.probe_frames) * cfg.seconds))
+        for name, run in runs.items()
+    }
+    rates: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(cfg.repeats):
-        for name, run in contenders.items():
+        for name, run in runs.items():
             rates[name].append(run(frames[name]))
     median = {name: statistics.median(r) for name, r in rates.items()}
 
-    ours = median["rl_pg training loop (recipe)"]
-    floor8 = median["floor: SyncVectorEnv(8) + MLP, no learning"]
-    stock = median["TorchRL Collector(GymEnv), collection only"]
-    rows = [[name, rate, ours / rate] for name, rate in median.items()]
-    print(table(rows, ["contender", "frames/s (median)", "rl_pg loop / this"]))
-    print(f"\nrl_pg loop / SyncVectorEnv(8) floor: {ours / floor8:.2f}x  (target >= 0.9)")
-    print(f"rl_pg loop / TorchRL stock Collector: {ours / stock:.1f}x  (target >= 10)")
+    print(
+        table([[name, rate] for name, rate in median.items()], ["contender", "frames/s (median)"])
+    )
+    ratios = {f"{loop} / {floor}": median[loop] / median[floor] for loop, floor in pairs}
+    print()
+    print(table([[name, ratio] for name, ratio in ratios.items()], ["ratio", "x"]))
+    stock = "CartPole x1 TorchRL Collector(GymEnv), collection only"
+    default_loop = f"CartPole x{cartpole.config().num_envs} rl_pg training loop (gymnasium)"
+    over_stock = median[default_loop] / median[stock] if stock in median else None
+    if over_stock is not None:
+        print(f"\nrl_pg CartPole loop / TorchRL stock Collector: {over_stock:.1f}x")
     return write_json(
         cfg.json_path,
         cfg,
         frames_per_repeat=frames,
         frames_per_s=rates,
         median_frames_per_s=median,
-        rl_pg_over_floor8=ours / floor8,
-        rl_pg_over_stock_collector=ours / stock,
+        ratios=ratios,
+        rl_pg_over_stock_collector=over_stock,
     )
 
 

@@ -70,10 +70,18 @@ def test_comparisons_with_sb3(script, tmp_path):
     module = _script(script)
     if script == "throughput":
         cfg = module.Config(
-            seconds=0.01, repeats=1, probe_frames=512, json_path=tmp_path / "t.json"
+            seconds=0.01,
+            repeats=1,
+            probe_frames=512,
+            cartpole_envs=[32],  # the recipe's default: the stock-collector ratio reads it
+            lunarlander_envs=[4],
+            json_path=tmp_path / "t.json",
         )
         out = module.main(cfg)
-        assert out["rl_pg_over_floor8"] > 0 and out["rl_pg_over_stock_collector"] > 0
+        assert out["ratios"] and all(r > 0 for r in out["ratios"].values())
+        loop, floor = "rl_pg training loop (gymnasium)", "floor: gymnasium + MLP, no learning"
+        assert f"CartPole x32 {loop} / CartPole x32 {floor}" in out["ratios"]
+        assert out["rl_pg_over_stock_collector"] > 0
     else:
         cfg = module.Config(
             seeds=[0],
