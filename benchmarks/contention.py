@@ -33,9 +33,11 @@ import numba
 import torch
 import tyro
 from common import REPO, table, write_json
-from throughput import cartpole, gym_floor, rl_pg_training
+from throughput import cartpole, cartpole_floor, recipe_training
 
 from rl_pg import _scan
+
+rl_pg_training = recipe_training(cartpole)
 
 
 @dataclass
@@ -89,7 +91,7 @@ def main(cfg: Config) -> dict:
     contenders = {
         "rl_pg training loop (recipe)": rl_pg_training,
         "rl_pg, kernel on every numba thread (before)": rl_pg_training_all_kernel_threads,
-        floor_name: gym_floor(n_envs),
+        floor_name: cartpole_floor(n_envs, "gymnasium"),
     }
     for run in contenders.values():  # compile and warm everything up, untimed
         run(min(cfg.frames, 2_048))
