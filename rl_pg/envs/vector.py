@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 import torch
@@ -227,7 +229,12 @@ class EnvPoolEnv(VectorGymEnv):
     """
 
     def __init__(
-        self, task_id: str, num_envs: int, *, device: torch.device | str | None = None, **kwargs
+        self,
+        task_id: str,
+        num_envs: int,
+        *,
+        device: torch.device | str | None = None,
+        **kwargs: Any,
     ) -> None:
         try:
             import envpool

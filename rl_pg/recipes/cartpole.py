@@ -1,7 +1,7 @@
 """REINFORCE on CartPole-v1 until greedy play is solved (mean >= 475 over 20 episodes).
 
 By default 32 CartPoles are stepped as one batch in this process (gymnasium's
-SyncVectorEnv behind TorchRL's GymWrapper) and each update uses 8 steps of each, with
+SyncVectorEnv behind rl_pg's VectorGymEnv) and each update uses 8 steps of each, with
 reward-to-go bootstrapped from a learned V(s) at the segment's end and V(s) as the
 baseline: the fastest set-up on a CPU (see benchmarks/). The textbook variant, whole
 episodes from one environment::
