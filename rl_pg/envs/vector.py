@@ -53,8 +53,7 @@ class VectorGymEnv(EnvBase):
         ...     vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.DISABLED},
         ... )
         >>> env = VectorGymEnv(envs)
-        >>> env.set_seed(0)
-        1
+        >>> _ = env.set_seed(0)
         >>> rollout = env.rollout(3)
         >>> rollout.batch_size, rollout["next", "observation"].shape
         (torch.Size([4, 3]), torch.Size([4, 3, 4]))
