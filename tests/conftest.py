@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,6 +14,8 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Unbounded
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
+
+from rl_pg.checkpoint import load_checkpoint
 
 N_OBS = 3
 N_ACT = 4
@@ -100,3 +104,17 @@ def critic():
 def categorical_batch():
     generator = torch.Generator().manual_seed(2)
     return make_batch(torch.randint(N_ACT, (3, 7), generator=generator))
+
+
+def run_weights(run_dir: Path) -> dict:
+    """The loss's parameters and buffers in a run directory's checkpoint."""
+    return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
+
+
+def assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:
+    """``run_dir`` (resumed) ended exactly like the uninterrupted run in ``straight_dir``."""
+    expected = json.loads((straight_dir / "summary.json").read_text())
+    for key in ("frames", "updates", "eval_mean_return"):
+        assert summary[key] == expected[key]
+    for key, value in run_weights(straight_dir).items():
+        assert torch.equal(value, run_weights(run_dir)[key]), key

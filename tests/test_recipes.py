@@ -6,6 +6,7 @@ import importlib.util
 import json
 
 import pytest
+from conftest import assert_same_run
 from PIL import Image
 
 from rl_pg.recipes import evaluate, load, play
@@ -69,25 +70,14 @@ def test_vectorised_cartpole_resumes_exactly(tmp_path, backend):
     uninterrupted one: the environments replay the recorded actions exactly."""
     if backend == "envpool":
         pytest.importorskip("envpool")
-    import torch
-
-    from rl_pg.checkpoint import load_checkpoint
-
     common = {**TINY, "checkpoint_interval": 1000, "backend": backend, "num_envs": 4}
     common |= {"env_restart_interval": 4, "eval_interval": 10**6, "threshold": None}
-    straight = cartpole.train(
-        cartpole.config(run_dir=tmp_path / "straight", total_updates=10, **common)
-    )
+    cartpole.train(cartpole.config(run_dir=tmp_path / "straight", total_updates=10, **common))
     cartpole.train(cartpole.config(run_dir=tmp_path / "split", total_updates=6, **common))
     resumed = cartpole.train(
         cartpole.config(run_dir=tmp_path / "split", total_updates=10, resume=True, **common)
     )
-    assert resumed["frames"] == straight["frames"]
-    assert resumed["eval_mean_return"] == straight["eval_mean_return"]
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")["loss"]
-    b = load_checkpoint(tmp_path / "split" / "checkpoint.pt")["loss"]
-    for key, value in a.items():
-        assert torch.equal(value, b[key]), key
+    assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
 
 
 def test_highway_reports_the_crash_rate(tmp_path):

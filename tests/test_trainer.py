@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import assert_same_run, run_weights
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -75,19 +76,6 @@ def _logged(run_dir: Path, name: str) -> list[float]:
     """The values of scalar ``name`` in the order the run logged them."""
     rows = (run_dir / "logs" / "csv" / "scalars" / f"{name}.csv").read_text().split()
     return [float(row.split(",")[1]) for row in rows]
-
-
-def _weights(run_dir: Path) -> dict:
-    return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
-
-
-def _assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:
-    """``run_dir`` (resumed) ended exactly like the uninterrupted run in ``straight_dir``."""
-    expected = json.loads((straight_dir / "summary.json").read_text())
-    for key in ("frames", "updates", "eval_mean_return"):
-        assert summary[key] == expected[key]
-    for key, value in _weights(straight_dir).items():
-        assert torch.equal(value, _weights(run_dir)[key]), key
 
 
 class TestTrain:
@@ -163,7 +151,7 @@ class TestTrain:
             summaries[steps] = _train(
                 _cfg(tmp_path, run_dir=run, critic_steps=steps, total_updates=1)
             )
-            weights[steps] = _weights(run)
+            weights[steps] = run_weights(run)
         actor = [key for key in weights[1] if key.startswith("actor_network")]
         critic = [key for key in weights[1] if key.startswith("critic_network")]
         assert actor and critic
@@ -187,7 +175,7 @@ class TestTrain:
         }.items():
             run = tmp_path / name
             _train(_cfg(tmp_path, run_dir=run, gamma=0.9, total_updates=1, **override))
-            weights[name] = _weights(run)
+            weights[name] = run_weights(run)
         actor = [key for key in weights["rtg"] if key.startswith("actor_network")]
         assert actor
         for key in actor:
@@ -300,7 +288,7 @@ class TestTrain:
         resumed = _train(
             _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=6, resume=True, **schedule)
         )
-        _assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
+        assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
 
     def test_segment_results_do_not_depend_on_the_checkpoint_interval(self, tmp_path):
         summaries, weights = [], []
@@ -308,7 +296,7 @@ class TestTrain:
             run = tmp_path / f"every{interval}"
             cfg = _cfg(tmp_path, run_dir=run, total_updates=11, checkpoint_interval=interval)
             summaries.append(_train(replace(cfg, **SEGMENTS, log_interval=2)))
-            weights.append(_weights(run))
+            weights.append(run_weights(run))
         for summary in summaries[1:]:
             for key in ("frames", "eval_mean_return", "best_eval_mean_return"):
                 assert summary[key] == summaries[0][key]
@@ -326,7 +314,7 @@ class TestTrain:
         resumed = _train(
             _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=13, resume=True, **common)
         )
-        _assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
+        assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
         straight, split_run = (
             read_curve(tmp_path / run, "train/episode_return") for run in ("straight", "split")
         )
@@ -508,7 +496,7 @@ class TestKilledRun:
             _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True,
                  **extra)
         )  # fmt: skip
-        _assert_same_run(resumed, run, tmp_path / "straight")
+        assert_same_run(resumed, run, tmp_path / "straight")
 
 
 def test_training_episode_returns_are_summed_across_segments():
@@ -783,7 +771,7 @@ class TestInterruptedRun:
         gridworld.train(gridworld.config(run_dir=tmp_path / "straight", **common))
         resumed = gridworld.train(gridworld.config(run_dir=run, resume=True, **common))
         assert resumed["interrupted"] is False
-        _assert_same_run(resumed, run, tmp_path / "straight")
+        assert_same_run(resumed, run, tmp_path / "straight")
 
     def test_a_second_ctrl_c_stops_at_once(self):
         from rl_pg.training.interrupt import InterruptRequest
@@ -882,7 +870,7 @@ class TestDevice:
         expected = "cuda" if torch.cuda.is_available() else "cpu"
         assert summary["updates"] == 2
         assert _cfg(tmp_path, device="auto").torch_device().type == expected
-        assert all(v.device.type == "cpu" for v in _weights(tmp_path / "run").values())
+        assert all(v.device.type == "cpu" for v in run_weights(tmp_path / "run").values())
 
     @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
     def test_cuda_without_a_gpu_says_so_before_anything_starts(self, tmp_path):
@@ -904,8 +892,8 @@ def test_keep_every_keeps_copies_without_changing_the_run(tmp_path):
     assert [p.name for p in kept] == ["update_2.pt", "update_4.pt"]
     assert [read_run(p)["state"]["updates"] for p in kept] == [2, 4]
     assert not (tmp_path / "plain" / "checkpoints").exists()
-    for key, value in _weights(tmp_path / "plain").items():
-        assert torch.equal(value, _weights(tmp_path / "kept")[key]), key
+    for key, value in run_weights(tmp_path / "plain").items():
+        assert torch.equal(value, run_weights(tmp_path / "kept")[key]), key
 
 
 def test_worker_factories_leave_the_main_process_ctrl_c_alone():

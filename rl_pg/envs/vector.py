@@ -71,7 +71,7 @@ class VectorGymEnv(EnvBase):
         super().__init__(batch_size=torch.Size([n]), device=device)
         self._env = env
         self._n = n
-        spaces = self._spaces(env)[0]
+        spaces, action_space = self._spaces(env)
         if isinstance(spaces, gym.spaces.Box):
             self._obs_keys = ("observation",)
             spaces = {"observation": spaces}
@@ -85,7 +85,7 @@ class VectorGymEnv(EnvBase):
         self.observation_spec = Composite(
             {key: self._spec(space) for key, space in spaces.items()}, shape=self.batch_size
         )
-        self.action_spec = self._spec(self._spaces(env)[1])
+        self.action_spec = self._spec(action_space)
         self.reward_spec = Unbounded(shape=(n, 1), device=self.device)
         done = Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(

@@ -61,9 +61,7 @@ def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
 
 def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
     params = [p for p in loss.parameters() if p.requires_grad]
-    # One fused kernel per step where torch has one (CPU and CUDA): a small network's
-    # per-tensor Python loop otherwise costs more than its arithmetic.
-    fused = {"fused": True} if all(p.device.type in ("cpu", "cuda") for p in params) else {}
+    fused = {"fused": True} if _fused_kernels(params) else {}
     if cfg.optimizer == "sgd":
         return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
     return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
@@ -116,7 +114,7 @@ def update(
     total.backward()
     params = [p for group in optimizer.param_groups for p in group["params"]]
     max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
-    grad_norm = nn.utils.clip_grad_norm_(params, max_norm, foreach=_foreach(params))
+    grad_norm = nn.utils.clip_grad_norm_(params, max_norm, foreach=_fused_kernels(params) or None)
     if not torch.isfinite(grad_norm):
         raise TrainingDiverged(
             f"The gradient norm became {grad_norm.item()}; training stopped and the last "
@@ -161,16 +159,18 @@ def _fit_critic(loss: ReinforceLoss, optimizer, batch, cfg: TrainConfig, max_nor
             )
         optimizer.zero_grad(set_to_none=True)
         value_loss.backward()
-        nn.utils.clip_grad_norm_(params, max_norm, foreach=_foreach(params))
+        nn.utils.clip_grad_norm_(params, max_norm, foreach=_fused_kernels(params) or None)
         optimizer.step()
     with torch.no_grad():
         return loss.value_loss(batch).item()
 
 
-def _foreach(params) -> bool | None:
-    """Clip gradients with torch's multi-tensor kernels on the CPU too (torch's default
-    uses them on CUDA only)."""
-    return True if all(p.device.type in ("cpu", "cuda") for p in params) else None
+def _fused_kernels(params) -> bool:
+    """Whether torch has multi-tensor kernels for ``params``' devices (CPU and CUDA):
+    the optimiser step and the gradient clip then run one kernel over every tensor
+    instead of a Python loop that costs more than a small network's arithmetic (torch
+    picks them by default on CUDA only). Elsewhere torch's defaults apply."""
+    return all(p.device.type in ("cpu", "cuda") for p in params)
 
 
 def _describe(losses: TensorDictBase) -> str:
