@@ -94,23 +94,38 @@ class _MonteCarloReturn(ValueEstimatorBase):
         Returns:
             ``tensordict``, updated in place.
         """
+        self._estimate(tensordict, params=params, target_params=target_params)
+        return tensordict
+
+    def _estimate(
+        self,
+        tensordict: TensorDictBase,
+        *,
+        params: TensorDictBase | None = None,
+        target_params: TensorDictBase | None = None,
+        value_graph: bool = False,
+    ) -> torch.Tensor | None:
+        """``forward``'s work. With ``value_graph=True`` and a value network called in
+        one plain pass, returns ``V(s_t)`` still attached to the network's parameters
+        (the entries written are detached all the same), so that a loss can regress it
+        without calling the network again; otherwise returns None."""
         if tensordict.batch_dims < 1:
             raise ValueError(
                 f"{type(self).__name__} needs a tensordict with a time dimension, got "
                 f"batch_size={tuple(tensordict.batch_size)}. Give the data a batch size such "
                 f"as [T] or [B, T]."
             )
-        value = next_value = None
+        value = next_value = graph = None
         if self.value_network is not None:
             if params is not None:
                 params = params.detach()
                 if target_params is None:
                     target_params = params.clone(False)
             held = params is None and target_params is None
-            with hold_out_net(self.value_network) if held else nullcontext():
-                if held and self._plain_calls(tensordict):
-                    value, next_value = self._values(tensordict)
-                else:
+            if held and self._plain_calls(tensordict):
+                value, next_value, graph = self._values(tensordict, value_graph)
+            else:
+                with hold_out_net(self.value_network) if held else nullcontext():
                     value, next_value, _ = self._call_value_nets(
                         data=tensordict,
                         params=params,
@@ -127,7 +142,7 @@ class _MonteCarloReturn(ValueEstimatorBase):
             advantage = value_target if value is None else value_target - value
         tensordict.set(self.tensor_keys.value_target, value_target)
         tensordict.set(self.tensor_keys.advantage, advantage)
-        return tensordict
+        return graph
 
     def _plain_calls(self, tensordict: TensorDictBase) -> bool:
         """Whether one call of the value network on the root and ``"next"`` entries
@@ -144,22 +159,45 @@ class _MonteCarloReturn(ValueEstimatorBase):
             for key in keys
         )
 
-    def _values(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """``V(s_t)`` and ``V(s_{t+1})`` (detached), from one call of the value network
-        on both sets of inputs laid end to end: cheaper than TorchRL's ``vmap`` over the
-        pair for the small networks and batches of on-policy training."""
+    def _values(self, tensordict: TensorDictBase, graph: bool = False):
+        """``V(s_t)``, ``V(s_{t+1})`` (both detached) and, with ``graph``, ``V(s_t)``
+        attached to the network's parameters.
+
+        Without ``graph``, one call of the value network on both sets of inputs laid end
+        to end: cheaper than TorchRL's ``vmap`` over the pair for the small networks and
+        batches of on-policy training. With it, ``V(s_t)`` is computed with gradients
+        and ``V(s_{t+1})`` without, so that the backward pass covers only the steps a
+        value loss regresses.
+        """
         keys = list(self.value_network.in_keys)
         data = self._sanitize_next_obs_nan(tensordict, keys)  # as TorchRL's calls do
-        n = tensordict.shape[0]
-        both = TensorDict(
-            {key: torch.cat([data.get(key), data.get(("next", key))]) for key in keys},
-            batch_size=[2 * n, *tensordict.shape[1:]],
-        )
-        values = self.value_network(both).get(self.tensor_keys.value)
-        value, next_value = values[:n], values[n:].detach()
-        tensordict.set(self.tensor_keys.value, value)
-        tensordict.set(("next", self.tensor_keys.value), next_value)
-        return value, next_value
+        value_key = self.tensor_keys.value
+
+        def inputs(*prefix):
+            return TensorDict(
+                {key: data.get((*prefix, key)) for key in keys}, batch_size=tensordict.shape
+            )
+
+        if graph:
+            attached = self.value_network(inputs()).get(value_key)
+            with torch.no_grad():
+                next_value = self.value_network(inputs("next")).get(value_key)
+            value = attached.detach()
+        else:
+            n = tensordict.shape[0]
+            both = TensorDict(
+                {key: torch.cat([data.get(key), data.get(("next", key))]) for key in keys},
+                batch_size=[2 * n, *tensordict.shape[1:]],
+            )
+            # Out of the graph as TorchRL holds it: gradients may reach the inputs (a
+            # differentiable estimator), never the network's parameters.
+            held = hold_out_net(self.value_network) if self.differentiable else torch.no_grad()
+            with held:
+                values = self.value_network(both).get(value_key)
+            attached, value, next_value = None, values[:n], values[n:].detach()
+        tensordict.set(value_key, value)
+        tensordict.set(("next", value_key), next_value)
+        return value, next_value, attached
 
     def value_estimate(
         self,

@@ -23,6 +23,7 @@ from torchrl.objectives.utils import (
     _GAMMA_LMBDA_DEPREC_ERROR,
     _sum_td_features,
     dispatch_value_estimator,
+    distance_loss,
 )
 from torchrl.objectives.value import ValueEstimatorBase
 
@@ -375,7 +376,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
                 " there is no step to learn from. Collect at least one step."
             )
-        weights, diagnostics = self._policy_weights(tensordict)
+        weights, diagnostics, state_value = self._policy_weights(tensordict)
         dist = self._policy(tensordict)
         log_prob = self._log_prob(dist, tensordict, weights)
         td_out = TensorDict({"loss_actor": -log_prob * weights}, batch_size=[])
@@ -384,7 +385,15 @@ class ReinforceLoss(TorchRLReinforceLoss):
             td_out.set("loss_entropy", -self.entropy_coeff * entropy)
             td_out.set("entropy", entropy.detach().mean())
         if self.has_critic:
-            loss_value, value_clip_fraction = self.loss_critic(tensordict)
+            if state_value is not None:  # the estimator's pass, still in the graph
+                loss_value = distance_loss(
+                    tensordict.get(self.tensor_keys.value_target),
+                    state_value,
+                    loss_function=self.loss_critic_type,
+                )
+                value_clip_fraction = None
+            else:
+                loss_value, value_clip_fraction = self.loss_critic(tensordict)
             td_out.set("loss_value", self.critic_coeff * loss_value)
             if value_clip_fraction is not None:
                 td_out.set("value_clip_fraction", value_clip_fraction)
@@ -406,7 +415,10 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
         return td_out
 
-    def _run_value_estimator(self, tensordict: TensorDictBase) -> None:
+    def _run_value_estimator(self, tensordict: TensorDictBase) -> torch.Tensor | None:
+        """Writes the returns; gives back the critic's ``V(s_t)`` still attached to its
+        parameters when the estimator called this loss's critic in a plain pass (the
+        critic loss then regresses it instead of calling the critic again), else None."""
         if self._deferred_key_error is not None:
             self._forward_value_estimator_keys()  # the keys may have been fixed since
             if self._deferred_key_error is not None:
@@ -415,11 +427,25 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"{self._deferred_key_error.args[0]} Set value= to a key the critic "
                     f"writes, or build the critic with that out_key."
                 ) from self._deferred_key_error
+        if self._shares_critic_pass():
+            return self.value_estimator._estimate(tensordict, value_graph=True)
         functional_critic = self.functional and self.has_critic
         self.value_estimator(
             tensordict,
             params=self.critic_network_params.detach() if functional_critic else None,
             target_params=self.target_critic_network_params if functional_critic else None,
+        )
+        return None
+
+    def _shares_critic_pass(self) -> bool:
+        estimator = self.value_estimator
+        return (
+            self.has_critic
+            and not self.functional
+            and self.clip_value is None
+            and isinstance(estimator, _MonteCarloReturn)
+            and estimator.value_network is self.critic_network
+            and not estimator.differentiable
         )
 
     def _policy_weights(self, tensordict: TensorDictBase):
@@ -431,8 +457,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
         psi = tensordict.get(key, None)
         estimated_here = psi is None
+        state_value = None
         if estimated_here:
-            self._run_value_estimator(tensordict)
+            state_value = self._run_value_estimator(tensordict)
             psi = tensordict.get(key, None)
             if psi is None:
                 raise KeyError(
@@ -479,7 +506,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 diagnostics["explained_variance"] = explained
         if self.normalize_advantage:
             psi = (psi - diagnostics["advantage_mean"]) / (diagnostics["advantage_std"] + 1e-8)
-        return psi, diagnostics
+        return psi, diagnostics, state_value
 
     def _valid_steps(self, tensordict: TensorDictBase, like: torch.Tensor):
         """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""

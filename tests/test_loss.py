@@ -236,6 +236,41 @@ class TestReinforceLoss:
         plain = ReinforceLoss(categorical_actor, functional=False)(categorical_batch.clone())
         torch.testing.assert_close(plain["loss_actor"], functional["loss_actor"])
 
+    @pytest.mark.parametrize("estimator", ["reward_to_go", "discounted_return"])
+    @pytest.mark.parametrize("baseline", ["critic", "batch_mean"])
+    def test_the_estimator_s_value_pass_is_regressed_as_it_is(
+        self, categorical_actor, critic, categorical_batch, estimator, baseline
+    ):
+        """Non-functional, the critic loss regresses the V(s) the Monte-Carlo estimator
+        computed (kept in the graph); TorchRL evaluates the critic on s once more. Same
+        losses and gradients, a third fewer rows through the critic."""
+        rows, results = [], []
+        critic.register_forward_hook(lambda _, args, __: rows.append(args[0].numel()))
+        for share in (True, False):
+            loss = ReinforceLoss(categorical_actor, critic, functional=False, baseline=baseline)
+            loss.make_value_estimator(estimator, gamma=0.9)
+            if not share:
+                loss._shares_critic_pass = lambda: False
+            rows.clear()
+            batch = categorical_batch.clone()
+            out = loss(batch)
+            loss.zero_grad()
+            (out["loss_actor"] + out["loss_value"]).backward()
+            grads = [p.grad.clone() for p in loss.parameters()]
+            results.append((out, grads, batch, sum(rows)))
+        (shared, shared_grads, shared_batch, shared_rows), (two, two_grads, two_batch, two_rows) = (
+            results
+        )
+        steps = categorical_batch.numel()
+        assert (shared_rows, two_rows) == (2 * steps, 3 * steps)
+        for key in ("loss_actor", "loss_value", "advantage_mean"):
+            torch.testing.assert_close(shared[key], two[key])
+        for a, b in zip(shared_grads, two_grads, strict=True):
+            torch.testing.assert_close(a, b)
+        for key in ("state_value", "value_target", "advantage"):
+            assert not shared_batch[key].requires_grad
+            torch.testing.assert_close(shared_batch[key], two_batch[key])
+
     def test_flat_batch_of_episodes(self, categorical_actor, categorical_batch):
         flat = categorical_batch.reshape(-1)
         flat["next", "done"][6::7] = True  # each row's end is an episode end
