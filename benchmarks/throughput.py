@@ -38,6 +38,7 @@ from common import REPO, table, write_json
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
+from rl_pg.functional import reward_to_go
 from rl_pg.recipes import load
 
 cartpole, lunarlander = load("cartpole"), load("lunarlander")
@@ -137,6 +138,74 @@ def random_floor(env_id: str, n: int, backend: str) -> Callable[[int], float]:
     return run
 
 
+def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
+    """The recipe's algorithm written out in plain PyTorch over gymnasium's vector env:
+    what the same work costs with no TensorDict, no TorchRL and no run bookkeeping.
+
+    The same networks, segments, reward-to-go bootstrapped from the critic, value-loss
+    weight, entropy bonus, advantage standardisation, gradient clipping and fused Adam
+    as the recipe's defaults; one optimiser step per segment. It is a cost reference:
+    finished episodes are treated as terminated (no truncation bootstrap) and no
+    episode statistics are kept.
+    """
+
+    def run(frames: int) -> float:
+        cfg = recipe.config(num_envs=n)
+        env_id = getattr(cfg, "env_id", "LunarLander-v3")
+        actor, critic = recipe.make_models(recipe.make_env(cfg), cfg)
+        policy_net, value_net = actor.module[0].module, critic.module
+        params = [*policy_net.parameters(), *value_net.parameters()]
+        optimizer = torch.optim.Adam(params, lr=cfg.lr, fused=True)
+        envs = gym.make_vec(
+            env_id,
+            num_envs=n,
+            vectorization_mode="sync",
+            vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
+        )
+        obs, _ = envs.reset(seed=0)
+        steps = cfg.segment_length
+        updates = max(1, frames // (steps * n))
+        start = time.perf_counter()
+        for _ in range(updates):
+            segment = []
+            for _ in range(steps):
+                observation = torch.as_tensor(obs)
+                with torch.no_grad():
+                    action = torch.distributions.Categorical(logits=policy_net(observation))
+                    action = action.sample()
+                obs, reward, terminated, truncated, _ = envs.step(action.numpy())
+                done = torch.as_tensor(terminated | truncated)
+                segment.append((observation, action, torch.as_tensor(reward), done))
+            observation, action, reward, done = (torch.stack(x) for x in zip(*segment, strict=True))
+            reward = reward.float().unsqueeze(-1)
+            done = done.unsqueeze(-1)
+            with torch.no_grad():
+                next_value = value_net(
+                    torch.cat([observation[1:], torch.as_tensor(obs).unsqueeze(0)])
+                )
+                returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
+            value = value_net(observation)
+            advantage = returns - value.detach()
+            if cfg.normalize_advantage:
+                advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+            dist = torch.distributions.Categorical(logits=policy_net(observation))
+            loss = (
+                -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
+                - cfg.entropy_coeff * dist.entropy().mean()
+                + cfg.critic_coeff * (value - returns).pow(2).mean()
+            )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm, foreach=True)
+            optimizer.step()
+        rate = updates * steps * n / (time.perf_counter() - start)
+        envs.close()
+        return rate
+
+    return run
+
+
 def torchrl_collector(frames: int) -> float:
     recipe = cartpole.config()
     actor = cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
@@ -186,11 +255,19 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                 pairs.append((loop, floor))
             if "envpool" in backends:  # the other backend's floor, from the default loop
                 pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", floor))
+            plain = f"{task} x{n} the same algorithm in plain PyTorch (gymnasium)"
+            runs[plain] = plain_pytorch_training(recipe, n)
+            pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", plain))
+            pairs.append((plain, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
     if cfg.peers:
         runs["CartPole x1 TorchRL Collector(GymEnv), collection only"] = torchrl_collector
         if importlib.util.find_spec("stable_baselines3") is not None:
             runs["CartPole x8 SB3 A2C training loop"] = sb3_a2c
     return runs, pairs
+
+
+def _floor_kind(task: str) -> str:
+    return " + MLP, no learning" if task == "CartPole" else ", random actions"
 
 
 def main(cfg: Config) -> dict:

@@ -81,6 +81,8 @@ def test_comparisons_with_sb3(script, tmp_path):
         assert out["ratios"] and all(r > 0 for r in out["ratios"].values())
         loop, floor = "rl_pg training loop (gymnasium)", "floor: gymnasium + MLP, no learning"
         assert f"CartPole x32 {loop} / CartPole x32 {floor}" in out["ratios"]
+        plain = "the same algorithm in plain PyTorch (gymnasium)"
+        assert f"LunarLander x4 {loop} / LunarLander x4 {plain}" in out["ratios"]
         assert out["rl_pg_over_stock_collector"] > 0
     else:
         cfg = module.Config(
