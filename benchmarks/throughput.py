@@ -152,7 +152,9 @@ def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
     def run(frames: int) -> float:
         cfg = recipe.config(num_envs=n)
         env_id = getattr(cfg, "env_id", "LunarLander-v3")
-        actor, critic = recipe.make_models(recipe.make_env(cfg), cfg)
+        sizing = recipe.make_env(cfg)
+        actor, critic = recipe.make_models(sizing, cfg)
+        sizing.close()
         policy_net, value_net = actor.module[0].module, critic.module
         params = [*policy_net.parameters(), *value_net.parameters()]
         optimizer = torch.optim.Adam(params, lr=cfg.lr, fused=True)
