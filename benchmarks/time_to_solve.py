@@ -1,15 +1,16 @@
-"""How long does each tool take to solve CartPole-v1, under one protocol?
+"""How long does each tool take to solve CartPole-v1 (or LunarLander-v3), under one protocol?
 
-rl_pg's CartPole recipe (its defaults) against Stable-Baselines3's A2C and PPO with the
-rl-baselines3-zoo hyperparameters for CartPole-v1. The same protocol for all: every
+rl_pg's recipe (its defaults) against Stable-Baselines3's A2C and PPO with the
+rl-baselines3-zoo hyperparameters for the task. The same protocol for all: every
 ``eval_interval`` frames, training pauses for ``eval_episodes`` greedy episodes on a
-separate environment; the first evaluation with a mean >= 475 ends the run. Reported:
-frames and training wall-clock (evaluation excluded) to solve, per seed and median.
-Seeds are interleaved (seed 0 of every tool, then seed 1, ...) so that machine noise
-hits all tools alike. Every tool runs with the same number of torch threads.
+separate environment; the first evaluation with a mean >= the threshold ends the run.
+Reported: frames and training wall-clock (evaluation excluded) to solve, per seed and
+median. Seeds are interleaved (seed 0 of every tool, then seed 1, ...) so that machine
+noise hits all tools alike. Every tool runs with the same number of torch threads.
 
     pip install -c constraints.txt -e ".[bench]"
     python benchmarks/time_to_solve.py [--seeds 0 1 2 3 4]
+    python benchmarks/time_to_solve.py --task lunarlander --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ from __future__ import annotations
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Literal
 
 import torch
 import tyro
@@ -27,44 +30,130 @@ from common import REPO, table, write_json
 from rl_pg.recipes import load
 
 
+def _linear(start: float) -> Callable[[float], float]:
+    """The zoo's ``lin_<start>``: decayed linearly to 0 over the tool's budget."""
+    return lambda progress_remaining: start * progress_remaining
+
+
+@dataclass(frozen=True)
+class Task:
+    """One environment of the comparison: its protocol and each tool's settings."""
+
+    env_id: str
+    recipe: str
+    threshold: float
+    eval_interval: int
+    rl_pg_budget: int
+    # The zoo's hyperparameters per SB3 tool: n_envs, n_timesteps (the budget, over
+    # which its linear schedules decay) and the algorithm's keyword arguments.
+    sb3: dict[str, dict[str, Any]]
+
+
+TASKS = {
+    "cartpole": Task(
+        env_id="CartPole-v1",
+        recipe="cartpole",
+        threshold=475.0,
+        eval_interval=5_000,
+        rl_pg_budget=300_000,
+        sb3={
+            "sb3_a2c": {"n_envs": 8, "n_timesteps": 500_000, "kwargs": {"ent_coef": 0.0}},
+            "sb3_ppo": {
+                "n_envs": 8,
+                "n_timesteps": 100_000,
+                "kwargs": {
+                    "n_steps": 32,
+                    "batch_size": 256,
+                    "gae_lambda": 0.8,
+                    "gamma": 0.98,
+                    "n_epochs": 20,
+                    "ent_coef": 0.0,
+                    "learning_rate": _linear(1e-3),
+                    "clip_range": _linear(0.2),
+                },
+            },
+        },
+    ),
+    "lunarlander": Task(
+        env_id="LunarLander-v3",
+        recipe="lunarlander",
+        threshold=200.0,
+        eval_interval=25_000,
+        rl_pg_budget=1_000_000,
+        sb3={  # the zoo's LunarLander-v2 entries (v3 fixed bugs, same task)
+            "sb3_a2c": {
+                "n_envs": 8,
+                "n_timesteps": 200_000,
+                "kwargs": {
+                    "gamma": 0.995,
+                    "n_steps": 5,
+                    "learning_rate": _linear(0.00083),
+                    "ent_coef": 0.00001,
+                },
+            },
+            "sb3_ppo": {
+                "n_envs": 16,
+                "n_timesteps": 1_000_000,
+                "kwargs": {
+                    "n_steps": 1024,
+                    "batch_size": 64,
+                    "gae_lambda": 0.98,
+                    "gamma": 0.999,
+                    "n_epochs": 4,
+                    "ent_coef": 0.01,
+                },
+            },
+        },
+    ),
+}
+
+
 @dataclass
 class Config:
-    """Time to solve CartPole-v1 (greedy mean >= threshold), rl_pg vs SB3."""
+    """Time to solve a task (greedy mean >= threshold), rl_pg vs SB3."""
 
+    task: Literal["cartpole", "lunarlander"] = "cartpole"
+    """CartPole-v1 (solved at 475, evaluations every 5k frames) or LunarLander-v3 (200,
+    every 25k frames)."""
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
     """Seeds run by every tool."""
     tools: list[str] = field(default_factory=lambda: ["rl_pg", "sb3_a2c", "sb3_ppo"])
     """Contenders (any of rl_pg, sb3_a2c, sb3_ppo)."""
-    eval_interval: int = 5_000
-    """Frames between evaluations."""
+    eval_interval: int | None = None
+    """Frames between evaluations (None: the task's)."""
     eval_episodes: int = 20
     """Greedy episodes per evaluation."""
-    threshold: float = 475.0
-    """Mean evaluation return that counts as solved."""
+    threshold: float | None = None
+    """Mean evaluation return that counts as solved (None: the task's)."""
     budget_frames: int | None = None
-    """Frames after which an unsolved run stops (None: the zoo's budgets, 300k for rl_pg)."""
+    """Frames after which an unsolved run stops (None: the zoo's budgets; 300k for
+    rl_pg on CartPole, 1M on LunarLander)."""
     threads: int = 1
     """torch threads for every tool (tiny MLPs run fastest on one)."""
-    json_path: Path = REPO / "benchmarks/results/time_to_solve.json"
-    """Where the results are written."""
+    json_path: Path | None = None
+    """Where the results are written (None: benchmarks/results/time_to_solve.json for
+    CartPole, time_to_solve_lunarlander.json for LunarLander)."""
 
-
-# The zoo's budgets (n_timesteps); PPO's linear schedules decay over its budget.
-SB3_BUDGET = {"sb3_a2c": 500_000, "sb3_ppo": 100_000}
-RL_PG_BUDGET = 300_000
+    def protocol(self) -> tuple[Task, int, float]:
+        """The task, and its evaluation interval and threshold after the overrides."""
+        task = TASKS[self.task]
+        interval = self.eval_interval or task.eval_interval
+        threshold = task.threshold if self.threshold is None else self.threshold
+        return task, interval, threshold
 
 
 def run_rl_pg(seed: int, cfg: Config) -> dict:
-    cartpole = load("cartpole")
+    task, interval, threshold = cfg.protocol()
+    recipe = load(task.recipe)
     with tempfile.TemporaryDirectory() as run_dir:
-        summary = cartpole.train(
-            cartpole.config(
+        summary = recipe.train(
+            recipe.config(
                 seed=seed,
                 run_dir=Path(run_dir),
-                total_frames=cfg.budget_frames or RL_PG_BUDGET,
-                eval_interval=cfg.eval_interval,
+                total_frames=cfg.budget_frames or task.rl_pg_budget,
+                eval_interval=interval,
                 eval_episodes=cfg.eval_episodes,
-                threshold=cfg.threshold,
+                threshold=threshold,
                 stop_when_solved=True,
                 progress=False,
             )
@@ -81,13 +170,16 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
+    task, interval, threshold = cfg.protocol()
+    zoo = task.sb3[tool]
+
     class EvaluateAndStop(BaseCallback):
         """The shared protocol: pause, evaluate greedily, stop once solved."""
 
         def __init__(self) -> None:
             super().__init__()
-            self.eval_env = make_vec_env("CartPole-v1", n_envs=cfg.eval_episodes, seed=seed + 1)
-            self.next_eval = cfg.eval_interval
+            self.eval_env = make_vec_env(task.env_id, n_envs=cfg.eval_episodes, seed=seed + 1)
+            self.next_eval = interval
             self.eval_s = 0.0
             self.solved_at = None
 
@@ -99,33 +191,18 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict:
                 self.model, self.eval_env, n_eval_episodes=cfg.eval_episodes, deterministic=True
             )
             self.eval_s += time.perf_counter() - start
-            self.next_eval = (self.num_timesteps // cfg.eval_interval + 1) * cfg.eval_interval
-            if mean >= cfg.threshold:
+            self.next_eval = (self.num_timesteps // interval + 1) * interval
+            if mean >= threshold:
                 self.solved_at = self.num_timesteps
                 return False
             return True
 
-    env = make_vec_env("CartPole-v1", n_envs=8, seed=seed)
-    if tool == "sb3_a2c":  # zoo: n_envs 8, ent_coef 0, SB3 defaults otherwise
-        model = A2C("MlpPolicy", env, ent_coef=0.0, seed=seed, device="cpu")
-    else:  # zoo: PPO with linearly decayed learning rate and clip range
-        model = PPO(
-            "MlpPolicy",
-            env,
-            n_steps=32,
-            batch_size=256,
-            gae_lambda=0.8,
-            gamma=0.98,
-            n_epochs=20,
-            ent_coef=0.0,
-            learning_rate=lambda progress_remaining: 1e-3 * progress_remaining,
-            clip_range=lambda progress_remaining: 0.2 * progress_remaining,
-            seed=seed,
-            device="cpu",
-        )
+    env = make_vec_env(task.env_id, n_envs=zoo["n_envs"], seed=seed)
+    algorithm = A2C if tool == "sb3_a2c" else PPO
+    model = algorithm("MlpPolicy", env, seed=seed, device="cpu", **zoo["kwargs"])
     callback = EvaluateAndStop()
     start = time.perf_counter()
-    model.learn(total_timesteps=cfg.budget_frames or SB3_BUDGET[tool], callback=callback)
+    model.learn(total_timesteps=cfg.budget_frames or zoo["n_timesteps"], callback=callback)
     wall = time.perf_counter() - start - callback.eval_s
     return {"solved_at_frames": callback.solved_at, "train_wall_s": wall}
 
@@ -178,7 +255,9 @@ def main(cfg: Config) -> dict:
         ratio = medians["rl_pg"]["median_train_wall_s"] / min(sb3)
         result["rl_pg_over_best_sb3_wall"] = ratio
         print(f"\nrl_pg median wall / best SB3 median wall: {ratio:.2f}x  (target <= 0.5)")
-    return write_json(cfg.json_path, cfg, **result)
+    name = "time_to_solve" if cfg.task == "cartpole" else f"time_to_solve_{cfg.task}"
+    json_path = cfg.json_path or REPO / f"benchmarks/results/{name}.json"
+    return write_json(json_path, cfg, **result)
 
 
 if __name__ == "__main__":
