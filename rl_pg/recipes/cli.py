@@ -5,6 +5,7 @@
     rl-pg resume runs/cartpole-seed1-...   # continue with the run's stored config
     rl-pg evaluate runs/cartpole-seed1-... --sample
     rl-pg play runs/cartpole-seed1-... --gif cartpole.gif
+    rl-pg tune cartpole --trials 20 --params lr gamma --total-frames 100000
 
 ``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
 recipes/<name>.py`` runs ``rl-pg train <name>`` and ``python recipes/play.py``
@@ -30,7 +31,7 @@ from rl_pg.training.run_dir import RunDirBusy
 
 __all__ = ["main", "run_checkout_script"]
 
-USAGE = """usage: rl-pg {list,train,resume,evaluate,play} ...
+USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune} ...
 
   rl-pg list                       the recipes and what they train
   rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
@@ -38,6 +39,7 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play} ...
                                    change what is safe to change (budget, workers, ...)
   rl-pg evaluate RUN_DIR [FLAGS]   evaluate a run's best agent on fresh episodes (--help)
   rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
+  rl-pg tune RECIPE [FLAGS]        search a recipe's hyperparameters with Optuna (--help)
 """
 
 
@@ -56,6 +58,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             _evaluate(rest)
         elif command == "play":
             _play(rest)
+        elif command == "tune" and rest and not rest[0].startswith("-"):
+            _tune(rest[0], rest[1:])
         elif command in ("-h", "--help"):
             print(USAGE, end="")
         else:
@@ -97,6 +101,56 @@ def _train(name: str, args: list[str]) -> None:
         sys.exit(f"rl-pg train: {err}")
     cfg = parse_config(recipe.config, args, prog=f"rl-pg train {name}")
     _report(recipe.run(cfg))
+
+
+def _tune(name: str, args: list[str]) -> None:
+    import argparse
+
+    from rl_pg.training.tuning import SEARCH_SPACE, tune
+
+    try:
+        recipe = load(name)
+    except ValueError as err:
+        sys.exit(f"rl-pg tune: {err}")
+    parser = argparse.ArgumentParser(
+        prog=f"rl-pg tune {name}",
+        description="Search the recipe's hyperparameters with Optuna. Every other flag is "
+        f"the recipe's (rl-pg train {name} --help) and applies to every trial: the "
+        "budget (--total-frames), the evaluations, the study directory (--run-dir).",
+    )
+    parser.add_argument("--trials", type=int, default=20, help="completed trials wanted")
+    parser.add_argument(
+        "--params", nargs="+", required=True, choices=sorted(SEARCH_SPACE),
+        help="the settings searched",
+    )  # fmt: skip
+    parser.add_argument("--tune-seeds", type=int, nargs="+", default=[0], help="seeds per trial")
+    parser.add_argument(
+        "--objective", choices=["final", "best"], default="final",
+        help="score each run by its last evaluation (default) or its best",
+    )  # fmt: skip
+    tuning, rest = parser.parse_known_args(args)
+    base = parse_config(recipe.config, rest, prog=f"rl-pg tune {name}")
+    study_dir = base.run_dir if base.run_dir is not None else Path("runs") / f"tune-{name}"
+    try:
+        result = tune(
+            recipe, base, params=tuning.params, trials=tuning.trials, seeds=tuning.tune_seeds,
+            objective=tuning.objective, study_dir=Path(study_dir),
+        )  # fmt: skip
+    except ValueError as err:
+        sys.exit(f"rl-pg tune: {err}")
+    flags = " ".join(_flag(k, v) for k, v in result["best_settings"].items())
+    print(
+        f"{result['trials']} trials in {study_dir}; best: trial {result['best_trial']}, "
+        f"score {result['best_score']:.2f} ({result['objective']} evaluation, mean over "
+        f"seeds {result['seeds']}). Its flags: {flags}"
+    )
+
+
+def _flag(name: str, value) -> str:
+    flag = name.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{flag}" if value else f"--no-{flag}"
+    return f"--{flag} {value:g}" if isinstance(value, float) else f"--{flag} {value}"
 
 
 def _resume(run_dir: Path, args: list[str]) -> None:

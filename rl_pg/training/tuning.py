@@ -1,0 +1,154 @@
+"""Hyperparameter search over a recipe with Optuna: ``rl-pg tune RECIPE``.
+
+Each trial trains the recipe with sampled settings on one or more seeds and scores the
+trial by the mean over its seeds of the runs' evaluations (the last one, or the best).
+The study lives in the study directory (``study.db``, SQLite), next to every trial's
+run directories, so an interrupted search continues where it stopped when the same
+command is run again; ``best.json`` holds the best settings found so far::
+
+    pip install -c constraints.txt -e ".[tune]"
+    rl-pg tune lunarlander --trials 30 --tune-seeds 0 1 --params lr gamma entropy_coeff \\
+        --total-frames 300000 --run-dir runs/tune-lunarlander
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import json
+import statistics
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+from rl_pg.checkpoint import write_atomically
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.recipe import Recipe
+
+__all__ = ["SEARCH_SPACE", "tune"]
+
+# What each tunable setting may take: ``trial -> value``. Ranges are those that make
+# sense for the recipes' MLP policies; a setting the config lacks cannot be tuned.
+SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
+    "lr": lambda trial: trial.suggest_float("lr", 1e-4, 1e-2, log=True),
+    "gamma": lambda trial: 1 - trial.suggest_float("one_minus_gamma", 1e-3, 5e-2, log=True),
+    "entropy_coeff": lambda trial: trial.suggest_float("entropy_coeff", 1e-4, 5e-2, log=True),
+    "critic_coeff": lambda trial: trial.suggest_float("critic_coeff", 0.25, 1.0),
+    "max_grad_norm": lambda trial: trial.suggest_categorical("max_grad_norm", [0.5, 1.0, 5.0]),
+    "segment_length": lambda trial: trial.suggest_categorical(
+        "segment_length", [8, 16, 32, 64, 128, 256]
+    ),
+    "num_envs": lambda trial: trial.suggest_categorical("num_envs", [4, 8, 16, 32]),
+    "normalize_advantage": lambda trial: trial.suggest_categorical(
+        "normalize_advantage", [True, False]
+    ),
+    "returns": lambda trial: trial.suggest_categorical("returns", ["reward_to_go", "gae"]),
+    "gae_lambda": lambda trial: trial.suggest_float("gae_lambda", 0.8, 1.0),
+    "lr_schedule": lambda trial: trial.suggest_categorical("lr_schedule", ["constant", "linear"]),
+}
+
+
+def tune(
+    recipe: Recipe,
+    base: TrainConfig,
+    *,
+    params: Sequence[str],
+    trials: int,
+    seeds: Sequence[int] = (0,),
+    objective: Literal["final", "best"] = "final",
+    study_dir: Path,
+    sampler_seed: int = 0,
+) -> dict[str, Any]:
+    """Searches ``params`` for the settings whose runs score highest.
+
+    Args:
+        recipe (Recipe): what to train.
+        base (TrainConfig): the settings of every trial but the tuned ones (its budget,
+            evaluations, ...); ``seed``, ``run_dir`` and ``resume`` are set per run.
+
+    Keyword Args:
+        params (sequence of str): the settings searched, names of ``SEARCH_SPACE``.
+        trials (int): completed trials the study should hold; a study that already
+            holds some runs only the rest.
+        seeds (sequence of int): seeds each trial trains on. Defaults to ``(0,)``.
+        objective (str): ``"final"`` (each run's last evaluation, which rewards settings
+            that stay good) or ``"best"`` (its best evaluation). Defaults to ``"final"``.
+        study_dir (Path): where the study (``study.db``), the trials' runs
+            (``trial<N>/seed<S>``) and ``best.json`` go.
+        sampler_seed (int): seed of Optuna's TPE sampler. Defaults to ``0``.
+
+    Returns:
+        ``best.json``'s content: the best trial's number, score and settings (the
+        recipe's flags), and the number of completed trials.
+
+    Raises:
+        ImportError: Optuna is not installed (the message says how to install it).
+        ValueError: an unknown or untunable setting, no seeds, or fewer than one trial.
+    """
+    if importlib.util.find_spec("optuna") is None:
+        raise ImportError('rl-pg tune needs Optuna: pip install -c constraints.txt "rl_pg[tune]".')
+    import optuna
+
+    fields = {f.name for f in dataclasses.fields(base)}
+    unknown = [p for p in params if p not in SEARCH_SPACE or p not in fields]
+    if not params or unknown:
+        tunable = sorted(name for name in SEARCH_SPACE if name in fields)
+        raise ValueError(
+            f"Cannot tune {unknown or 'nothing'}: pick settings of {recipe.name!r} among {tunable}."
+        )
+    if not seeds:
+        raise ValueError("tune needs at least one seed (--tune-seeds 0 1 ...).")
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, got {trials}.")
+    if objective not in ("final", "best"):
+        raise ValueError(f"objective must be 'final' or 'best', got {objective!r}.")
+
+    study_dir = Path(study_dir)
+    study_dir.mkdir(parents=True, exist_ok=True)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(
+        study_name=recipe.name,
+        storage=f"sqlite:///{study_dir / 'study.db'}",
+        load_if_exists=True,
+        direction="maximize",
+        sampler=optuna.samplers.TPESampler(seed=sampler_seed),
+    )
+    for stale in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
+        study.tell(stale.number, state=optuna.trial.TrialState.FAIL)  # a killed search's
+    key = "eval_mean_return" if objective == "final" else "best_eval_mean_return"
+
+    def run_trial(trial) -> float:
+        settings = {name: SEARCH_SPACE[name](trial) for name in params}
+        if settings.get("returns", base.returns) != "gae":
+            settings.pop("gae_lambda", None)  # read only by GAE
+        trial.set_user_attr("settings", settings)
+        scores = []
+        for seed in seeds:
+            cfg = dataclasses.replace(
+                base,
+                **settings,
+                seed=seed,
+                run_dir=study_dir / f"trial{trial.number}" / f"seed{seed}",
+                resume=False,
+                progress=False,
+            )
+            scores.append(float(recipe.train(cfg)[key]))
+            trial.set_user_attr("scores", scores)
+        return statistics.fmean(scores)
+
+    done = len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE]))
+    if done < trials:
+        study.optimize(run_trial, n_trials=trials - done)
+    best = study.best_trial
+    result = {
+        "recipe": recipe.name,
+        "objective": objective,
+        "seeds": list(seeds),
+        "trials": len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE])),
+        "best_trial": best.number,
+        "best_score": best.value,
+        "best_scores": best.user_attrs.get("scores"),
+        "best_settings": best.user_attrs["settings"],
+    }
+    write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
+    return result

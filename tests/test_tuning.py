@@ -1,0 +1,108 @@
+"""rl-pg tune: an Optuna study over a recipe, stored and continued in its directory."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from rl_pg.recipes import load
+from rl_pg.recipes.cli import main
+from rl_pg.training.tuning import tune
+
+optuna = pytest.importorskip("optuna")
+gridworld = load("gridworld")
+
+
+def _base(**overrides):
+    return gridworld.config(total_updates=2, episodes_per_batch=4, progress=False, **overrides)
+
+
+def _study(study_dir):
+    return optuna.load_study(study_name="gridworld", storage=f"sqlite:///{study_dir / 'study.db'}")
+
+
+def test_a_study_is_stored_and_continued(tmp_path):
+    result = tune(
+        gridworld, _base(), params=["lr", "entropy_coeff"], trials=2, seeds=[0, 1],
+        study_dir=tmp_path,
+    )  # fmt: skip
+    assert result["trials"] == 2 and set(result["best_settings"]) == {"lr", "entropy_coeff"}
+    assert json.loads((tmp_path / "best.json").read_text()) == result
+    for trial in (0, 1):  # every trial trained every seed, in its own run directory
+        for seed in (0, 1):
+            assert (tmp_path / f"trial{trial}" / f"seed{seed}" / "summary.json").exists()
+    best = _study(tmp_path).best_trial
+    assert result["best_score"] == pytest.approx(sum(best.user_attrs["scores"]) / 2)
+
+    # The same command again: the study already holds its trials.
+    again = tune(gridworld, _base(), params=["lr", "entropy_coeff"], trials=2, study_dir=tmp_path)
+    assert again["trials"] == 2 and not (tmp_path / "trial2").exists()
+    # More trials: only the missing ones run.
+    more = tune(gridworld, _base(), params=["lr", "entropy_coeff"], trials=3, study_dir=tmp_path)
+    assert more["trials"] == 3 and (tmp_path / "trial2").exists()
+
+
+def test_a_killed_search_s_trial_is_failed_and_the_search_goes_on(tmp_path):
+    study = optuna.create_study(
+        study_name="gridworld", storage=f"sqlite:///{tmp_path / 'study.db'}",
+        direction="maximize",
+    )  # fmt: skip
+    study.ask()  # a trial left RUNNING, as by a process killed mid-trial
+    result = tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
+    states = [t.state for t in _study(tmp_path).trials]
+    assert states == [optuna.trial.TrialState.FAIL, optuna.trial.TrialState.COMPLETE]
+    assert result["best_trial"] == 1
+
+
+def test_the_sampled_settings_reach_the_runs(tmp_path):
+    tune(gridworld, _base(), params=["lr", "returns", "gae_lambda"], trials=2, study_dir=tmp_path)
+    for trial in _study(tmp_path).trials:
+        settings = trial.user_attrs["settings"]
+        stored = json.loads(
+            (tmp_path / f"trial{trial.number}" / "seed0" / "config.json").read_text()
+        )
+        assert stored["lr"] == settings["lr"] and stored["returns"] == settings["returns"]
+        # gae_lambda is read by GAE alone: searched only when GAE was picked.
+        assert ("gae_lambda" in settings) == (settings["returns"] == "gae")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"params": ["learning_rate"]}, r"Cannot tune \['learning_rate'\].*'lr'"),
+        ({"params": ["num_envs"]}, r"Cannot tune \['num_envs'\]"),  # gridworld has none
+        ({"params": []}, "Cannot tune nothing"),
+        ({"params": ["lr"], "seeds": []}, "at least one seed"),
+        ({"params": ["lr"], "trials": 0}, "at least 1"),
+        ({"params": ["lr"], "objective": "mean"}, "objective must be"),
+    ],
+)
+def test_bad_requests(tmp_path, kwargs, match):
+    kwargs = {"trials": 1, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        tune(gridworld, _base(), study_dir=tmp_path, **kwargs)
+
+
+def test_without_optuna(tmp_path, monkeypatch):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "optuna" else find_spec(name, *a),
+    )
+    with pytest.raises(ImportError, match=r'pip install -c constraints.txt "rl_pg\[tune\]"'):
+        tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
+
+
+def test_the_command(tmp_path, capsys):
+    args = ["tune", "gridworld", "--trials", "1", "--params", "lr", "normalize_advantage",
+            "--objective", "best", "--total-updates", "2", "--no-progress",
+            "--run-dir", str(tmp_path)]  # fmt: skip
+    main(args)
+    out = capsys.readouterr().out
+    assert f"1 trials in {tmp_path}; best: trial 0" in out
+    assert "--lr " in out and ("--normalize-advantage" in out)  # as flags of rl-pg train
+    assert json.loads((tmp_path / "best.json").read_text())["objective"] == "best"
