@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 from pathlib import Path
@@ -118,3 +119,14 @@ def assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:
         assert summary[key] == expected[key]
     for key, value in run_weights(straight_dir).items():
         assert torch.equal(value, run_weights(run_dir)[key]), key
+
+
+def hide_module(monkeypatch, name: str) -> None:
+    """Makes ``importlib.util.find_spec`` report ``name`` as not installed, as on a
+    machine without it."""
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda module, *args: None if module == name else find_spec(module, *args),
+    )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -11,6 +10,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from conftest import hide_module
 
 from rl_pg.recipes import NAMES
 from rl_pg.recipes.cli import main
@@ -81,12 +81,7 @@ def test_resume_refuses_what_is_not_safe_to_change(tmp_path, capsys):
 )
 def test_mistakes_get_one_line(tmp_path, args, message, capsys, monkeypatch):
     if args[-1] == "metadrive":  # as on a machine without it
-        find_spec = importlib.util.find_spec
-        monkeypatch.setattr(
-            importlib.util,
-            "find_spec",
-            lambda name, *a: None if name == "metadrive" else find_spec(name, *a),
-        )
+        hide_module(monkeypatch, "metadrive")
     monkeypatch.chdir(tmp_path)
     status, _, err = in_process(*args, capsys=capsys)
     assert status == 1 and message in err

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import hide_module
 from PIL import Image
 
 from rl_pg.envs import metadrive as md
@@ -218,12 +219,7 @@ def test_torchrl_env_tutorial_action_table_reaches_metadrive_as_fed():
 
 
 def test_missing_metadrive_says_how_to_install(monkeypatch, tmp_path):
-    find_spec = importlib.util.find_spec
-    monkeypatch.setattr(
-        importlib.util,
-        "find_spec",
-        lambda name, *a: None if name == "metadrive" else find_spec(name, *a),
-    )
+    hide_module(monkeypatch, "metadrive")
     install = r'pip install -c constraints.txt "rl_pg\[metadrive\]"'
     with pytest.raises(ModuleNotFoundError, match=install):
         md.require_metadrive()

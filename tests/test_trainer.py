@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import assert_same_run, run_weights
+from conftest import assert_same_run, hide_module, run_weights
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -121,12 +121,7 @@ class TestTrain:
         assert mlflow.active_run() is None  # ended with the run
 
     def test_a_missing_logger_package_names_its_extra(self, tmp_path, monkeypatch):
-        real = importlib.util.find_spec
-        monkeypatch.setattr(
-            importlib.util,
-            "find_spec",
-            lambda name, *a: None if name == "wandb" else real(name, *a),
-        )
+        hide_module(monkeypatch, "wandb")
         with pytest.raises(
             ImportError, match=r'--wandb needs the wandb package: .*"rl_pg\[wandb\]"'
         ):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from conftest import hide_module
 
 from rl_pg.recipes import load
 from rl_pg.recipes.cli import main
@@ -85,14 +86,7 @@ def test_bad_requests(tmp_path, kwargs, match):
 
 
 def test_without_optuna(tmp_path, monkeypatch):
-    import importlib.util
-
-    find_spec = importlib.util.find_spec
-    monkeypatch.setattr(
-        importlib.util,
-        "find_spec",
-        lambda name, *a: None if name == "optuna" else find_spec(name, *a),
-    )
+    hide_module(monkeypatch, "optuna")
     with pytest.raises(ImportError, match=r'pip install -c constraints.txt "rl_pg\[tune\]"'):
         tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
 
