@@ -449,7 +449,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
 
     def _policy_weights(self, tensordict: TensorDictBase):
-        """The detached `Ψ_t` that weights ``log pi``, and diagnostics."""
+        """The detached `Ψ_t` that weights ``log pi``, diagnostics, and the critic's
+        ``V(s_t)`` with its graph when the estimator computed it here (else None)."""
         key = (
             self.tensor_keys.advantage
             if self.baseline == "critic"
