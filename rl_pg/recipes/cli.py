@@ -104,37 +104,20 @@ def _train(name: str, args: list[str]) -> None:
 
 
 def _tune(name: str, args: list[str]) -> None:
-    import argparse
-
-    from rl_pg.training.tuning import SEARCH_SPACE, tune
+    from rl_pg.training.tuning import TuneArgs, tune
 
     try:
         recipe = load(name)
     except ValueError as err:
         sys.exit(f"rl-pg tune: {err}")
-    parser = argparse.ArgumentParser(
-        prog=f"rl-pg tune {name}",
-        description="Search the recipe's hyperparameters with Optuna. Every other flag is "
-        f"the recipe's (rl-pg train {name} --help) and applies to every trial: the "
-        "budget (--total-frames), the evaluations, the study directory (--run-dir).",
-    )
-    parser.add_argument("--trials", type=int, default=20, help="completed trials wanted")
-    parser.add_argument(
-        "--params", nargs="+", required=True, choices=sorted(SEARCH_SPACE),
-        help="the settings searched",
-    )  # fmt: skip
-    parser.add_argument("--tune-seeds", type=int, nargs="+", default=[0], help="seeds per trial")
-    parser.add_argument(
-        "--objective", choices=["final", "best"], default="final",
-        help="score each run by its last evaluation (default) or its best",
-    )  # fmt: skip
-    tuning, rest = parser.parse_known_args(args)
-    base = parse_config(recipe.config, rest, prog=f"rl-pg tune {name}")
-    study_dir = base.run_dir if base.run_dir is not None else Path("runs") / f"tune-{name}"
+    prog = f"rl-pg tune {name}"
+    tuning, rest = tyro.cli(TuneArgs, args=args, prog=prog, return_unknown_args=True)
+    base = parse_config(recipe.config, rest, prog=prog)
+    study_dir = Path(base.run_dir if base.run_dir is not None else f"runs/tune-{name}")
     try:
         result = tune(
             recipe, base, params=tuning.params, trials=tuning.trials, seeds=tuning.tune_seeds,
-            objective=tuning.objective, study_dir=Path(study_dir),
+            objective=tuning.objective, study_dir=study_dir,
         )  # fmt: skip
     except ValueError as err:
         sys.exit(f"rl-pg tune: {err}")

@@ -25,7 +25,7 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["SEARCH_SPACE", "tune"]
+__all__ = ["SEARCH_SPACE", "TuneArgs", "tune"]
 
 # What each tunable setting may take: ``trial -> value``. Ranges are those that make
 # sense for the recipes' MLP policies; a setting the config lacks cannot be tuned.
@@ -46,6 +46,22 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
     "gae_lambda": lambda trial: trial.suggest_float("gae_lambda", 0.8, 1.0),
     "lr_schedule": lambda trial: trial.suggest_categorical("lr_schedule", ["constant", "linear"]),
 }
+
+
+@dataclasses.dataclass
+class TuneArgs:
+    """Search the recipe's hyperparameters with Optuna. Every other flag is the recipe's
+    (rl-pg train RECIPE --help) and applies to every trial: the budget (--total-frames),
+    the evaluations, the study directory (--run-dir)."""
+
+    params: list[str]
+    """The settings searched (names of SEARCH_SPACE that the recipe's config has)."""
+    trials: int = 20
+    """Completed trials the study should hold."""
+    tune_seeds: list[int] = dataclasses.field(default_factory=lambda: [0])
+    """Seeds each trial trains on."""
+    objective: Literal["final", "best"] = "final"
+    """Score each run by its last evaluation, or by its best."""
 
 
 def tune(
@@ -118,9 +134,11 @@ def tune(
     key = "eval_mean_return" if objective == "final" else "best_eval_mean_return"
 
     def run_trial(trial) -> float:
-        settings = {name: SEARCH_SPACE[name](trial) for name in params}
-        if settings.get("returns", base.returns) != "gae":
-            settings.pop("gae_lambda", None)  # read only by GAE
+        settings = {}
+        for name in sorted(params, key=lambda name: name == "gae_lambda"):  # λ after returns
+            if name == "gae_lambda" and settings.get("returns", base.returns) != "gae":
+                continue  # read by GAE alone: not a dimension of trials without it
+            settings[name] = SEARCH_SPACE[name](trial)
         trial.set_user_attr("settings", settings)
         scores = []
         for seed in seeds:
