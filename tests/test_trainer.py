@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import io
 import json
@@ -41,6 +42,7 @@ from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
 from rl_pg.training.loop import evaluation_seed
 from rl_pg.training.metrics import EpisodeReturns
+from rl_pg.training.optimisation import make_loss, make_optimizer, update
 
 
 def make_grid():
@@ -70,6 +72,13 @@ def _cfg(tmp_path, **overrides) -> TrainConfig:
 
 def _train(cfg, **kwargs):
     return train(cfg, recipe="grid", make_env=make_grid, make_models=make_grid_models, **kwargs)
+
+
+def _cfg_unscaled_value(cfg, actor, critic, batch) -> float:
+    """The critic's loss on ``batch``'s own rewards."""
+    loss = make_loss(cfg, *copy.deepcopy((actor, critic)))
+    with torch.no_grad():
+        return loss(batch)["loss_value"].item()
 
 
 def _logged(run_dir: Path, name: str) -> list[float]:
@@ -210,6 +219,33 @@ class TestTrain:
         expected = [-c * h for c, h in zip(coeff, entropy, strict=True)]
         assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
         assert _logged(run, "train/lr") == [0.02] * 6  # its own, constant, schedule
+
+    @pytest.mark.parametrize("returns", ["reward_to_go", "gae"])
+    def test_reward_scale_is_seen_by_the_loss_only(self, tmp_path, returns):
+        # One update with reward_scale=0.1 is the update on rewards multiplied by 0.1 (the
+        # same losses, critic steps and parameters after); the batch the run counts its
+        # episode returns from keeps the environment's rewards.
+        env = make_grid()
+        torch.manual_seed(0)
+        actor, critic = make_grid_models(env)
+        batch = env.rollout(20, actor, break_when_any_done=False)
+        batch["next", "reward"] += torch.randn_like(batch["next", "reward"])
+        rewards = batch["next", "reward"].clone()
+        cfg = _cfg(tmp_path, returns=returns, critic_steps=3, max_grad_norm=0.5)
+        results = []
+        for scale, data in ((0.1, batch), (1.0, batch.clone())):
+            if scale == 1.0:
+                data["next", "reward"] = data["next", "reward"] * 0.1
+            loss = make_loss(replace(cfg, reward_scale=scale), *copy.deepcopy((actor, critic)))
+            optimizer = make_optimizer(cfg, loss)
+            metrics = update(replace(cfg, reward_scale=scale), loss, optimizer, data, lr=cfg.lr)
+            results.append((metrics, [p.detach().clone() for p in loss.parameters()]))
+        (scaled, scaled_params), (by_hand, by_hand_params) = results
+        assert scaled == pytest.approx(by_hand, rel=1e-6)
+        assert scaled["loss/value"] != pytest.approx(_cfg_unscaled_value(cfg, actor, critic, batch))
+        for a, b in zip(scaled_params, by_hand_params, strict=True):
+            torch.testing.assert_close(a, b)
+        assert torch.equal(batch["next", "reward"], rewards)
 
     def test_refuses_to_overwrite_a_run(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=1))

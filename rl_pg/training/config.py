@@ -98,6 +98,13 @@ class TrainConfig:
     """GAE's lambda (returns='gae'): 1 is reward-to-go minus V, 0 the one-step TD error."""
     gamma: Annotated[float, Range(0, 1)] = 0.99
     """Discount factor."""
+    reward_scale: Positive = 1.0
+    """Rewards are multiplied by this for learning only (returns, advantages, the
+    critic's targets); logged and evaluated returns are the environment's. Below 1 it
+    keeps a critic's targets, and its share of a clipped gradient, in range where
+    returns run into the hundreds. Unless normalize_advantage is set, the policy term
+    shrinks with it too: multiply entropy_coeff by the same factor to keep the bonus's
+    weight."""
     baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
     """What is subtracted from the return."""
     baseline_rate: Annotated[float, Range(0, 1, low_open=True)] = 0.01

@@ -17,6 +17,7 @@ __all__ = [
     "learning_rate",
     "make_loss",
     "make_optimizer",
+    "scale_rewards",
     "update",
     "warm_up",
 ]
@@ -103,6 +104,8 @@ def update(
     """
     if entropy_coeff is not None and loss.entropy_coeff is not None:
         loss.entropy_coeff = entropy_coeff
+    if cfg.reward_scale != 1.0:
+        batch = scale_rewards(batch, cfg.reward_scale, loss.tensor_keys.reward)
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
     if not torch.isfinite(total):
@@ -140,6 +143,25 @@ def update(
     if loss.entropy_coeff is not None:
         metrics["train/entropy_coeff"] = loss.entropy_coeff
     return metrics
+
+
+def scale_rewards(batch: TensorDictBase, scale: float, reward_key: str = "reward"):
+    """A shallow copy of ``batch`` whose ``("next", reward_key)`` is multiplied by
+    ``scale``; ``batch`` itself, which the run's episode returns are counted from, is
+    left as it is.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> batch = TensorDict({"next": {"reward": torch.tensor([[-300.0], [100.0]])}}, [2])
+        >>> scale_rewards(batch, 0.01)["next", "reward"].squeeze(-1)
+        tensor([-3.,  1.])
+        >>> batch["next", "reward"].squeeze(-1)
+        tensor([-300.,  100.])
+    """
+    scaled = batch.copy()
+    scaled.set(("next", reward_key), batch.get(("next", reward_key)) * scale)
+    return scaled
 
 
 def _fit_critic(loss: ReinforceLoss, optimizer, batch, cfg: TrainConfig, max_norm: float) -> float:

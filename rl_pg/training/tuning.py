@@ -45,6 +45,7 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
     "returns": lambda trial: trial.suggest_categorical("returns", ["reward_to_go", "gae"]),
     "gae_lambda": lambda trial: trial.suggest_float("gae_lambda", 0.8, 1.0),
     "lr_schedule": lambda trial: trial.suggest_categorical("lr_schedule", ["constant", "linear"]),
+    "reward_scale": lambda trial: trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
 }
 
 
