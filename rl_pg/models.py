@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from functools import partial
+from typing import Literal
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import (
+    AddStateIndependentNormalScale,
     NormalParamExtractor,
     ProbabilisticTensorDictModule,
     ProbabilisticTensorDictSequential,
@@ -30,6 +33,7 @@ from torchrl.modules import (
 )
 
 from rl_pg._checks import check_int
+from rl_pg.distributions import BetaConcentrations, BoundedBeta
 
 __all__ = [
     "LeanCategoricalPolicy",
@@ -167,13 +171,31 @@ def mlp_actor(
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
     normalize: bool | RunningNorm = False,
+    bounded: Literal["tanh_normal", "normal", "beta"] = "tanh_normal",
+    state_independent_scale: bool = False,
+    init_scale: float = 1.0,
 ) -> ProbabilisticActor:
     """An MLP policy for ``env``'s action space.
 
     A categorical (index) action gets a softmax policy, a one-hot action a one-hot
-    categorical, a bounded continuous action a ``TanhNormal`` inside its per-dimension
-    bounds (whatever they are, e.g. ``[-2, 2]`` for Pendulum), an unbounded one an
-    independent Normal. Observations with several dimensions are flattened.
+    categorical, an unbounded continuous action an independent Normal. A bounded
+    continuous action (whatever its per-dimension bounds, e.g. ``[-2, 2]`` for
+    Pendulum) gets, as ``bounded`` says:
+
+    - ``"tanh_normal"``: a ``TanhNormal`` squashed into the bounds;
+    - ``"normal"``: an independent Normal whose samples the environment clips, as
+      Stable-Baselines3's and CleanRL's on-policy agents do;
+    - ``"beta"``: a [`BoundedBeta`][rl_pg.distributions.BoundedBeta] on the bounds.
+
+    A policy-gradient loss recomputes the log-probability of the stored action. Once a
+    ``TanhNormal``'s mean drifts a few units past a bound, its samples round to the
+    bound in float32 and that log-probability is no longer theirs; a clipped Normal
+    whose mean drifts past a bound plays the bound whatever its noise, and learns no
+    more there. A Beta has neither failure: on Pendulum it is the one that learns (see
+    the recipe's page). Observations with several dimensions are flattened. A
+    Gaussian's scale is an output of the network, as its mean is, or with
+    ``state_independent_scale=True`` one learned parameter per action dimension
+    (tensordict's ``AddStateIndependentNormalScale``).
 
     Keyword Args:
         hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
@@ -182,10 +204,21 @@ def mlp_actor(
         normalize (bool or RunningNorm): standardise the observation first with a
             [`RunningNorm`][rl_pg.models.RunningNorm] (``True``: a new one; a
             ``RunningNorm``: that one, to share it). Defaults to ``False``.
+        bounded (str): the distribution of a bounded continuous action, above. With
+            ``"normal"``, samples go to the environment as they are: gymnasium's
+            Pendulum and LunarLanderContinuous clip them; for others append TorchRL's
+            ``ClipTransform(in_keys_inv=["action"], ...)``. Defaults to
+            ``"tanh_normal"``.
+        state_independent_scale (bool): a Gaussian policy's scale is a learned
+            parameter, the same in every state. Defaults to ``False``.
+        init_scale (float): with ``state_independent_scale``, the scale at
+            initialisation (before any squashing). Defaults to ``1.0``.
 
     Raises:
         ValueError: for a hidden width < 1, an action space bounded in some dimensions
-            only, or batched environments whose action bounds differ.
+            only, batched environments whose action bounds differ, an unknown
+            ``bounded``, ``"beta"`` for an unbounded action, or a state-independent scale
+            asked of a policy that is not Gaussian or with ``init_scale <= 0``.
         KeyError: when the environment has no ``observation_key``.
 
     Examples:
@@ -198,35 +231,67 @@ def mlp_actor(
         >>> action = mlp_actor(pendulums)(pendulums.reset())["action"]
         >>> action.shape, bool(action.abs().max() <= 2)
         (torch.Size([4, 1]), True)
+        >>> beta = mlp_actor(pendulums, bounded="beta")
+        >>> type(beta.get_dist(pendulums.reset())).__name__
+        'BoundedBeta'
     """
+    if bounded not in ("tanh_normal", "normal", "beta"):
+        raise ValueError(f"bounded must be 'tanh_normal', 'normal' or 'beta', got {bounded!r}.")
     spec = env.action_spec
     n_act = spec.shape[-1] if spec.shape[len(env.batch_size) :] else 1
     if isinstance(spec, Categorical):
         n_act = spec.space.n
-    if isinstance(spec, (Categorical, OneHot)):
-        net = _trunk(env, n_act, hidden, activation, observation_key, normalize)
+    discrete = isinstance(spec, (Categorical, OneHot))
+    bounds = _action_bounds(spec, n_act) if isinstance(spec, Bounded) and not discrete else None
+    if bounded == "beta" and bounds is None:
+        raise ValueError(
+            f"bounded='beta' needs a continuous action with finite bounds; this action "
+            f"space is {type(spec).__name__}"
+            + (" (discrete)." if discrete else " without bounds: use a Normal policy.")
+        )
+    if state_independent_scale and (discrete or (bounds is not None and bounded == "beta")):
+        raise ValueError(
+            "state_independent_scale=True sets the scale of a Gaussian policy, but this "
+            + (
+                f"action space is discrete ({type(spec).__name__})"
+                if discrete
+                else "policy is a Beta"
+            )
+            + ": leave it False."
+        )
+    trunk = partial(
+        _trunk, env, hidden=hidden, activation=activation, key=observation_key, normalize=normalize
+    )
+    if discrete:
         distribution = (
             torch.distributions.Categorical if isinstance(spec, Categorical) else OneHotCategorical
         )
         return ProbabilisticActor(
-            TensorDictModule(net, [observation_key], ["logits"]),
+            TensorDictModule(trunk(n_act), [observation_key], ["logits"]),
             in_keys=["logits"],
             spec=spec,
             distribution_class=distribution,
         )
-    net = nn.Sequential(
-        _trunk(env, 2 * n_act, hidden, activation, observation_key, normalize),
-        NormalParamExtractor(),
-    )
-    kwargs = {}
-    distribution = IndependentNormal
-    bounds = _action_bounds(spec, n_act) if isinstance(spec, Bounded) else None
-    if bounds is not None:
-        distribution = TanhNormal
-        kwargs = {"low": bounds[0], "high": bounds[1]}
+    if bounds is not None and bounded == "beta":
+        params = ["concentration1", "concentration0"]
+        net = nn.Sequential(trunk(2 * n_act), BetaConcentrations())
+        distribution, kwargs = BoundedBeta, {"low": bounds[0], "high": bounds[1]}
+    else:
+        params = ["loc", "scale"]
+        if state_independent_scale:
+            if not (math.isfinite(init_scale) and init_scale > 0):
+                raise ValueError(f"init_scale must be a finite number > 0, got {init_scale!r}.")
+            net = nn.Sequential(
+                trunk(n_act), AddStateIndependentNormalScale(n_act, init_value=math.log(init_scale))
+            )
+        else:
+            net = nn.Sequential(trunk(2 * n_act), NormalParamExtractor())
+        distribution, kwargs = IndependentNormal, {}
+        if bounds is not None and bounded == "tanh_normal":
+            distribution, kwargs = TanhNormal, {"low": bounds[0], "high": bounds[1]}
     return ProbabilisticActor(
-        TensorDictModule(net, [observation_key], ["loc", "scale"]),
-        in_keys=["loc", "scale"],
+        TensorDictModule(net, [observation_key], params),
+        in_keys=params,
         spec=spec,
         distribution_class=distribution,
         distribution_kwargs=kwargs,
@@ -308,11 +373,16 @@ def mlp_actor_critic(
     activation: type[nn.Module] = nn.Tanh,
     observation_key: str = "observation",
     normalize: bool = False,
+    bounded: Literal["tanh_normal", "normal", "beta"] = "tanh_normal",
+    state_independent_scale: bool = False,
+    init_scale: float = 1.0,
 ) -> tuple[ProbabilisticActor, ValueOperator]:
     """An actor and a critic with the same layers (separate weights; with
     ``normalize=True``, one [`RunningNorm`][rl_pg.models.RunningNorm] for both).
 
-    See [`mlp_actor`][rl_pg.models.mlp_actor] and [`mlp_critic`][rl_pg.models.mlp_critic].
+    See [`mlp_actor`][rl_pg.models.mlp_actor] (which also takes
+    ``bounded``, ``state_independent_scale`` and ``init_scale``) and
+    [`mlp_critic`][rl_pg.models.mlp_critic].
 
     Examples:
         >>> from rl_pg.envs import BanditEnv
@@ -322,7 +392,14 @@ def mlp_actor_critic(
         ('ProbabilisticActor', 'ValueOperator')
     """
     kwargs = {"hidden": hidden, "activation": activation, "observation_key": observation_key}
-    actor = mlp_actor(env, normalize=normalize, **kwargs)
+    actor = mlp_actor(
+        env,
+        normalize=normalize,
+        bounded=bounded,
+        state_independent_scale=state_independent_scale,
+        init_scale=init_scale,
+        **kwargs,
+    )
     if normalize is True:  # the critic shares the actor's statistics
         normalize = next(m for m in actor.modules() if isinstance(m, RunningNorm))
     return actor, mlp_critic(env, normalize=normalize, **kwargs)

@@ -6,6 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import GymWrapper
@@ -13,6 +14,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
 
 from rl_pg import ReinforceLoss
+from rl_pg.distributions import BoundedBeta
 from rl_pg.envs import GridWorldEnv, gym_env
 from rl_pg.models import (
     LeanCategoricalPolicy,
@@ -91,6 +93,78 @@ class TestMlpActor:
         actor = mlp_actor(env, hidden=(8,))
         rollout = _sampled_actions(actor, env, steps=4)
         assert isinstance(actor.get_dist(rollout), IndependentNormal)
+
+    @pytest.mark.parametrize("num_envs", [None, 3])
+    def test_state_independent_scale(self, num_envs):
+        env = _box_env([-1.0, 0.0], [1.0, 5.0], num_envs)
+        actor = mlp_actor(env, hidden=(8,), state_independent_scale=True, init_scale=0.5)
+        rollout = _sampled_actions(actor, env, steps=16)
+        scale = rollout["scale"].reshape(-1, 2)
+        # One parameter per action dimension, the same in every state, starting at 0.5.
+        torch.testing.assert_close(scale, torch.full_like(scale, 0.5))
+        loss = ReinforceLoss(actor)(rollout)
+        loss["loss_actor"].backward()
+        (log_scale,) = [p for n, p in actor.named_parameters() if n.endswith("independent_scale")]
+        assert log_scale.shape == (2,) and log_scale.grad.abs().min() > 0
+        assert isinstance(actor.get_dist(rollout), TanhNormal)
+
+    def test_unsquashed_gaussian_on_a_bounded_box(self):
+        # bounded="normal": a plain Gaussian whose samples the environment clips; its
+        # log-probability is the sample's, however far past the bounds the mean is.
+        env = gym_env("Pendulum-v1", num_envs=4)
+        actor = mlp_actor(env, bounded="normal", state_independent_scale=True, init_scale=3.0)
+        rollout = _sampled_actions(actor, env)
+        dist = actor.get_dist(rollout)
+        assert isinstance(dist, IndependentNormal)
+        assert rollout["action"].abs().max() > 2.0  # the environment clips, not the policy
+        expected = torch.distributions.Normal(rollout["loc"], rollout["scale"])
+        torch.testing.assert_close(
+            dist.log_prob(rollout["action"]), expected.log_prob(rollout["action"]).sum(-1)
+        )
+        assert torch.isfinite(ReinforceLoss(actor)(rollout)["loss_actor"])
+
+    def test_a_squashed_gaussian_loses_the_log_probability_of_saturated_samples(self):
+        # Why "normal" and "beta" exist: a TanhNormal whose mean is 20 units past the bound
+        # samples the bound itself in float32, and scores it far below its true density.
+        env = gym_env("Pendulum-v1")
+        actor = mlp_actor(env, state_independent_scale=True, init_scale=0.5)
+        td = TensorDict({"loc": torch.tensor([20.0]), "scale": torch.tensor([0.5])})
+        dist = actor[-1].get_dist(td)  # the distribution from these parameters
+        sample = dist.sample()
+        assert sample.item() == pytest.approx(2.0, abs=1e-5)
+        # Drawn near the mean of N(20, 0.5), where that Normal's log-density is -0.2, it is
+        # scored as a draw 16 units away.
+        assert dist.log_prob(sample) < -100
+
+    @pytest.mark.parametrize("num_envs", [None, 3])
+    def test_beta_policy_on_per_dimension_bounds(self, num_envs):
+        low, high = [-1.0, 0.0], [1.0, 5.0]
+        env = _box_env(low, high, num_envs)
+        actor = mlp_actor(env, hidden=(8,), bounded="beta")
+        rollout = _sampled_actions(actor, env)
+        action = rollout["action"].reshape(-1, 2)
+        assert (action >= torch.tensor(low)).all() and (action <= torch.tensor(high)).all()
+        assert action[:, 1].max() > 2.5  # spread over [0, 5], not squeezed into [-1, 1]
+        dist = actor.get_dist(rollout)
+        assert isinstance(dist, BoundedBeta)
+        torch.testing.assert_close(dist.high, torch.tensor(high))
+        assert torch.isfinite(ReinforceLoss(actor)(rollout)["loss_actor"])
+
+    def test_beta_policy_needs_finite_bounds(self):
+        with pytest.raises(ValueError, match="needs a continuous action with finite bounds"):
+            mlp_actor(_box_env([-np.inf], [np.inf]), bounded="beta")
+        with pytest.raises(ValueError, match=r"finite bounds.*\(discrete\)"):
+            mlp_actor(GridWorldEnv(), bounded="beta")
+        with pytest.raises(ValueError, match="policy is a Beta"):
+            mlp_actor(_box_env([-1.0], [1.0]), bounded="beta", state_independent_scale=True)
+        with pytest.raises(ValueError, match="bounded must be"):
+            mlp_actor(_box_env([-1.0], [1.0]), bounded="clip")
+
+    def test_state_independent_scale_asks_for_a_continuous_action(self):
+        with pytest.raises(ValueError, match="action space is discrete"):
+            mlp_actor(GridWorldEnv(), state_independent_scale=True)
+        with pytest.raises(ValueError, match="init_scale must be a finite number > 0"):
+            mlp_actor(_box_env([-1.0], [1.0]), state_independent_scale=True, init_scale=0.0)
 
     def test_partly_bounded_box(self):
         env = _box_env([-1.0, -np.inf], [1.0, np.inf])
