@@ -12,8 +12,9 @@ from PIL import Image
 from rl_pg.recipes import evaluate, load, play
 from rl_pg.training.loop import evaluation_seed
 
-bandit, cartpole, gridworld, highway, lunarlander, pong = (
-    load(name) for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "pong")
+bandit, cartpole, gridworld, highway, lunarlander, pendulum, pong = (
+    load(name)
+    for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "pendulum", "pong")
 )
 
 TINY = {"eval_episodes": 1, "checkpoint_interval": 1, "progress": False}
@@ -25,11 +26,8 @@ RECIPES = {
         cartpole,
         {"total_frames": 600, "eval_interval": 600, "batch_mode": "episodes", "num_envs": 1},
     ),
-    # Continuous torque in [-2, 2], 32 pendulums: the bounds are per dimension, not ±1.
-    "cartpole-pendulum": (
-        cartpole,
-        {"total_frames": 600, "eval_interval": 600, "env_id": "Pendulum-v1", "threshold": None},
-    ),
+    # Continuous torque in [-2, 2]: the bounds are per dimension, not ±1.
+    "pendulum": (pendulum, {"total_frames": 1_024, "eval_interval": 1_024}),
     "lunarlander": (lunarlander, {"total_frames": 1_500, "eval_interval": 1_500}),
     "lunarlander-continuous": (
         lunarlander,

@@ -8,7 +8,7 @@ line, deployment, the tests, the benchmarks and the docs all use it.
 Examples:
     >>> from rl_pg.recipes import NAMES, load
     >>> NAMES
-    ('bandit', 'gridworld', 'cartpole', 'lunarlander', 'highway', 'pong', 'metadrive')
+    ('bandit', 'gridworld', 'cartpole', 'pendulum', 'lunarlander', 'highway', 'pong', 'metadrive')
     >>> recipe = load("cartpole")
     >>> recipe.config().threshold
     475.0
@@ -22,7 +22,9 @@ from rl_pg.training.recipe import Recipe
 
 __all__ = ["NAMES", "load", "recipe_of"]
 
-NAMES = ("bandit", "gridworld", "cartpole", "lunarlander", "highway", "pong", "metadrive")
+NAMES = (
+    "bandit", "gridworld", "cartpole", "pendulum", "lunarlander", "highway", "pong", "metadrive",
+)  # fmt: skip
 """The built-in recipes, simplest first."""
 
 
