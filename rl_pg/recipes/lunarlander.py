@@ -43,7 +43,10 @@ class Config(
     """REINFORCE with reward-to-go and a learned value baseline on LunarLander-v3."""
 
     continuous: bool = False
-    """Continuous thrust (Box(-1, 1, (2,))) with a Gaussian policy."""
+    """Continuous thrust (Box(-1, 1, (2,))), with the policy bounded says."""
+    bounded: Literal["tanh_normal", "normal", "beta"] = "tanh_normal"
+    """With continuous: the policy's distribution on the thrust bounds (see
+    rl_pg.models.mlp_actor)."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
@@ -76,7 +79,7 @@ def make_eval_env(cfg: Config) -> EnvBase:
 
 
 def make_models(env: EnvBase, cfg: Config):
-    return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden))
+    return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden), bounded=cfg.bounded)
 
 
 RECIPE = Recipe(
