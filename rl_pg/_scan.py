@@ -8,11 +8,11 @@ Two implementations of one recurrence, both on ``[N, T]`` tensors (time last)::
 
 ``terminated=None`` means ``terminated = done``.
 
-* a numba kernel, one sequential pass per row, used for CPU tensors that need no
-  gradient: a collector batch is reduced at memory speed (see
-  ``benchmarks/returns.py``). Large scans spread their rows over threads (see
-  ``kernel_threads``); small ones, such as a training batch, stay on the calling
-  thread;
+* a numba kernel (``rl_pg._scan_kernels``, imported on first use), one sequential
+  pass per row, used for CPU tensors that need no gradient: a collector batch is
+  reduced at memory speed (see ``benchmarks/returns.py``). Large scans spread their
+  rows over threads (see ``kernel_threads``); small ones, such as a training batch,
+  stay on the calling thread;
 * a log-depth (Hillis-Steele) scan in plain torch, used on other devices and when an
   input requires a gradient, so that autograd and CUDA keep working.
 
@@ -22,103 +22,12 @@ Callers validate their inputs; these functions trust them.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 
-# Rows handled together by one thread: their recurrences are independent, so the
-# CPU overlaps them instead of waiting on one multiply-add chain at a time.
-_ROWS_PER_BLOCK = 16
 _NUMBA_DTYPES = (torch.float32, torch.float64)
 PARALLEL_MIN_ELEMENTS = 1 << 16
 """Scans smaller than this (in elements) run on the calling thread alone."""
-
-
-def _gamma_at(gamma, i, t):
-    """Discount of step ``t`` of row ``i``: ``gamma`` is a number or an ``[N, T]`` array."""
-
-
-@numba.extending.overload(_gamma_at, inline="always")
-def _gamma_at_impl(gamma, i, t):
-    # Specialised on the type so that a scalar discount costs no memory traffic.
-    if isinstance(gamma, numba.types.Number):
-        return lambda gamma, i, t: gamma
-    return lambda gamma, i, t: gamma[i, t]
-
-
-@numba.njit(inline="always")
-def _bootstrap(done, terminated, next_value, i, t):
-    # Without a terminated mask every done step is a termination.
-    if next_value is None:
-        return 0.0
-    if terminated[i, t] if terminated is not None else done[i, t]:
-        return 0.0
-    return next_value[i, t]
-
-
-@numba.njit(inline="always", nogil=True)
-def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out, block):
-    """Rows ``[16 * block, 16 * block + 16)``; returns the sum of ``x - x`` over them."""
-    n_rows, n_steps = reward.shape
-    lo = block * _ROWS_PER_BLOCK
-    hi = min(lo + _ROWS_PER_BLOCK, n_rows)
-    carry = np.zeros(_ROWS_PER_BLOCK, dtype=out.dtype)
-    # ``x - x`` is 0 for finite x and NaN otherwise: summing it flags a non-finite
-    # result without a second pass over memory.
-    lane_check = np.zeros(_ROWS_PER_BLOCK, dtype=out.dtype)
-    last = n_steps - 1
-    for j in range(hi - lo):
-        i = lo + j
-        boot = _bootstrap(done, terminated, next_value, i, last)
-        carry[j] = reward[i, last] + _gamma_at(gamma, i, last) * boot
-        out[i, last] = carry[j]
-        lane_check[j] += carry[j] - carry[j]
-    # Selects rather than branches inside this loop: it is the hot path.
-    for t in range(n_steps - 2, -1, -1):
-        for j in range(hi - lo):
-            i = lo + j
-            ended = done[i, t] or (terminated is not None and terminated[i, t])
-            if next_value is None:
-                following = carry[j] * (1 - ended)
-            else:
-                following = _bootstrap(done, terminated, next_value, i, t) if ended else carry[j]
-            carry[j] = reward[i, t] + _gamma_at(gamma, i, t) * following
-            out[i, t] = carry[j]
-            lane_check[j] += carry[j] - carry[j]
-    if whole_episode:
-        for j in range(hi - lo):
-            i = lo + j
-            first = out[i, 0]
-            for t in range(1, n_steps):
-                if done[i, t - 1] or (terminated is not None and terminated[i, t - 1]):
-                    first = out[i, t]
-                else:
-                    out[i, t] = first
-    return lane_check.sum()
-
-
-# Two entry points over one body: the serial one runs in the caller's thread, so that
-# a busy machine cannot stall it on worker threads the OS has descheduled.
-@numba.njit(cache=True, nogil=True)
-def _scan_serial(reward, done, terminated, next_value, gamma, whole_episode, out):
-    n_blocks = (reward.shape[0] + _ROWS_PER_BLOCK - 1) // _ROWS_PER_BLOCK
-    finite_check = 0.0
-    for block in range(n_blocks):
-        finite_check += _scan_block(
-            reward, done, terminated, next_value, gamma, whole_episode, out, block
-        )
-    return finite_check
-
-
-@numba.njit(parallel=True, cache=True, nogil=True)
-def _scan_parallel(reward, done, terminated, next_value, gamma, whole_episode, out):
-    n_blocks = (reward.shape[0] + _ROWS_PER_BLOCK - 1) // _ROWS_PER_BLOCK
-    finite_check = 0.0
-    for block in numba.prange(n_blocks):
-        finite_check += _scan_block(
-            reward, done, terminated, next_value, gamma, whole_episode, out, block
-        )
-    return finite_check
 
 
 def kernel_threads(n_rows: int, n_steps: int) -> int:
@@ -131,7 +40,11 @@ def kernel_threads(n_rows: int, n_steps: int) -> int:
     """
     if n_rows * n_steps < PARALLEL_MIN_ELEMENTS:
         return 1
-    n_blocks = (n_rows + _ROWS_PER_BLOCK - 1) // _ROWS_PER_BLOCK
+    import numba
+
+    from rl_pg._scan_kernels import ROWS_PER_BLOCK
+
+    n_blocks = (n_rows + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     return max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS, n_blocks))
 
 
@@ -218,14 +131,18 @@ def backward_scan(
         whole_episode,
         out.numpy(),
     )
+    import numba
+
+    from rl_pg import _scan_kernels
+
     threads = kernel_threads(*reward.shape)
     if threads == 1:
-        finite_check = _scan_serial(*args)
+        finite_check = _scan_kernels.scan_serial(*args)
     else:
         previous = numba.get_num_threads()
         numba.set_num_threads(threads)
         try:
-            finite_check = _scan_parallel(*args)
+            finite_check = _scan_kernels.scan_parallel(*args)
         finally:
             numba.set_num_threads(previous)
     return out, bool(np.isfinite(finite_check))

@@ -10,11 +10,12 @@ import io
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
+from typing import TYPE_CHECKING
 
 from rl_pg.checkpoint import write_atomically
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 __all__ = ["png_figure"]
 
@@ -34,6 +35,9 @@ def png_figure(path: str | Path, *, size: tuple[float, float] = (7, 4)) -> Itera
         >>> path.read_bytes()[:4]
         b'\\x89PNG'
     """
+    # Imported here: a process that never plots (a collector's worker) never loads it.
+    from matplotlib.figure import Figure
+
     figure = Figure(figsize=size)
     yield figure.subplots()
     figure.tight_layout()

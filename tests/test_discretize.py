@@ -137,8 +137,10 @@ class TestDiscretizeAction:
         )
 
     def test_parallel_env(self):
-        outside = TransformedEnv(ParallelEnv(2, _pendulum), DiscretizeAction(counts=5))
-        inside = ParallelEnv(2, _discretized_pendulum)
+        # One worker each: the transform still crosses the process boundary (the
+        # two-worker case is test_highway_parallel_env's).
+        outside = TransformedEnv(ParallelEnv(1, _pendulum), DiscretizeAction(counts=5))
+        inside = ParallelEnv(1, _discretized_pendulum)
         try:
             check_env_specs(outside)
             check_env_specs(inside)

@@ -149,13 +149,17 @@ def _raise():
     raise ValueError("no such scenario set")
 
 
-@pytest.mark.parametrize("batched", ["serial", "processes"])
 @pytest.mark.parametrize(
-    ("max_steps", "lengths"),
-    [(100, [1, 2, 3, 3, 4]), (2, [1, 2, 2, 2, 2])],  # scenarios 0, 1, 2 and 10, 11
+    ("batched", "max_steps", "lengths"),  # scenarios 0, 1, 2 and 10, 11
+    [
+        ("serial", 100, [1, 2, 3, 3, 4]),
+        ("serial", 2, [1, 2, 2, 2, 2]),
+        ("processes", 100, [1, 2, 3, 3, 4]),
+        # processes cutting episodes at max_steps: in the next test
+    ],
 )
 def test_a_batched_env_plays_each_environments_share_in_order_skipping_nothing(
-    max_steps, lengths, batched
+    batched, max_steps, lengths
 ):
     from functools import partial
 
@@ -183,10 +187,12 @@ def test_episode_workers_keep_their_environments_and_report_a_worker_s_failure()
     policy = _fixed_actor(1, [0.0, 1.0])
     try:
         first = evaluate(policy, env, episodes=2)  # scenarios 0 and 10
-        second = evaluate(policy, env, episodes=2)  # 1 and 11: the same processes go on
+        # 1 and 11 (4 steps, cut at 2): the same processes go on
+        second = evaluate(policy, env, episodes=2, max_steps=2)
     finally:
         env.close()
-    assert (first["mean_return"], second["mean_return"]) == ((0 + 10 * 3) / 2, (1 * 2 + 11 * 4) / 2)
+    assert (first["mean_return"], second["mean_return"]) == ((0 + 10 * 3) / 2, (1 * 2 + 11 * 2) / 2)
+    assert second["mean_length"] == 2
     assert env.is_closed
     broken = EpisodeWorkers([partial(_Scenarios, 0), _raise])
     with pytest.raises(RuntimeError, match=r"worker 1 failed:(.|\n)*no such scenario set"):

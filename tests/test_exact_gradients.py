@@ -124,7 +124,9 @@ class TestBanditGradient:
             value = (logits.softmax(-1) * ARM_REWARDS).sum() if critic_kind == "oracle" else 5.0
             critic = _tabular_critic(torch.tensor([float(value)], dtype=torch.float64))
         loss = _make_loss(_tabular_actor(1, N_ARMS, logits), critic, RewardToGo, baseline)
-        estimates = _estimates(loss, _bandit_batches(logits, 2000, 8, seed=1), 8)
+        # 16 000 pulls, 32 per estimate: the power depends on the total, the cost on
+        # the number of estimates (one loss call each).
+        estimates = _estimates(loss, _bandit_batches(logits, 500, 32, seed=1), 32)
         assert _z_scores(estimates, exact).abs().max() <= Z_MAX
 
     def test_batch_mean_shrinks_the_gradient_by_one_over_n(self, bandit):
@@ -132,14 +134,14 @@ class TestBanditGradient:
         logits, exact = bandit
         n = 4
         loss = _make_loss(_tabular_actor(1, N_ARMS, logits), None, RewardToGo, "batch_mean")
-        estimates = _estimates(loss, _bandit_batches(logits, 4000, n, seed=2), n)
+        estimates = _estimates(loss, _bandit_batches(logits, 2000, n, seed=2), n)
         assert _z_scores(estimates, (1 - 1 / n) * exact).abs().max() <= Z_MAX
         # Negative control: the check has the power to see that 25% bias.
         assert _z_scores(estimates, exact).abs().max() > Z_MAX
 
     def test_baselines_lower_the_variance(self, bandit):
         logits, _ = bandit
-        batches = _bandit_batches(logits, 1000, 8, seed=3)
+        batches = _bandit_batches(logits, 400, 8, seed=3)
         variance = {}
         for baseline in ("none", "running_mean"):
             loss = _make_loss(_tabular_actor(1, N_ARMS, logits), None, RewardToGo, baseline)
@@ -225,6 +227,11 @@ def _gridworld_batches(logits, n_batches, n_episodes, seed, max_steps=2000):
     return batches
 
 
+# 6 000 episodes in all, 8 per gradient estimate: the z-test's power depends on the
+# total, its cost on the number of estimates (one loss call each).
+GRID_ESTIMATES, GRID_EPISODES = 750, 8
+
+
 @pytest.fixture(scope="module")
 def gridworld():
     torch.manual_seed(0)
@@ -232,7 +239,7 @@ def gridworld():
     theta = logits.clone().requires_grad_(True)
     values = _state_values(theta)
     (exact,) = torch.autograd.grad(values[START], theta)
-    batches = _gridworld_batches(logits, 1500, 4, seed=1)
+    batches = _gridworld_batches(logits, GRID_ESTIMATES, GRID_EPISODES, seed=1)
     return logits, exact.T.contiguous(), values.detach(), batches
 
 
@@ -249,7 +256,7 @@ def _gridworld_estimates(gridworld, value_type, baseline, critic_values=None):
     if baseline == "critic":
         critic = _tabular_critic(values if critic_values is None else critic_values)
     actor = _tabular_actor(SIDE * SIDE, len(MOVES), logits)
-    return _estimates(_make_loss(actor, critic, value_type, baseline), batches, 4)
+    return _estimates(_make_loss(actor, critic, value_type, baseline), batches, GRID_EPISODES)
 
 
 @pytest.fixture(scope="module")

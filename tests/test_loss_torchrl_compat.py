@@ -135,6 +135,25 @@ RENAMED = {
 }
 
 
+_FRESH_SELECT_OUT_KEYS = textwrap.dedent(
+    """
+    import torch
+    from conftest import make_critic, make_gaussian_actor
+    from test_loss_torchrl_compat import IMPLEMENTATIONS, _flat_batch
+    loss_fn = IMPLEMENTATIONS[{name!r}](make_gaussian_actor(3, 5), make_critic(3))
+    loss_fn.select_out_keys("loss_actor")
+    data = _flat_batch()
+    out = loss_fn(
+        action=data["action"], observation=data["observation"],
+        next_reward=data["next", "reward"], next_done=data["next", "done"],
+        next_terminated=data["next", "terminated"],
+        next_observation=data["next", "observation"],
+    )
+    assert isinstance(out, torch.Tensor) and out.shape == (), out
+    """
+)
+
+
 class TestTorchRLScenarios:
     @pytest.mark.parametrize("gradient_mode", [True, False])
     @pytest.mark.parametrize("advantage", ["gae", "td", "td_lambda", None])
@@ -297,34 +316,24 @@ class TestTorchRLScenarios:
         loss_fn.select_out_keys("loss_actor")
         assert loss_fn(**kwargs) == out["loss_actor"]
 
-    @pytest.mark.parametrize("name", list(IMPLEMENTATIONS))
-    def test_select_out_keys_in_a_fresh_interpreter(self, name):
+    def test_select_out_keys_in_a_fresh_interpreter(self):
         # tensordict turns a class-level ``out_keys`` list into a property only when that
         # class is first instantiated: this must work before TorchRL's class ever is.
-        script = textwrap.dedent(
-            f"""
-            import torch
-            from conftest import make_critic, make_gaussian_actor
-            from test_loss_torchrl_compat import IMPLEMENTATIONS, _flat_batch
-            loss_fn = IMPLEMENTATIONS[{name!r}](make_gaussian_actor(3, 5), make_critic(3))
-            loss_fn.select_out_keys("loss_actor")
-            data = _flat_batch()
-            out = loss_fn(
-                action=data["action"], observation=data["observation"],
-                next_reward=data["next", "reward"], next_done=data["next", "done"],
-                next_terminated=data["next", "terminated"],
-                next_observation=data["next", "observation"],
-            )
-            assert isinstance(out, torch.Tensor) and out.shape == (), out
-            """
-        )
+        # One fresh interpreter per implementation, both at once.
         tests_dir = str(Path(__file__).parent)
-        subprocess.run(
-            [sys.executable, "-c", script],
-            check=True,
-            cwd=tests_dir,
-            env={**os.environ, "PYTHONPATH": tests_dir},
-        )
+        processes = {
+            name: subprocess.Popen(
+                [sys.executable, "-c", _FRESH_SELECT_OUT_KEYS.format(name=name)],
+                cwd=tests_dir,
+                env={**os.environ, "PYTHONPATH": tests_dir},
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for name in IMPLEMENTATIONS
+        }
+        for name, process in processes.items():
+            _, stderr = process.communicate(timeout=300)
+            assert process.returncode == 0, f"{name}:\n{stderr}"
 
     @pytest.mark.parametrize("reduction", [None, "none", "mean", "sum"])
     def test_reduction(self, loss_class, reduction):

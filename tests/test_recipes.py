@@ -223,17 +223,3 @@ def test_play_refuses_to_record_what_does_not_render(tmp_path):
     gridworld.train(gridworld.config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
-
-
-@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
-def test_ray_collection(tmp_path):
-    cfg = gridworld.config(
-        run_dir=tmp_path,
-        ray=True,
-        workers=2,
-        batch_mode="segments",
-        segment_length=10,
-        total_updates=2,
-        **TINY,
-    )
-    assert gridworld.train(cfg)["updates"] == 2

@@ -376,34 +376,10 @@ class TestTrain:
             ),
         ],
     )
-    def test_new_weights_reach_the_worker_processes(self, tmp_path, ray):
+    def test_new_weights_and_statistics_reach_the_worker_processes(self, tmp_path, ray):
         from rl_pg.training.collection import Collection
 
         cfg = _cfg(tmp_path, workers=2, ray=ray, batch_mode="segments", segment_length=5)
-        env = make_grid()
-        actor = make_grid_models(env)[0]
-        collection = Collection(cfg, env, make_grid, actor, updates=0)
-        try:
-            batches = iter(collection)
-            next(batches)
-            last = [m for m in actor.modules() if isinstance(m, nn.Linear)][-1]
-            with torch.no_grad():  # a policy that always moves right (action 2)
-                for parameter in actor.parameters():
-                    parameter.zero_()
-                last.bias[2] = 50.0
-            collection.after_update(1)
-            next(batches)  # at most one batch in flight may predate the new weights
-            actions = next(batches)["action"]
-        finally:
-            collection.shutdown()
-        if actions.shape[-1] == 4:  # one-hot
-            actions = actions.argmax(-1)
-        assert (actions == 2).all()
-
-    def test_observation_statistics_reach_the_worker_processes(self, tmp_path):
-        from rl_pg.training.collection import Collection
-
-        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU, normalize=True)
         collection = Collection(cfg, env, make_grid, actor, updates=0)
@@ -411,12 +387,22 @@ class TestTrain:
             batches = iter(collection)
             update_running_norms(actor, next(batches))  # as the training loop does
             assert next(m for m in actor.modules() if isinstance(m, RunningNorm)).stats.count > 0
+            last = [m for m in actor.modules() if isinstance(m, nn.Linear)][-1]
+            with torch.no_grad():  # a policy that mostly moves right (action 2)
+                for parameter in actor.parameters():
+                    parameter.mul_(0.1)
+                last.bias[2] = 50.0
             collection.after_update(1)
-            next(batches)  # at most one batch in flight may predate the new statistics
+            next(batches)  # at most one batch in flight may predate the new weights
             batch = next(batches)
         finally:
             collection.shutdown()
-        # The workers acted with the learner's statistics: their logits are the learner's.
+        actions = batch["action"]
+        if actions.shape[-1] == 4:  # one-hot
+            actions = actions.argmax(-1)
+        assert (actions == 2).all()
+        # The workers acted with the learner's weights and statistics: their logits are
+        # the learner's.
         with torch.no_grad():
             recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
         torch.testing.assert_close(recomputed, batch["logits"])
@@ -501,33 +487,50 @@ SEGMENTS = {"batch_mode": "segments", "segment_length": 10, "env_restart_interva
 
 
 class TestKilledRun:
-    @pytest.mark.parametrize("extra", [{}, SEGMENTS], ids=["episodes", "segments"])
-    def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path, extra):
-        # The uninterrupted run checkpoints every 2 updates, the killed one every update.
-        _train(_cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=12, **extra))
-        run = tmp_path / "killed"
-        script = _KILLABLE_RUN.format(
-            tests=str(Path(__file__).parent), tmp=str(tmp_path), run=str(run), extra=extra
-        )
-        process = subprocess.Popen([sys.executable, "-c", script], env=os.environ.copy())
+    def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path):
+        # Whole-episode and segment batches, each killed in a process of its own; the
+        # two run side by side (most of their time is imports).
+        modes = {"episodes": {}, "segments": SEGMENTS}
+        processes = {}
+        for mode, extra in modes.items():
+            script = _KILLABLE_RUN.format(
+                tests=str(Path(__file__).parent), tmp=str(tmp_path / mode),
+                run=str(tmp_path / mode / "killed"), extra=extra,
+            )  # fmt: skip
+            processes[mode] = subprocess.Popen(
+                [sys.executable, "-c", script], env=os.environ.copy()
+            )
+        pending = dict(processes)
         deadline = time.monotonic() + 120
         try:
-            while time.monotonic() < deadline:
-                checkpoint = run / "checkpoint.pt"
-                if checkpoint.is_file() and load_checkpoint(checkpoint)["state"]["updates"] >= 4:
-                    break
-                assert process.poll() is None, "the run ended before it could be killed"
+            while pending and time.monotonic() < deadline:
+                for mode, process in list(pending.items()):
+                    checkpoint = tmp_path / mode / "killed" / "checkpoint.pt"
+                    if (
+                        checkpoint.is_file()
+                        and load_checkpoint(checkpoint)["state"]["updates"] >= 4
+                    ):
+                        process.send_signal(signal.SIGKILL)
+                        del pending[mode]
+                    else:
+                        assert process.poll() is None, f"{mode}: the run ended before the kill"
                 time.sleep(0.02)
-            process.send_signal(signal.SIGKILL)
         finally:
-            process.wait()
-        killed_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
-        assert 4 <= killed_at < 12
-        resumed = _train(
-            _cfg(tmp_path, run_dir=run, total_updates=12, checkpoint_interval=1, resume=True,
-                 **extra)
-        )  # fmt: skip
-        assert_same_run(resumed, run, tmp_path / "straight")
+            for process in processes.values():
+                process.kill()
+                process.wait()
+        for mode, extra in modes.items():
+            # The uninterrupted run checkpoints every 2 updates, the killed one every update.
+            straight = tmp_path / mode / "straight"
+            _train(_cfg(tmp_path / mode, run_dir=straight, total_updates=12, **extra))
+            run = tmp_path / mode / "killed"
+            killed_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
+            assert 4 <= killed_at < 12, mode
+            resumed = _train(
+                _cfg(tmp_path / mode, run_dir=run, total_updates=12, checkpoint_interval=1,
+                     resume=True, **extra)
+            )  # fmt: skip
+            assert_same_run(resumed, run, straight)
 
 
 def test_training_episode_returns_are_summed_across_segments():
@@ -877,20 +880,18 @@ class TestConsole:
 
 
 class TestResumeFromTheCommandLine:
-    def test_resume_needs_only_the_run_directory_and_what_changes(self, tmp_path):
-        recipes = Path(__file__).resolve().parents[1] / "recipes"
+    def test_resume_needs_only_the_run_directory_and_what_changes(self, tmp_path, capsys):
+        # `python recipes/gridworld.py FLAGS` is this command (tests/test_cli.py), and a
+        # fresh process resumes from the directory alone there too.
+        from rl_pg.recipes.cli import main
+
         run = str(tmp_path / "run")
         first = ["--run-dir", run, "--total-updates", "2", "--lr", "0.05", "--hidden", "16"]
-        script = [sys.executable, str(recipes / "gridworld.py")]
-        subprocess.run([*script, *first, "--no-progress"], check=True, capture_output=True)
+        main(["train", "gridworld", *first, "--no-progress"])
         stored = json.loads((tmp_path / "run" / "config.json").read_text())
         assert (stored["recipe"], stored["lr"], stored["hidden"]) == ("gridworld", 0.05, 16)
-        resumed = subprocess.run(
-            [*script, "--resume", "--run-dir", run, "--total-updates", "4"],
-            capture_output=True,
-            text=True,
-        )
-        assert resumed.returncode == 0, resumed.stderr
+        main(["train", "gridworld", "--resume", "--run-dir", run, "--total-updates", "4"])
+        capsys.readouterr()
         assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] == 4
         assert json.loads((tmp_path / "run" / "config.json").read_text())["total_updates"] == 4
 

@@ -1,0 +1,100 @@
+"""The numba kernels of ``rl_pg._scan``, in a module of their own: numba is imported,
+and the kernels loaded, only by a process that runs them (a worker process that only
+collects never does).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# Rows handled together by one thread: their recurrences are independent, so the
+# CPU overlaps them instead of waiting on one multiply-add chain at a time.
+ROWS_PER_BLOCK = 16
+
+
+def _gamma_at(gamma, i, t):
+    """Discount of step ``t`` of row ``i``: ``gamma`` is a number or an ``[N, T]`` array."""
+
+
+@numba.extending.overload(_gamma_at, inline="always")
+def _gamma_at_impl(gamma, i, t):
+    # Specialised on the type so that a scalar discount costs no memory traffic.
+    if isinstance(gamma, numba.types.Number):
+        return lambda gamma, i, t: gamma
+    return lambda gamma, i, t: gamma[i, t]
+
+
+@numba.njit(inline="always")
+def _bootstrap(done, terminated, next_value, i, t):
+    # Without a terminated mask every done step is a termination.
+    if next_value is None:
+        return 0.0
+    if terminated[i, t] if terminated is not None else done[i, t]:
+        return 0.0
+    return next_value[i, t]
+
+
+@numba.njit(inline="always", nogil=True)
+def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out, block):
+    """Rows ``[16 * block, 16 * block + 16)``; returns the sum of ``x - x`` over them."""
+    n_rows, n_steps = reward.shape
+    lo = block * ROWS_PER_BLOCK
+    hi = min(lo + ROWS_PER_BLOCK, n_rows)
+    carry = np.zeros(ROWS_PER_BLOCK, dtype=out.dtype)
+    # ``x - x`` is 0 for finite x and NaN otherwise: summing it flags a non-finite
+    # result without a second pass over memory.
+    lane_check = np.zeros(ROWS_PER_BLOCK, dtype=out.dtype)
+    last = n_steps - 1
+    for j in range(hi - lo):
+        i = lo + j
+        boot = _bootstrap(done, terminated, next_value, i, last)
+        carry[j] = reward[i, last] + _gamma_at(gamma, i, last) * boot
+        out[i, last] = carry[j]
+        lane_check[j] += carry[j] - carry[j]
+    # Selects rather than branches inside this loop: it is the hot path.
+    for t in range(n_steps - 2, -1, -1):
+        for j in range(hi - lo):
+            i = lo + j
+            ended = done[i, t] or (terminated is not None and terminated[i, t])
+            if next_value is None:
+                following = carry[j] * (1 - ended)
+            else:
+                following = _bootstrap(done, terminated, next_value, i, t) if ended else carry[j]
+            carry[j] = reward[i, t] + _gamma_at(gamma, i, t) * following
+            out[i, t] = carry[j]
+            lane_check[j] += carry[j] - carry[j]
+    if whole_episode:
+        for j in range(hi - lo):
+            i = lo + j
+            first = out[i, 0]
+            for t in range(1, n_steps):
+                if done[i, t - 1] or (terminated is not None and terminated[i, t - 1]):
+                    first = out[i, t]
+                else:
+                    out[i, t] = first
+    return lane_check.sum()
+
+
+# Two entry points over one body: the serial one runs in the caller's thread, so that
+# a busy machine cannot stall it on worker threads the OS has descheduled.
+@numba.njit(cache=True, nogil=True)
+def scan_serial(reward, done, terminated, next_value, gamma, whole_episode, out):
+    n_blocks = (reward.shape[0] + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
+    finite_check = 0.0
+    for block in range(n_blocks):
+        finite_check += _scan_block(
+            reward, done, terminated, next_value, gamma, whole_episode, out, block
+        )
+    return finite_check
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def scan_parallel(reward, done, terminated, next_value, gamma, whole_episode, out):
+    n_blocks = (reward.shape[0] + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
+    finite_check = 0.0
+    for block in numba.prange(n_blocks):
+        finite_check += _scan_block(
+            reward, done, terminated, next_value, gamma, whole_episode, out, block
+        )
+    return finite_check
