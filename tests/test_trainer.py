@@ -756,49 +756,63 @@ class TestInterruptedRun:
 
     FLAGS = ("--checkpoint-interval", "1000000", "--eval-interval", "100000000")
 
-    def test_ctrl_c_from_a_terminal_reaches_the_workers_too(self, tmp_path):
-        # A terminal signals the whole process group: worker processes must leave the
-        # interruption to the main process instead of dying under it.
+    def test_ctrl_c_saves_resumes_and_reaches_the_workers(self, tmp_path):
+        # Two runs as a user starts them, side by side (most of their time is imports):
+        # - "single": a gridworld run interrupted by SIGINT to its process, then resumed;
+        # - "workers": CartPole on two worker processes, interrupted as a terminal does,
+        #   by signalling the whole process group: the workers must leave the
+        #   interruption to the main process instead of dying under it.
         recipes = Path(__file__).resolve().parents[1] / "recipes"
-        run = tmp_path / "run"
-        command = [sys.executable, str(recipes / "cartpole.py"), "--run-dir", str(run)]
-        command += ["--workers", "2", "--total-frames", "100000000", "--no-progress"]
-        command += ["--threshold", "100000", *self.FLAGS]
-        process = subprocess.Popen(
-            command, stderr=subprocess.PIPE, text=True, start_new_session=True
-        )
-        log = run / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
-        deadline = time.monotonic() + 120
-        while not (log.is_file() and log.read_text().count("\n") >= 3):
-            assert process.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
-        os.killpg(process.pid, signal.SIGINT)
-        _, stderr = process.communicate(timeout=120)
-        assert process.returncode == 130, stderr
-        assert "Traceback" not in stderr
-        assert f"Continue with: rl-pg resume {run}" in stderr
+        runs = {"single": tmp_path / "interrupted", "workers": tmp_path / "workers"}
+        commands = {
+            "single": [sys.executable, str(recipes / "gridworld.py"), "--run-dir",
+                       str(runs["single"]), "--total-updates", "100000"],
+            "workers": [sys.executable, str(recipes / "cartpole.py"), "--run-dir",
+                        str(runs["workers"]), "--workers", "2", "--total-frames", "100000000",
+                        "--threshold", "100000"],
+        }  # fmt: skip
+        processes = {
+            name: subprocess.Popen(
+                [*command, "--no-progress", *self.FLAGS],
+                stderr=subprocess.PIPE,
+                text=True,
+                start_new_session=name == "workers",
+            )
+            for name, command in commands.items()
+        }
+        stderr = {}
+        try:
+            deadline = time.monotonic() + 180
+            waiting = dict(processes)
+            while waiting:
+                for name, process in list(waiting.items()):
+                    log = runs[name] / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
+                    if log.is_file() and log.read_text().count("\n") >= 3:
+                        if name == "workers":
+                            os.killpg(process.pid, signal.SIGINT)
+                        else:
+                            process.send_signal(signal.SIGINT)
+                        del waiting[name]
+                    else:
+                        assert process.poll() is None, process.communicate()[1]
+                        assert time.monotonic() < deadline, f"{name}: no update logged"
+                time.sleep(0.05)
+            for name, process in processes.items():
+                stderr[name] = process.communicate(timeout=120)[1]
+        finally:
+            for process in processes.values():
+                process.kill()
+                process.wait()
+        for name, process in processes.items():
+            assert process.returncode == 130, stderr[name]
+            assert "Traceback" not in stderr[name]
+            assert f"Continue with: rl-pg resume {runs[name]}" in stderr[name]
 
-    def test_ctrl_c_saves_and_resumes_like_an_uninterrupted_run(self, tmp_path):
-        recipes = Path(__file__).resolve().parents[1] / "recipes"
-        run = tmp_path / "interrupted"
-        command = [sys.executable, str(recipes / "gridworld.py"), "--run-dir", str(run)]
-        command += ["--total-updates", "100000", "--no-progress", *self.FLAGS]
-        process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
-        log = run / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
-        deadline = time.monotonic() + 120
-        while not (log.is_file() and log.read_text().count("\n") >= 3):
-            assert process.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
-        process.send_signal(signal.SIGINT)
-        _, stderr = process.communicate(timeout=120)
-        assert process.returncode == 130
-        assert "Traceback" not in stderr
-        assert f"Continue with: rl-pg resume {run}" in stderr
+        run = runs["single"]
         summary = json.loads((run / "summary.json").read_text())
         assert summary["interrupted"] is True
         stopped_at = load_checkpoint(run / "checkpoint.pt")["state"]["updates"]
         assert summary["updates"] == stopped_at >= 3
-
         gridworld = load("gridworld")
         common = {"checkpoint_interval": 1_000_000, "eval_interval": 100_000_000}
         common.update(progress=False, total_updates=stopped_at + 3)
