@@ -486,6 +486,32 @@ _KILLABLE_RUN = textwrap.dedent(
 SEGMENTS = {"batch_mode": "segments", "segment_length": 10, "env_restart_interval": 5}
 
 
+def _signal_when_ready(processes, ready, send, *, timeout: float = 120.0) -> None:
+    """Polls ``ready(name)`` for every process of ``{name: Popen}`` and calls
+    ``send(name, process)`` as soon as it holds; fails if a process ends first or the
+    timeout passes."""
+    waiting = dict(processes)
+    deadline = time.monotonic() + timeout
+    while waiting:
+        for name, process in list(waiting.items()):
+            if ready(name):
+                send(name, process)
+                del waiting[name]
+            else:
+                assert process.poll() is None, f"{name} ended first: {process.communicate()}"
+                assert time.monotonic() < deadline, f"{name}: not ready after {timeout} s"
+        time.sleep(0.02)
+
+
+def _updates_saved(run: Path) -> int:
+    checkpoint = run / "checkpoint.pt"
+    return load_checkpoint(checkpoint)["state"]["updates"] if checkpoint.is_file() else 0
+
+
+def _lines(path: Path) -> int:
+    return path.read_text().count("\n") if path.is_file() else 0
+
+
 class TestKilledRun:
     def test_sigkill_then_resume_ends_like_an_uninterrupted_run(self, tmp_path):
         # Whole-episode and segment batches, each killed in a process of its own; the
@@ -500,21 +526,12 @@ class TestKilledRun:
             processes[mode] = subprocess.Popen(
                 [sys.executable, "-c", script], env=os.environ.copy()
             )
-        pending = dict(processes)
-        deadline = time.monotonic() + 120
         try:
-            while pending and time.monotonic() < deadline:
-                for mode, process in list(pending.items()):
-                    checkpoint = tmp_path / mode / "killed" / "checkpoint.pt"
-                    if (
-                        checkpoint.is_file()
-                        and load_checkpoint(checkpoint)["state"]["updates"] >= 4
-                    ):
-                        process.send_signal(signal.SIGKILL)
-                        del pending[mode]
-                    else:
-                        assert process.poll() is None, f"{mode}: the run ended before the kill"
-                time.sleep(0.02)
+            _signal_when_ready(
+                processes,
+                lambda mode: _updates_saved(tmp_path / mode / "killed") >= 4,
+                lambda _, process: process.send_signal(signal.SIGKILL),
+            )
         finally:
             for process in processes.values():
                 process.kill()
@@ -782,21 +799,16 @@ class TestInterruptedRun:
         }
         stderr = {}
         try:
-            deadline = time.monotonic() + 180
-            waiting = dict(processes)
-            while waiting:
-                for name, process in list(waiting.items()):
-                    log = runs[name] / "logs" / "csv" / "scalars" / "loss" / "actor.csv"
-                    if log.is_file() and log.read_text().count("\n") >= 3:
-                        if name == "workers":
-                            os.killpg(process.pid, signal.SIGINT)
-                        else:
-                            process.send_signal(signal.SIGINT)
-                        del waiting[name]
-                    else:
-                        assert process.poll() is None, process.communicate()[1]
-                        assert time.monotonic() < deadline, f"{name}: no update logged"
-                time.sleep(0.05)
+            _signal_when_ready(
+                processes,
+                lambda name: _lines(runs[name] / "logs/csv/scalars/loss/actor.csv") >= 3,
+                lambda name, process: (
+                    os.killpg(process.pid, signal.SIGINT)
+                    if name == "workers"
+                    else process.send_signal(signal.SIGINT)
+                ),
+                timeout=180,
+            )
             for name, process in processes.items():
                 stderr[name] = process.communicate(timeout=120)[1]
         finally:
