@@ -188,7 +188,7 @@ def test_checkout_scripts_are_the_command(tmp_path):
 
 def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
     """Build the wheel, install it into a fresh virtual environment (its dependencies
-    from this one's site-packages), and import and train from another folder."""
+    from this one's site-packages), and import, list, train and play from another folder."""
     dist = tmp_path / "dist"
     subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
@@ -223,9 +223,18 @@ def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
         [python, "-c", check], cwd=work, capture_output=True, text=True, check=True
     ).stdout.split()
     assert where[0].startswith(site) and where[1:] == ["False", "False"]
+    # `list` runs while the training does (each spends most of its time importing).
+    listed = subprocess.Popen(
+        [command, "list"], cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     trained = subprocess.run(
         [command, "train", "gridworld", "--run-dir", "run", *QUICK], cwd=work,
         capture_output=True, text=True,
     )  # fmt: skip
     assert trained.returncode == 0, trained.stderr
-    assert (work / "run" / "best.pt").exists()
+    out, err = listed.communicate(timeout=300)
+    assert listed.returncode == 0 and "cartpole" in out, err
+    played = subprocess.run(
+        [command, "play", "run", "--episodes", "1"], cwd=work, capture_output=True, text=True
+    )
+    assert played.returncode == 0 and "mean return" in played.stdout, played.stderr

@@ -137,12 +137,16 @@ class TestDiscretizeAction:
         )
 
     def test_parallel_env(self):
-        # Around a ParallelEnv; inside each of its workers: test_highway_parallel_env.
-        outside = TransformedEnv(ParallelEnv(2, _pendulum), DiscretizeAction(counts=5))
+        # One worker each: the transform still crosses the process boundary (the
+        # two-worker case is test_highway_parallel_env's).
+        outside = TransformedEnv(ParallelEnv(1, _pendulum), DiscretizeAction(counts=5))
+        inside = ParallelEnv(1, _discretized_pendulum)
         try:
             check_env_specs(outside)
+            check_env_specs(inside)
         finally:
             outside.close()
+            inside.close()
 
     def test_highway_specs(self):
         env = TransformedEnv(_highway(), DiscretizeAction(actions=DRIVING_ACTIONS))
@@ -175,6 +179,10 @@ class TestDiscretizeAction:
         assert len(batches) == 2
         action = batches[0]["action"]
         assert action.dtype == torch.int64 and ((action >= 0) & (action < 5)).all()
+
+
+def _discretized_pendulum():
+    return TransformedEnv(_pendulum(), DiscretizeAction(counts=5))
 
 
 def _discretized_highway():
