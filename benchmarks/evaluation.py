@@ -68,7 +68,7 @@ def main(cfg: Config) -> dict:
     ]  # fmt: skip
     contenders = {
         "EpisodeWorkers": EpisodeWorkers(makers),
-        "ParallelEnv": ParallelEnv(cfg.workers, makers, mp_start_method="spawn", use_buffers=False),
+        "ParallelEnv": ParallelEnv(cfg.workers, makers, use_buffers=False),
     }
     torch.manual_seed(0)
     actor = None

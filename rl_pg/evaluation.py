@@ -217,7 +217,9 @@ class EpisodeWorkers:
 
     Args:
         make_envs (sequence of callables): one environment factory per process,
-            picklable (processes are spawned).
+            picklable. Processes start with the method set by
+            ``multiprocessing.set_start_method`` (as TorchRL's workers do), spawned
+            when none is set.
 
     Examples:
         >>> from functools import partial
@@ -295,7 +297,9 @@ class EpisodeWorkers:
     def _start(self) -> None:
         if self._workers:
             return
-        context = multiprocessing.get_context("spawn")
+        # Spawn unless the user set a start method: fork is unsafe once torch runs threads.
+        method = multiprocessing.get_start_method(allow_none=True) or "spawn"
+        context = multiprocessing.get_context(method)
         for make_env in self.make_envs:
             pipe, child = context.Pipe()
             process = context.Process(target=_episode_worker, args=(make_env, child), daemon=True)

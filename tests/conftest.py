@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import multiprocessing
 import os
 from pathlib import Path
 
@@ -26,6 +27,13 @@ N_ACT = 4
 settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+# Worker processes started in this process (collectors, ParallelEnv, evaluation workers)
+# fork from a server that has imported torch, TorchRL and rl_pg once, instead of paying
+# those imports in every worker (5-10 s here). The tests that run the command line start
+# fresh interpreters, so the default users get, spawn, stays covered.
+multiprocessing.set_start_method("forkserver", force=True)
+multiprocessing.set_forkserver_preload(["rl_pg.recipes", "rl_pg.training", "rl_pg.evaluation"])
 
 
 def make_categorical_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticActor:

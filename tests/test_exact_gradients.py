@@ -227,9 +227,9 @@ def _gridworld_batches(logits, n_batches, n_episodes, seed, max_steps=2000):
     return batches
 
 
-# 6 000 episodes in all, 8 per gradient estimate: the z-test's power depends on the
+# 6 000 episodes in all, 16 per gradient estimate: the z-test's power depends on the
 # total, its cost on the number of estimates (one loss call each).
-GRID_ESTIMATES, GRID_EPISODES = 750, 8
+GRID_ESTIMATES, GRID_EPISODES = 375, 16
 
 
 @pytest.fixture(scope="module")
