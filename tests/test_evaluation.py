@@ -200,3 +200,19 @@ def test_episode_workers_keep_their_environments_and_report_a_worker_s_failure()
     assert broken.is_closed
     with pytest.raises(TypeError, match="make_envs must be"):
         EpisodeWorkers([])
+
+
+def test_episode_workers_spawn_unless_a_start_method_is_set(monkeypatch):
+    # The suite's workers fork from a forkserver (conftest.py); a user who set no start
+    # method gets spawned processes, which import everything afresh.
+    import multiprocessing
+    from functools import partial
+
+    monkeypatch.setattr(multiprocessing, "get_start_method", lambda allow_none=False: None)
+    env = EpisodeWorkers([partial(_Scenarios, 10)])
+    try:
+        result = evaluate(_fixed_actor(1, [0.0, 1.0]), env, episodes=1)  # scenario 10
+        assert type(env._workers[0][0]).__name__ == "SpawnProcess"
+    finally:
+        env.close()
+    assert result["mean_return"] == 10 * 3
