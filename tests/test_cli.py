@@ -81,6 +81,7 @@ def test_resume_refuses_what_is_not_safe_to_change(tmp_path, capsys):
         (["play", "nowhere"], "rl-pg: nowhere does not exist: give a run directory"),
         (["resume", "."], "rl-pg: No checkpoint at checkpoint.pt"),
         (["train", "metadrive"], "MetaDrive is not installed"),
+        (["report", "."], "rl-pg report: . has no summary.json: not a run directory"),
     ],
 )
 def test_mistakes_get_one_line(tmp_path, args, message, capsys, monkeypatch):
@@ -89,6 +90,34 @@ def test_mistakes_get_one_line(tmp_path, args, message, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     status, _, err = in_process(*args, capsys=capsys)
     assert status == 1 and message in err
+
+
+def test_report_tabulates_runs_with_their_best_checkpoints_evaluations(tmp_path, capsys):
+    runs = [str(tmp_path / f"seed{seed}") for seed in (0, 1)]
+    for seed, run in enumerate(runs):
+        status, _, err = in_process(
+            "train", "gridworld", "--seed", str(seed), "--run-dir", run, *QUICK, capsys=capsys
+        )
+        assert status == 0, err
+    assert in_process("evaluate", runs[0], "--episodes", "3", capsys=capsys)[0] == 0
+    evaluated = json.loads((tmp_path / "seed0" / "evaluations.jsonl").read_text())
+
+    figure = tmp_path / "curves.png"
+    status, out, err = in_process("report", *runs, "--plot", str(figure), capsys=capsys)
+    assert status == 0, err
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| seed")]
+    assert [(row[0], row[1], row[2]) for row in rows] == [
+        ("| seed0", "gridworld", "0"),
+        ("| seed1", "gridworld", "1"),
+    ]
+    greedy = f"{evaluated['mean_return']:.2f} ± {evaluated['std_return']:.2f} (3)"
+    assert rows[0][-2:] == [greedy, "— |"]  # no sampled evaluation yet
+    assert rows[1][-2:] == ["—", "— |"]
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+
+    status, _, err = in_process("report", runs[0], "--plot", str(figure), "--metric", "eval/nope",
+                                capsys=capsys)  # fmt: skip
+    assert status == 1 and "logged no 'eval/nope'" in err
 
 
 def test_a_mistake_in_a_subprocess_is_one_line_without_traceback(tmp_path):

@@ -6,6 +6,7 @@
     rl-pg evaluate runs/cartpole-seed1-... --sample
     rl-pg play runs/cartpole-seed1-... --gif cartpole.gif
     rl-pg tune cartpole --trials 20 --params lr gamma --total-frames 100000
+    rl-pg report runs/cartpole-seed* --plot seeds.png
 
 ``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
 recipes/<name>.py`` runs ``rl-pg train <name>`` and ``python recipes/play.py``
@@ -31,7 +32,7 @@ from rl_pg.training.run_dir import RunDirBusy
 
 __all__ = ["main", "run_checkout_script"]
 
-USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune} ...
+USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report} ...
 
   rl-pg list                       the recipes and what they train
   rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
@@ -40,6 +41,7 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune} ...
   rl-pg evaluate RUN_DIR [FLAGS]   evaluate a run's best agent on fresh episodes (--help)
   rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
   rl-pg tune RECIPE [FLAGS]        search a recipe's hyperparameters with Optuna (--help)
+  rl-pg report RUN_DIR... [FLAGS]  runs side by side: a table, and curves with --plot
 """
 
 
@@ -58,6 +60,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             _evaluate(rest)
         elif command == "play":
             _play(rest)
+        elif command == "report":
+            _report_runs(rest)
         elif command == "tune" and rest and not rest[0].startswith("-"):
             _tune(rest[0], rest[1:])
         elif command in ("-h", "--help"):
@@ -162,6 +166,15 @@ def _evaluate(args: list[str]) -> None:
         evaluate.main(tyro.cli(evaluate.Args, args=args, prog="rl-pg evaluate"))
     except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
         sys.exit(f"rl-pg evaluate: {err}")
+
+
+def _report_runs(args: list[str]) -> None:
+    from rl_pg.recipes import report
+
+    try:
+        report.main(tyro.cli(report.Args, args=args, prog="rl-pg report"))
+    except (ValueError, FileNotFoundError) as err:  # not a run directory, or no such metric
+        sys.exit(f"rl-pg report: {err}")
 
 
 def _report(result: dict) -> None:
