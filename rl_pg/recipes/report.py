@@ -18,10 +18,10 @@ from typing import Any
 import tyro
 
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import read_curve
+from rl_pg.training.curves import plot_runs
 from rl_pg.training.run_dir import SUMMARY
 
-__all__ = ["Args", "format_report", "main", "plot_report", "read_report"]
+__all__ = ["Args", "format_report", "main", "read_report"]
 
 
 @dataclass
@@ -111,35 +111,6 @@ def _result(record: dict[str, Any] | None) -> str:
     return f"{record['mean_return']:.2f} ± {record['std_return']:.2f} ({record['episodes']})"
 
 
-def plot_report(
-    run_dirs: list[Path],
-    names: list[str],
-    reports: list[dict[str, Any]],
-    path: Path,
-    *,
-    metric: str,
-    ylim: tuple[float, float] | None = None,
-) -> Path:
-    """Every run's ``metric`` by frame, one line each, with the threshold if they share
-    one."""
-    from rl_pg.plots import png_figure
-
-    with png_figure(path) as ax:
-        for run_dir, name in zip(run_dirs, names, strict=True):
-            frames, values = read_curve(run_dir, metric)
-            ax.plot(frames, values, marker=".", label=name)
-        thresholds = {r.get("threshold") for r in reports}
-        if len(thresholds) == 1 and None not in thresholds and metric == "eval/mean_return":
-            (threshold,) = thresholds
-            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
-        recipes = ", ".join(sorted({r["recipe"] for r in reports}))
-        ax.set(xlabel="frames", ylabel=metric, title=recipes)
-        if ylim is not None:
-            ax.set_ylim(*ylim)
-        ax.legend(loc="best", fontsize="small")
-    return path
-
-
 def main(args: Args) -> str:
     """Prints (and returns) the table; draws the figure when ``args.plot`` is set."""
     if not args.runs:
@@ -149,8 +120,15 @@ def main(args: Args) -> str:
     table = format_report(reports, names)
     print(table)
     if args.plot is not None:
-        figure = plot_report(
-            args.runs, names, reports, args.plot, metric=args.metric, ylim=args.ylim
+        thresholds = {r.get("threshold") for r in reports}
+        shared = thresholds.pop() if len(thresholds) == 1 else None
+        figure = plot_runs(
+            dict(zip(names, args.runs, strict=True)),
+            args.plot,
+            metric=args.metric,
+            title=", ".join(sorted({r["recipe"] for r in reports})),
+            threshold=shared if args.metric == "eval/mean_return" else None,
+            ylim=args.ylim,
         )
         print(f"curves: {figure}")
     return table

@@ -10,7 +10,7 @@ import numpy as np
 from rl_pg.plots import png_figure
 from rl_pg.training.metrics import scalar_log_rows
 
-__all__ = ["plot_curves", "plot_run", "read_curve"]
+__all__ = ["plot_curves", "plot_run", "plot_runs", "read_curve"]
 
 CURVE = "learning_curve.png"
 
@@ -52,6 +52,28 @@ def plot_run(run_dir: str | Path, *, threshold: float | None, title: str) -> Pat
             ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
         ax.set(xlabel="frames", ylabel="episode return", title=title)
         ax.legend(loc="best")
+    return path
+
+
+def plot_runs(
+    runs: dict[str, Path],
+    path: Path,
+    *,
+    metric: str,
+    title: str,
+    threshold: float | None = None,
+    ylim: tuple[float, float] | None = None,
+) -> Path:
+    """One line per run (``{label: run_dir}``): its logged ``metric`` by frame."""
+    with png_figure(path) as ax:
+        for label, run_dir in runs.items():
+            ax.plot(*read_curve(run_dir, metric), marker=".", label=label)
+        if threshold is not None:
+            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        ax.set(xlabel="frames", ylabel=metric, title=title)
+        if ylim is not None:
+            ax.set_ylim(*ylim)
+        ax.legend(loc="best", fontsize="small")
     return path
 
 
