@@ -35,6 +35,12 @@ def read_curve(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray
     return data[:, 0], data[:, 1]
 
 
+def _threshold_line(ax, threshold: float | None) -> None:
+    """The target as a dotted grey line, labelled, where there is one."""
+    if threshold is not None:
+        ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+
+
 def plot_run(run_dir: str | Path, *, threshold: float | None, title: str) -> Path:
     """``run_dir/learning_curve.png``: training-episode and evaluation returns by frame."""
     path = Path(run_dir) / CURVE
@@ -48,8 +54,7 @@ def plot_run(run_dir: str | Path, *, threshold: float | None, title: str) -> Pat
             except FileNotFoundError:
                 continue
             ax.plot(frames, values, label=label, marker="o" if name.startswith("eval") else None)
-        if threshold is not None:
-            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        _threshold_line(ax, threshold)
         ax.set(xlabel="frames", ylabel="episode return", title=title)
         ax.legend(loc="best")
     return path
@@ -68,8 +73,7 @@ def plot_runs(
     with png_figure(path) as ax:
         for label, run_dir in runs.items():
             ax.plot(*read_curve(run_dir, metric), marker=".", label=label)
-        if threshold is not None:
-            ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        _threshold_line(ax, threshold)
         ax.set(xlabel="frames", ylabel=metric, title=title)
         if ylim is not None:
             ax.set_ylim(*ylim)
