@@ -16,11 +16,12 @@ from tensordict.nn import (
     dispatch,
 )
 from torchrl.data import Bounded, Composite
-from torchrl.modules import OneHotCategorical
+from torchrl.modules import OneHotCategorical, ValueNorm
 from torchrl.objectives import LossModule
 from torchrl.objectives import ReinforceLoss as TorchRLReinforceLoss
 from torchrl.objectives.utils import (
     _GAMMA_LMBDA_DEPREC_ERROR,
+    _clip_value_loss,
     _sum_td_features,
     dispatch_value_estimator,
     distance_loss,
@@ -56,6 +57,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
     * ``entropy_coeff`` adds ``loss_entropy`` `= −β H(π(·|s))` and
       a detached ``entropy``.
     * ``normalize_advantage`` standardises `Ψ` over the batch.
+    * ``value_norm`` (a TorchRL ``ValueNorm``, as ``MAPPOLoss`` takes) makes the
+      critic regress on standardised targets; a [`PopArt`][rl_pg.models.PopArt]
+      output layer also lets the critic learn at that scale.
     * Detached diagnostics: ``advantage_mean``, ``advantage_std``, ``baseline`` (scalar
       baselines) and ``explained_variance`` (with a critic whose values are in the data).
     * Non-finite log-probabilities, empty batches and missing keys raise clear errors.
@@ -100,6 +104,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
             standard deviation over the batch). Defaults to ``False``.
         critic_coeff (float): weight carried by ``loss_value``, so that the losses can be
             summed as they are. Defaults to ``1.0``.
+        value_norm (ValueNorm, optional): running statistics of the value targets
+            (``torchrl.modules.ValueNorm``). Each ``forward`` updates them once with
+            the batch's targets (padding excluded), then ``loss_value`` compares
+            ``normalize(target)`` with ``normalize(V)``, and ``clip_value`` is in those
+            units. Give the critic's [`PopArt`][rl_pg.models.PopArt] output layer to
+            have the critic predict standardised values (its outputs are preserved
+            when the statistics move); any other ``ValueNorm`` only rescales the loss.
+            Advantages and returns stay at the rewards' scale. Defaults to ``None``.
 
     Raises:
         ValueError: for an unknown ``baseline``, ``baseline="critic"`` without a critic,
@@ -167,6 +179,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         entropy_coeff: float | None = None,
         normalize_advantage: bool = False,
         critic_coeff: float = 1.0,
+        value_norm: ValueNorm | None = None,
     ) -> None:
         actor_network = actor if actor is not None else actor_network
         critic_network = critic if critic is not None else critic_network
@@ -208,6 +221,17 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 "baseline='critic' needs a critic_network; pass one, or pick a scalar "
                 "baseline such as 'running_mean'."
             )
+        if value_norm is not None:
+            if not isinstance(value_norm, ValueNorm):
+                raise TypeError(
+                    f"value_norm must be a torchrl.modules.ValueNorm (e.g. the critic's "
+                    f"rl_pg.models.PopArt layer), got {type(value_norm).__name__}."
+                )
+            if critic_network is None:
+                raise ValueError(
+                    "value_norm normalises the critic's targets, but there is no "
+                    "critic_network: pass one, or drop value_norm."
+                )
         entropy_coeff = check_real("entropy_coeff", entropy_coeff, low=0, optional=True)
         critic_coeff = check_real("critic_coeff", critic_coeff, low=0)
         baseline_rate = check_real("baseline_rate", baseline_rate, low=0, low_open=True, high=1)
@@ -267,6 +291,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         self.entropy_coeff = entropy_coeff
         self.normalize_advantage = normalize_advantage
         self.critic_coeff = critic_coeff
+        self.value_norm = value_norm
         self._deferred_key_error: KeyError | None = None
         self._declares_bounds = _declares_bounds(actor_network)
         out_keys = ["loss_actor"]
@@ -377,6 +402,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 " there is no step to learn from. Collect at least one step."
             )
         weights, diagnostics, state_value = self._policy_weights(tensordict)
+        if self.value_norm is not None:
+            self._update_value_norm(tensordict)
         dist = self._policy(tensordict)
         log_prob = self._log_prob(dist, tensordict, weights)
         td_out = TensorDict({"loss_actor": -log_prob * weights}, batch_size=[])
@@ -386,10 +413,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
             td_out.set("entropy", entropy.detach().mean())
         if self.has_critic:
             if state_value is not None:  # the estimator's pass, still in the graph
-                loss_value = distance_loss(
-                    tensordict.get(self.tensor_keys.value_target),
-                    state_value,
-                    loss_function=self.loss_critic_type,
+                loss_value = self._critic_distance(
+                    tensordict.get(self.tensor_keys.value_target), state_value
                 )
                 value_clip_fraction = None
             else:
@@ -443,6 +468,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             self.has_critic
             and not self.functional
             and self.clip_value is None
+            and self.value_norm is None  # its update comes between the two passes
             and isinstance(estimator, _MonteCarloReturn)
             and estimator.value_network is self.critic_network
             and not estimator.differentiable
@@ -619,21 +645,78 @@ class ReinforceLoss(TorchRLReinforceLoss):
 
     def loss_critic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
         target = tensordict.get(self.tensor_keys.value_target, None)
-        if target is not None and not bool(torch.isfinite(target).all()):
+        if target is None:
+            raise KeyError(
+                f"the key {self.tensor_keys.value_target} was not found in the input "
+                f"tensordict. Make sure you provided the right key and the value_target (i.e. "
+                f"the target return) has been retrieved accordingly."
+            )
+        if not bool(torch.isfinite(target).all()):
             raise ValueError(
                 f"{self.tensor_keys.value_target!r} holds non-finite values: the critic would "
                 f"regress on NaN. Check the rewards and the value network that computed it."
             )
+        old_value = None
+        if self.clip_value is not None:
+            old_value = tensordict.get(self.tensor_keys.value, None)
+            if old_value is None:
+                raise KeyError(
+                    f"clip_value is set to {self.clip_value}, but the key "
+                    f"{self.tensor_keys.value} was not found in the input tensordict. Make "
+                    f"sure that the value_key passed to Reinforce exists in the input "
+                    f"tensordict."
+                )
+            old_value = old_value.clone()
+        inputs = tensordict.select(*self.critic_network.in_keys, strict=False)
+        with (
+            self.critic_network_params.to_module(self.critic_network, preserve_module_state=False)
+            if self.functional
+            else contextlib.nullcontext()
+        ):
+            state_value = self.critic_network(inputs).get(self.tensor_keys.value)
+        loss_value = self._critic_distance(target, state_value)
+        clip_fraction = None
+        if self.clip_value is not None:
+            if self.value_norm is not None:
+                normalize = self.value_norm.normalize
+                target, state_value, old_value = (
+                    normalize(target),
+                    normalize(state_value),
+                    normalize(old_value),
+                )
+            loss_value, clip_fraction = _clip_value_loss(
+                old_value,
+                state_value,
+                self.clip_value.to(state_value.device),
+                target,
+                loss_value,
+                self.loss_critic_type,
+            )
+        return loss_value, clip_fraction
+
+    def _critic_distance(self, target: torch.Tensor, state_value: torch.Tensor) -> torch.Tensor:
+        """The per-step critic loss, in ``value_norm``'s units when there is one."""
+        if self.value_norm is not None:
+            target = self.value_norm.normalize(target.detach())
+            state_value = self.value_norm.normalize(state_value)
         try:
-            return super().loss_critic(tensordict)
+            return distance_loss(target, state_value, loss_function=self.loss_critic_type)
         except RuntimeError as err:
-            if "incompatible" not in str(err):  # TorchRL's distance_loss on unequal shapes
+            if "incompatible" not in str(err):  # distance_loss on unequal shapes
                 raise
             raise ValueError(
                 f"The critic's {self.tensor_keys.value!r} does not have the shape of "
                 f"{self.tensor_keys.value_target!r} ({err}). Make the critic write one value "
                 f"per step, shaped like the reward ([*B, 1])."
             ) from err
+
+    def _update_value_norm(self, tensordict: TensorDictBase) -> None:
+        """Folds the batch's value targets (padding excluded) into ``value_norm``."""
+        target = tensordict.get(self.tensor_keys.value_target)
+        valid = self._valid_steps(tensordict, target)
+        if valid is not None:
+            target = target[valid].reshape(-1, *self.value_norm.shape)
+        self.value_norm.update(target.detach())
 
     def value_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``loss_value`` alone, on a batch whose value targets ``forward`` already wrote.
