@@ -28,7 +28,7 @@ from torchrl.modules import ValueOperator
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.evaluation import evaluate
-from rl_pg.models import RunningNorm, mlp_actor, mlp_critic, update_running_norms
+from rl_pg.models import PopArt, RunningNorm, mlp_actor, mlp_critic, update_running_norms
 from rl_pg.recipes import load
 from rl_pg.training import (
     RunDirBusy,
@@ -293,6 +293,27 @@ class TestTrain:
             _train(_cfg(tmp_path, resume=True))
         assert len(path.read_bytes()) == 100  # left as it was
 
+    def test_popart_critic_is_rebuilt_from_its_checkpoint(self, tmp_path):
+        # Evaluation and play build the recipe's models and load a checkpoint: a critic
+        # trained with --value-norm popart gets its PopArt layer back, statistics included.
+        _train(_cfg(tmp_path, value_norm="popart", total_updates=3))
+        saved = read_run(tmp_path / "run")
+        env = make_grid()
+        actor, critic = make_grid_models(env)
+        load_models(saved, actor, critic)
+        head = next(m for m in critic.modules() if isinstance(m, PopArt))
+        assert head.updated and head.scale().item() != 1.0
+        stored = {k.removeprefix("critic_network."): v for k, v in saved["loss"].items()}
+        for key, value in critic.state_dict().items():
+            assert torch.equal(value, stored[key]), key
+        with pytest.raises(ValueError, match="--value-norm popart"):
+            train(
+                _cfg(tmp_path, run_dir=tmp_path / "nocritic", value_norm="popart"),
+                recipe="grid",
+                make_env=make_grid,
+                make_models=lambda env: (make_grid_models(env)[0], None),
+            )
+
     def test_resume_with_models_that_do_not_fit(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
 
@@ -308,8 +329,9 @@ class TestTrain:
             {},
             {"lr_schedule": "linear", "total_frames": 1500},
             {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
+            {"value_norm": "popart"},
         ],
-        ids=["constant", "linear", "linear_entropy"],
+        ids=["constant", "linear", "linear_entropy", "popart"],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
         straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)

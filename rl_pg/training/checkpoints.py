@@ -13,6 +13,7 @@ import torch
 from torch import nn
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from rl_pg.models import popart_output
 from rl_pg.training.config import config_dict
 
 __all__ = [
@@ -154,6 +155,9 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
 def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
     """Loads a checkpoint's weights into freshly built models.
 
+    A critic trained with ``value_norm='popart'`` gets its
+    [`PopArt`][rl_pg.models.PopArt] output layer first, as in training.
+
     The checkpoint comes from [`read_run`][rl_pg.training.checkpoints.read_run].
 
     Raises:
@@ -176,6 +180,8 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
             "load_models needs a checkpoint as read_run(...) returns it (a dict with the "
             "loss's weights under 'loss')."
         )
+    if critic is not None and saved.get("config", {}).get("value_norm") == "popart":
+        popart_output(critic)  # as make_loss built it for training
     for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
         if module is None:
             continue

@@ -116,6 +116,12 @@ class TrainConfig:
     total_frames, as lr_schedule does the learning rate."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
+    value_norm: Literal["none", "popart"] = "none"
+    """'popart': the critic's output layer learns standardised values and answers at the
+    rewards' scale (rl_pg.models.PopArt; statistics from each batch's value targets),
+    and its loss is taken in those units. A critic then fits returns in the hundreds as
+    quickly as returns near one, while the policy's weights stay at the rewards' scale
+    (unlike reward_scale, which scales both)."""
     critic_steps: Count = 1
     """Gradient steps of the critic on each batch (the policy takes one). The first is
     taken with the policy's; more fit the baseline to the batch's returns, as

@@ -8,7 +8,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.loss import ReinforceLoss
-from rl_pg.models import update_running_norms
+from rl_pg.models import popart_output, update_running_norms
 from rl_pg.training.config import TrainConfig
 
 __all__ = [
@@ -28,6 +28,17 @@ class TrainingDiverged(RuntimeError):
 
 
 def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
+    """The run's loss; with ``value_norm='popart'`` the critic's output layer becomes a
+    [`PopArt`][rl_pg.models.PopArt] one first (so build the critic, make the loss,
+    then load weights)."""
+    value_norm = None
+    if cfg.value_norm == "popart":
+        if critic is None:
+            raise ValueError(
+                "--value-norm popart normalises a critic's values, but the recipe's models "
+                "have no critic: drop --value-norm, or use a recipe with a critic."
+            )
+        value_norm = popart_output(critic)
     loss = ReinforceLoss(
         actor,
         critic,
@@ -36,6 +47,7 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
         entropy_coeff=cfg.entropy_coeff or None,
         critic_coeff=cfg.critic_coeff,
         normalize_advantage=cfg.normalize_advantage,
+        value_norm=value_norm,
         loss_critic_type="l2",
         # The collector runs the actor itself: keep one set of parameters.
         functional=False,

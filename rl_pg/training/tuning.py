@@ -46,6 +46,7 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
     "gae_lambda": lambda trial: trial.suggest_float("gae_lambda", 0.8, 1.0),
     "lr_schedule": lambda trial: trial.suggest_categorical("lr_schedule", ["constant", "linear"]),
     "reward_scale": lambda trial: trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
+    "value_norm": lambda trial: trial.suggest_categorical("value_norm", ["none", "popart"]),
 }
 
 
