@@ -644,13 +644,12 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
 
     def loss_critic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
-        target = tensordict.get(self.tensor_keys.value_target, None)
-        if target is None:
-            raise KeyError(
-                f"the key {self.tensor_keys.value_target} was not found in the input "
-                f"tensordict. Make sure you provided the right key and the value_target (i.e. "
-                f"the target return) has been retrieved accordingly."
-            )
+        target = _required(
+            tensordict,
+            self.tensor_keys.value_target,
+            "Make sure you provided the right key and the value_target (i.e. the target "
+            "return) has been retrieved accordingly.",
+        )
         if not bool(torch.isfinite(target).all()):
             raise ValueError(
                 f"{self.tensor_keys.value_target!r} holds non-finite values: the critic would "
@@ -658,15 +657,12 @@ class ReinforceLoss(TorchRLReinforceLoss):
             )
         old_value = None
         if self.clip_value is not None:
-            old_value = tensordict.get(self.tensor_keys.value, None)
-            if old_value is None:
-                raise KeyError(
-                    f"clip_value is set to {self.clip_value}, but the key "
-                    f"{self.tensor_keys.value} was not found in the input tensordict. Make "
-                    f"sure that the value_key passed to Reinforce exists in the input "
-                    f"tensordict."
-                )
-            old_value = old_value.clone()
+            old_value = _required(
+                tensordict,
+                self.tensor_keys.value,
+                "Make sure that the value_key passed to Reinforce exists in the input tensordict.",
+                lead=f"clip_value is set to {self.clip_value}, but ",
+            ).clone()
         inputs = tensordict.select(*self.critic_network.in_keys, strict=False)
         with (
             self.critic_network_params.to_module(self.critic_network, preserve_module_state=False)
@@ -773,6 +769,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = _sum_td_features(entropy)
         return entropy
+
+
+def _required(tensordict: TensorDictBase, key, hint: str, lead: str = "") -> torch.Tensor:
+    """``tensordict[key]``, or a KeyError in TorchRL's words (``lead``, then ``hint``)."""
+    value = tensordict.get(key, None)
+    if value is None:
+        raise KeyError(f"{lead}the key {key} was not found in the input tensordict. {hint}")
+    return value
 
 
 def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tensor:
