@@ -224,7 +224,10 @@ def popart_output(critic: nn.Module) -> PopArt:
     The last ``nn.Linear`` in ``critic`` (its output layer, in any critic built from
     TorchRL's ``MLP`` or ``nn.Sequential``) is wrapped with its current weights; a
     critic whose output layer is already ``PopArt`` is left as it is. Give the result to
-    [`ReinforceLoss`][rl_pg.ReinforceLoss] as ``value_norm``.
+    [`ReinforceLoss`][rl_pg.ReinforceLoss] as ``value_norm``. Wrap a critic before it
+    trains: the first update sets the statistics without preserving the outputs (a
+    fresh critic's are noise near 0, and preserving them would leave its normalised
+    output as far from the targets as the raw one was).
 
     Raises:
         ValueError: the critic has no ``nn.Linear`` layer.
