@@ -670,16 +670,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
             else contextlib.nullcontext()
         ):
             state_value = self.critic_network(inputs).get(self.tensor_keys.value)
+        if self.value_norm is not None:  # the regression, and the clip, in its units
+            normalize = self.value_norm.normalize
+            target, state_value = normalize(target.detach()), normalize(state_value)
+            if old_value is not None:
+                old_value = normalize(old_value)
         loss_value = self._critic_distance(target, state_value)
         clip_fraction = None
         if self.clip_value is not None:
-            if self.value_norm is not None:
-                normalize = self.value_norm.normalize
-                target, state_value, old_value = (
-                    normalize(target),
-                    normalize(state_value),
-                    normalize(old_value),
-                )
             loss_value, clip_fraction = _clip_value_loss(
                 old_value,
                 state_value,
@@ -691,10 +689,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         return loss_value, clip_fraction
 
     def _critic_distance(self, target: torch.Tensor, state_value: torch.Tensor) -> torch.Tensor:
-        """The per-step critic loss, in ``value_norm``'s units when there is one."""
-        if self.value_norm is not None:
-            target = self.value_norm.normalize(target.detach())
-            state_value = self.value_norm.normalize(state_value)
+        """The per-step critic loss (a clear error for values shaped unlike targets)."""
         try:
             return distance_loss(target, state_value, loss_function=self.loss_critic_type)
         except RuntimeError as err:
