@@ -105,6 +105,31 @@ def test_comparisons_with_sb3(script, tmp_path):
                 assert all(run["0"]["solved_at_frames"] is not None for run in runs.values())
 
 
+def test_time_to_solve_counts_unsolved_runs_as_never_solving():
+    """A tool that spends its short budget without solving must not look fast."""
+    module = _script("time_to_solve")
+
+    def run(frames, wall):
+        return {"solved_at_frames": frames, "train_wall_s": wall}
+
+    runs = {
+        "rl_pg": {0: run(500_000, 200.0), 1: run(None, 400.0), 2: run(700_000, 300.0)},
+        "sb3_a2c": {0: run(None, 50.0), 1: run(None, 50.0), 2: run(100_000, 20.0)},
+        "sb3_ppo": {0: run(400_000, 600.0), 1: run(600_000, 900.0), 2: run(800_000, 1200.0)},
+    }
+    out = module.summarise(runs, [0, 1, 2])
+    assert out["medians"]["rl_pg"] == {
+        "solved": "2/3",
+        "median_frames": 700_000,
+        "median_train_wall_s": 300.0,
+    }
+    assert out["medians"]["sb3_a2c"]["median_train_wall_s"] is None
+    assert out["medians"]["sb3_a2c"]["median_frames"] is None
+    assert out["rl_pg_over_sb3_wall"] == {"sb3_ppo": 300.0 / 900.0}
+    assert out["rl_pg_over_best_sb3_wall"] == 300.0 / 900.0
+    json.dumps(out, allow_nan=False)  # no Infinity in the results file
+
+
 def test_contention(tmp_path):
     contention = _script("contention")
     cfg = contention.Config(frames=512, busy=1, repeats=1, json_path=tmp_path / "c.json")
