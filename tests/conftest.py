@@ -116,8 +116,11 @@ def categorical_batch():
 
 
 def run_weights(run_dir: Path) -> dict:
-    """The loss's parameters and buffers in a run directory's checkpoint."""
-    return load_checkpoint(run_dir / "checkpoint.pt")["loss"]
+    """The loss's parameters and buffers in a run directory's checkpoint, and those of
+    its policy average (``policy_ema``) if it keeps one."""
+    saved = load_checkpoint(run_dir / "checkpoint.pt")
+    average = saved.get("policy_average", {})
+    return {**saved["loss"], **{f"policy_average.{k}": v for k, v in average.items()}}
 
 
 def assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import importlib.util
 import io
+import itertools
 import json
 import math
 import os
@@ -330,8 +331,9 @@ class TestTrain:
             {"lr_schedule": "linear", "total_frames": 1500},
             {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
             {"value_norm": "popart"},
+            {"policy_ema": 0.9},
         ],
-        ids=["constant", "linear", "linear_entropy", "popart"],
+        ids=["constant", "linear", "linear_entropy", "popart", "policy_ema"],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
         straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)
@@ -882,6 +884,37 @@ class TestBestCheckpoint:
         env.set_seed(evaluation_seed(0))  # the evaluation's start states
         result = evaluate(actor, env, episodes=1)
         assert result["mean_return"] == pytest.approx(max(evaluations))
+
+    def test_a_policy_average_is_what_is_evaluated_kept_and_deployed(self, tmp_path):
+        decay = 0.8
+        cfg = _cfg(tmp_path, total_updates=6, eval_interval=200, policy_ema=decay, keep_every=1)
+        _train(cfg)
+        kept = [read_run(tmp_path / "run" / "checkpoints" / f"update_{n}.pt") for n in range(1, 7)]
+        # After every update: average <- decay * average + (1 - decay) * trained weights.
+        for before, after in itertools.pairwise(kept):
+            for key, value in after["policy_average"].items():
+                if not key.startswith("module.") or not value.is_floating_point():
+                    continue
+                trained = after["loss"]["actor_network." + key.removeprefix("module.")]
+                expected = decay * before["policy_average"][key] + (1 - decay) * trained
+                torch.testing.assert_close(value, expected)
+        last = kept[-1]
+        assert int(last["policy_average"]["n_averaged"]) == 7  # the initial copy + 6 updates
+        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
+        load_models(last, actor)
+        for key, value in actor.state_dict().items():
+            assert torch.equal(value, last["policy_average"]["module." + key]), key
+        assert not all(
+            torch.equal(value, last["loss"]["actor_network." + key])
+            for key, value in actor.state_dict().items()
+        )  # the average is not the trained weights
+        # Evaluations played the average: best.pt's plays back its evaluation's return.
+        best = read_run(tmp_path / "run", which="best")
+        load_models(best, actor)
+        env = make_grid()
+        env.set_seed(evaluation_seed(0))
+        result = evaluate(actor, env, episodes=1)
+        assert result["mean_return"] == pytest.approx(best["state"]["best_mean_return"])
 
     def test_which_must_be_last_or_best(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=1))

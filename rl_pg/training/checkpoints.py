@@ -82,12 +82,15 @@ def save(
     )
 
 
-def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
-    """Loads a checkpoint into the run's loss and optimiser and returns the run's
-    progress (``restore_rng`` then restores the random number generators)."""
+def restore(saved: dict, loss, optimizer, path: Path, *, average=None) -> RunState:
+    """Loads a checkpoint into the run's loss, optimiser and policy ``average`` (if the
+    run keeps one) and returns the run's progress (``restore_rng`` then restores the
+    random number generators)."""
     try:
         loss.load_state_dict(saved["loss"])
         optimizer.load_state_dict(saved["optimizer"])
+        if average is not None:
+            average.load_state_dict(saved["policy_average"])
     except (RuntimeError, ValueError, KeyError) as err:
         raise CheckpointError(
             f"{path} does not fit the models this configuration builds ({err}). It was "
@@ -155,8 +158,10 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
 def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
     """Loads a checkpoint's weights into freshly built models.
 
-    A critic trained with ``value_norm='popart'`` gets its
-    [`PopArt`][rl_pg.models.PopArt] output layer first, as in training.
+    The actor gets the averaged weights of a run trained with ``policy_ema`` (those its
+    evaluations played), otherwise the trained ones. A critic trained with
+    ``value_norm='popart'`` gets its [`PopArt`][rl_pg.models.PopArt] output layer
+    first, as in training.
 
     The checkpoint comes from [`read_run`][rl_pg.training.checkpoints.read_run].
 
@@ -182,18 +187,22 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
         )
     if critic is not None and saved.get("config", {}).get("value_norm") == "popart":
         popart_output(critic)  # as make_loss built it for training
-    for prefix, module in (("actor_network.", actor), ("critic_network.", critic)):
+
+    def part(source: dict, prefix: str) -> dict:
+        return {k.removeprefix(prefix): v for k, v in source.items() if k.startswith(prefix)}
+
+    average = saved.get("policy_average")  # an AveragedModel's: the actor's under "module."
+    parts = {
+        "actor": (actor, part(saved["loss"], "actor_network.") if average is None
+                  else part(average, "module.")),
+        "critic": (critic, part(saved["loss"], "critic_network.")),
+    }  # fmt: skip
+    for name, (module, weights) in parts.items():
         if module is None:
             continue
-        weights = {
-            key.removeprefix(prefix): value
-            for key, value in saved["loss"].items()
-            if key.startswith(prefix)
-        }
         try:
             module.load_state_dict(weights)
         except RuntimeError as err:
             raise CheckpointError(
-                f"The checkpoint's {prefix[:-1]} does not fit the model built from its "
-                f"config ({err})."
+                f"The checkpoint's {name} does not fit the model built from its config ({err})."
             ) from err

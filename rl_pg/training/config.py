@@ -146,6 +146,11 @@ class TrainConfig:
     """Episodes per evaluation."""
     eval_greedy: bool = True
     """Evaluate greedily (argmax / mean action) rather than by sampling."""
+    policy_ema: Annotated[float, Range(0, 1, high_open=True)] = 0.0
+    """Evaluate, keep as best.pt and deploy an exponential moving average of the
+    actor's weights (torch's AveragedModel), moved towards the trained weights by
+    1 - policy_ema after every update; the environments are still played with the
+    trained weights. 0: evaluate the trained weights themselves."""
     threshold: float | None = None
     """Evaluation mean return that counts as solved."""
     stop_when_solved: bool = True

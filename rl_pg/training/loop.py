@@ -30,6 +30,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
@@ -50,7 +51,7 @@ from rl_pg.training.optimisation import (
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 
-__all__ = ["evaluation_seed", "train"]
+__all__ = ["evaluation_seed", "fresh_seed", "train"]
 
 
 def train(
@@ -180,9 +181,13 @@ class _Run:
         self.loss = make_loss(cfg, self.actor, critic).to(device)
         warm_up(self.loss, env, device)
         self.optimizer = make_optimizer(cfg, self.loss)
+        # The weights evaluated, kept and deployed: the trained ones, or their average.
+        self.average = _policy_average(cfg, self.actor)
         self.state = RunState()
         if saved is not None:
-            self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
+            self.state = restore(
+                saved, self.loss, self.optimizer, directory.checkpoint_path, average=self.average
+            )
         self.eval_env = (make_eval_env or make_env)()
         self.collection = Collection(
             cfg, env, make_env, self.actor, updates=self.state.updates, device=device,
@@ -216,6 +221,8 @@ class _Run:
             lr=learning_rate(cfg, state.frames),
             entropy_coeff=entropy_coeff(cfg, state.frames),
         )
+        if self.average is not None:
+            self.average.update_parameters(self.actor)
         self.episode_returns.add(batch)
         state.updates += 1
         self.spent = self.collection.frames_spent(batch)
@@ -244,7 +251,8 @@ class _Run:
         cfg, state = self.cfg, self.state
         self._pause()
         self.next_eval = self._next_evaluation()
-        _evaluate(cfg, self.actor, self.eval_env, self.eval_entries, state, self.logger)
+        actor = self.actor if self.average is None else self.average.module
+        _evaluate(cfg, actor, self.eval_env, self.eval_entries, state, self.logger)
         if state.is_best():
             self._save(to="best")
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
@@ -268,9 +276,11 @@ class _Run:
         return every is not None and self.state.updates % every == 0
 
     def _save(self, *, to: str = "last") -> None:
+        average = {} if self.average is None else {"policy_average": self.average.state_dict()}
         self.directory.save(
             self.loss, self.optimizer, self.state, to=to,
             collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
+            **average,
         )  # fmt: skip
 
     def close(self) -> None:
@@ -300,9 +310,29 @@ def _models(make_models, env: EnvBase):
     return models
 
 
+def _policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
+    """An exponential moving average of ``actor``'s weights (``cfg.policy_ema`` > 0).
+
+    Its buffers (a [`RunningNorm`][rl_pg.models.RunningNorm]'s statistics) are copied,
+    not averaged: the averaged weights read observations standardised as the trained
+    ones do. It starts as a copy of the initial weights.
+    """
+    if cfg.policy_ema == 0:
+        return None
+    average = AveragedModel(actor, multi_avg_fn=get_ema_multi_avg_fn(cfg.policy_ema))
+    average.update_parameters(actor)
+    return average
+
+
 def evaluation_seed(seed: int) -> int:
     """The seed of a run's evaluation environment (apart from its training seeds)."""
     return seed + 1_000_003
+
+
+def fresh_seed(seed: int) -> int:
+    """The seed that scores a run's checkpoints after training (``rl-pg evaluate``):
+    apart from its training and its evaluations during training."""
+    return (evaluation_seed(seed) + 1_000_003) % 2**32
 
 
 def _evaluate(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
