@@ -10,7 +10,7 @@ from conftest import assert_same_run
 from PIL import Image
 
 from rl_pg.recipes import evaluate, load, play
-from rl_pg.training.loop import evaluation_seed
+from rl_pg.training.loop import evaluation_seed, fresh_seed
 
 bandit, cartpole, gridworld, highway, lunarlander, pendulum, pong = (
     load(name)
@@ -136,7 +136,7 @@ def test_evaluate_replays_the_runs_last_evaluation_and_defaults_to_fresh_episode
     )
     assert again["mean_return"] == pytest.approx(summary["eval_mean_return"])
     fresh = evaluate.main(evaluate.Args(run=tmp_path, episodes=5, sample=True))
-    assert fresh["seed"] == evaluate.fresh_seed(0) != evaluation_seed(0)
+    assert fresh["seed"] == fresh_seed(0) != evaluation_seed(0)
     assert fresh["mode"] == "sampled" and fresh["episodes"] == 5
     records = [
         json.loads(line) for line in (tmp_path / evaluate.EVALUATIONS).read_text().splitlines()

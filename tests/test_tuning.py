@@ -7,7 +7,7 @@ import json
 import pytest
 from conftest import hide_module
 
-from rl_pg.recipes import load
+from rl_pg.recipes import evaluate, load
 from rl_pg.recipes.cli import main
 from rl_pg.training.tuning import tune
 
@@ -68,6 +68,22 @@ def test_the_sampled_settings_reach_the_runs(tmp_path):
         assert ("gae_lambda" in settings) == (settings["returns"] == "gae")
 
 
+def test_held_out_scores_hold_both_ways_and_worst_takes_the_weakest_seed(tmp_path):
+    result = tune(
+        gridworld, _base(eval_interval=50), params=["lr"], trials=1, seeds=[0, 1],
+        objective="held_out", held_out_episodes=6, seed_score="worst", study_dir=tmp_path,
+    )  # fmt: skip
+    runs = result["best_runs"]
+    for seed, run in runs.items():  # each run: its best checkpoint, as rl-pg evaluate plays it
+        run_dir = tmp_path / "trial0" / f"seed{seed}"
+        for mode in ("greedy", "sampled"):
+            replay = evaluate.main(evaluate.Args(run=run_dir, episodes=6, sample=mode == "sampled"))
+            assert run[mode] == replay["mean_return"]
+        assert run["score"] == min(run["greedy"], run["sampled"])
+    assert result["best_score"] == min(run["score"] for run in runs.values())
+    assert result["seed_score"] == "worst" and result["objective"] == "held_out"
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
@@ -77,6 +93,8 @@ def test_the_sampled_settings_reach_the_runs(tmp_path):
         ({"params": ["lr"], "seeds": []}, "at least one seed"),
         ({"params": ["lr"], "trials": 0}, "at least 1"),
         ({"params": ["lr"], "objective": "mean"}, "objective must be"),
+        ({"params": ["lr"], "seed_score": "median"}, "seed_score must be"),
+        ({"params": ["lr"], "held_out_episodes": 0}, "held_out_episodes must be at least 1"),
     ],
 )
 def test_bad_requests(tmp_path, kwargs, match):

@@ -121,15 +121,16 @@ def _tune(name: str, args: list[str]) -> None:
     try:
         result = tune(
             recipe, base, params=tuning.params, trials=tuning.trials, seeds=tuning.tune_seeds,
-            objective=tuning.objective, study_dir=study_dir,
+            objective=tuning.objective, held_out_episodes=tuning.held_out_episodes,
+            seed_score=tuning.seed_score, study_dir=study_dir,
         )  # fmt: skip
     except ValueError as err:
         sys.exit(f"rl-pg tune: {err}")
     flags = " ".join(_flag(k, v) for k, v in result["best_settings"].items())
     print(
         f"{result['trials']} trials in {study_dir}; best: trial {result['best_trial']}, "
-        f"score {result['best_score']:.2f} ({result['objective']} evaluation, mean over "
-        f"seeds {result['seeds']}). Its flags: {flags}"
+        f"score {result['best_score']:.2f} ({result['objective']} evaluation, "
+        f"{result['seed_score']} over seeds {result['seeds']}). Its flags: {flags}"
     )
 
 

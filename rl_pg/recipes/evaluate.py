@@ -13,20 +13,16 @@ alone. Each result is also appended to the run's ``evaluations.jsonl``.
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import torch
 import tyro
 
-from rl_pg.evaluation import evaluate
 from rl_pg.recipes import recipe_of
-from rl_pg.training import Count, Range, load_models, read_run
-from rl_pg.training.loop import evaluation_seed
+from rl_pg.training import Count, Range, read_run
 
-__all__ = ["EVALUATIONS", "Args", "fresh_seed", "main"]
+__all__ = ["EVALUATIONS", "Args", "main"]
 
 EVALUATIONS = "evaluations.jsonl"
 """The file of a run directory that collects its ``rl-pg evaluate`` results."""
@@ -49,40 +45,14 @@ class Args:
     evaluation during training used, so the episodes are fresh)."""
 
 
-def fresh_seed(run_seed: int) -> int:
-    """The default seed of ``rl-pg evaluate``: apart from the training evaluations'."""
-    return (evaluation_seed(run_seed) + 1_000_003) % 2**32
-
-
 def main(args: Args) -> dict[str, Any]:
     """Evaluates the run's agent; prints and returns the result."""
     saved = read_run(args.run, which=args.checkpoint)
     recipe = recipe_of(saved, args.run)
-    cfg = recipe.config.from_stored(saved["config"])
-    seed = fresh_seed(cfg.seed) if args.seed is None else args.seed
-    env = recipe.test_env(cfg)
-    try:
-        actor, critic = recipe.make_models(env, cfg)
-        load_models(saved, actor, critic)
-        torch.manual_seed(seed)
-        env.set_seed(seed)
-        start = time.perf_counter()
-        result = evaluate(
-            actor, env, episodes=args.episodes, deterministic=not args.sample,
-            flags=recipe.eval_flags, values=recipe.eval_values,
-        )  # fmt: skip
-        seconds = time.perf_counter() - start
-    finally:
-        env.close()  # some simulators (MetaDrive) allow one open environment per process
-    record = {
-        "checkpoint": args.checkpoint,
-        "frames": saved.get("state", {}).get("frames"),
-        "mode": "sampled" if args.sample else "greedy",
-        "episodes": args.episodes,
-        "seed": seed,
-        **result,
-        "seconds": seconds,
-    }
+    result = recipe.evaluate_checkpoint(
+        saved, episodes=args.episodes, sample=args.sample, seed=args.seed
+    )
+    record = {"checkpoint": args.checkpoint, **result}
     print(_describe(record))
     if args.run.is_dir():
         with open(args.run / EVALUATIONS, "a") as file:

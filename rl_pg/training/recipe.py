@@ -19,18 +19,21 @@ Its runs record the module, so ``rl-pg play RUN_DIR`` can rebuild them.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EpisodeWorkers
+from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.training.checkpoints import load_models
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.loop import train
+from rl_pg.training.loop import fresh_seed, train
 
 __all__ = ["Recipe"]
 
@@ -107,6 +110,53 @@ class Recipe:
         """The environment that scores a trained agent (see ``make_test_env``)."""
         make = self.make_test_env or self.make_eval_env or self.make_env
         return make(cfg)
+
+    def evaluate_checkpoint(
+        self,
+        saved: dict[str, Any],
+        *,
+        episodes: int = 100,
+        sample: bool = False,
+        seed: int | None = None,
+    ) -> dict[str, Any]:
+        """Plays a checkpoint of this recipe's (from
+        [`read_run`][rl_pg.training.checkpoints.read_run]) on the test environment.
+
+        Keyword Args:
+            episodes (int): episodes to play. Defaults to ``100``.
+            sample (bool): sample actions instead of acting greedily. Defaults to ``False``.
+            seed (int, optional): seed of the environment and of sampled actions.
+                Defaults to one no evaluation during training used
+                ([`fresh_seed`][rl_pg.training.loop.fresh_seed]), so the episodes are fresh.
+
+        Returns:
+            The checkpoint's ``frames``, the ``mode`` (``"greedy"`` or ``"sampled"``),
+            ``episodes``, ``seed``, the evaluation's metrics and the ``seconds`` it took.
+        """
+        cfg = self.config.from_stored(saved["config"])
+        seed = fresh_seed(cfg.seed) if seed is None else seed
+        env = self.test_env(cfg)
+        try:
+            actor, critic = self.make_models(env, cfg)
+            load_models(saved, actor, critic)
+            torch.manual_seed(seed)
+            env.set_seed(seed)
+            start = time.perf_counter()
+            result = evaluate(
+                actor, env, episodes=episodes, deterministic=not sample,
+                flags=self.eval_flags, values=self.eval_values,
+            )  # fmt: skip
+            seconds = time.perf_counter() - start
+        finally:
+            env.close()  # some simulators (MetaDrive) allow one open environment per process
+        return {
+            "frames": saved.get("state", {}).get("frames"),
+            "mode": "sampled" if sample else "greedy",
+            "episodes": episodes,
+            "seed": seed,
+            **result,
+            "seconds": seconds,
+        }
 
     @property
     def description(self) -> str:

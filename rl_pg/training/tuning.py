@@ -1,7 +1,8 @@
 """Hyperparameter search over a recipe with Optuna: ``rl-pg tune RECIPE``.
 
-Each trial trains the recipe with sampled settings on one or more seeds and scores the
-trial by the mean over its seeds of the runs' evaluations (the last one, or the best).
+Each trial trains the recipe with sampled settings on one or more seeds, scores each run
+(its last evaluation, its best, or its best checkpoint replayed on fresh episodes both
+greedily and by sampling) and the trial by the mean or the worst of its runs' scores.
 The study lives in the study directory (``study.db``, SQLite), next to every trial's
 run directories, so an interrupted search continues where it stopped when the same
 command is run again; ``best.json`` holds the best settings found so far::
@@ -22,7 +23,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rl_pg.checkpoint import write_atomically
-from rl_pg.training.config import TrainConfig
+from rl_pg.training.checkpoints import read_run
+from rl_pg.training.config import Count, TrainConfig
 from rl_pg.training.recipe import Recipe
 
 __all__ = ["SEARCH_SPACE", "TuneArgs", "tune"]
@@ -62,8 +64,15 @@ class TuneArgs:
     """Completed trials the study should hold."""
     tune_seeds: list[int] = dataclasses.field(default_factory=lambda: [0])
     """Seeds each trial trains on."""
-    objective: Literal["final", "best"] = "final"
-    """Score each run by its last evaluation, or by its best."""
+    objective: Literal["final", "best", "held_out"] = "final"
+    """Score each run by its last evaluation, by its best, or by its best checkpoint
+    replayed on held_out_episodes fresh episodes, greedily and by sampling (the lower
+    of the two means: a checkpoint that holds both ways)."""
+    held_out_episodes: Count = 100
+    """Episodes of each replay (objective held_out)."""
+    seed_score: Literal["mean", "worst"] = "mean"
+    """A trial's score: the mean of its runs' scores, or the worst (settings that work
+    on every seed)."""
 
 
 def tune(
@@ -73,7 +82,9 @@ def tune(
     params: Sequence[str],
     trials: int,
     seeds: Sequence[int] = (0,),
-    objective: Literal["final", "best"] = "final",
+    objective: Literal["final", "best", "held_out"] = "final",
+    held_out_episodes: int = 100,
+    seed_score: Literal["mean", "worst"] = "mean",
     study_dir: Path,
     sampler_seed: int = 0,
 ) -> dict[str, Any]:
@@ -90,7 +101,14 @@ def tune(
             holds some runs only the rest.
         seeds (sequence of int): seeds each trial trains on. Defaults to ``(0,)``.
         objective (str): ``"final"`` (each run's last evaluation, which rewards settings
-            that stay good) or ``"best"`` (its best evaluation). Defaults to ``"final"``.
+            that stay good), ``"best"`` (its best evaluation) or ``"held_out"`` (its best
+            checkpoint replayed on ``held_out_episodes`` fresh episodes, greedily and by
+            sampling, as ``Recipe.evaluate_checkpoint`` plays it; the lower of the two
+            means). Defaults to ``"final"``.
+        held_out_episodes (int): episodes of each replay (``"held_out"``). Defaults
+            to ``100``.
+        seed_score (str): ``"mean"`` or ``"worst"`` of the runs' scores. Defaults to
+            ``"mean"``.
         study_dir (Path): where the study (``study.db``), the trials' runs
             (``trial<N>/seed<S>``) and ``best.json`` go.
         sampler_seed (int): seed of Optuna's TPE sampler. Defaults to ``0``.
@@ -101,7 +119,8 @@ def tune(
 
     Raises:
         ImportError: Optuna is not installed (the message says how to install it).
-        ValueError: an unknown or untunable setting, no seeds, or fewer than one trial.
+        ValueError: an unknown or untunable setting, no seeds, fewer than one trial, or
+            an unknown objective or seed score.
     """
     if importlib.util.find_spec("optuna") is None:
         raise ImportError('rl-pg tune needs Optuna: pip install -c constraints.txt "rl_pg[tune]".')
@@ -118,8 +137,12 @@ def tune(
         raise ValueError("tune needs at least one seed (--tune-seeds 0 1 ...).")
     if trials < 1:
         raise ValueError(f"trials must be at least 1, got {trials}.")
-    if objective not in ("final", "best"):
-        raise ValueError(f"objective must be 'final' or 'best', got {objective!r}.")
+    if objective not in ("final", "best", "held_out"):
+        raise ValueError(f"objective must be 'final', 'best' or 'held_out', got {objective!r}.")
+    if seed_score not in ("mean", "worst"):
+        raise ValueError(f"seed_score must be 'mean' or 'worst', got {seed_score!r}.")
+    if held_out_episodes < 1:
+        raise ValueError(f"held_out_episodes must be at least 1, got {held_out_episodes}.")
 
     study_dir = Path(study_dir)
     study_dir.mkdir(parents=True, exist_ok=True)
@@ -133,7 +156,20 @@ def tune(
     )
     for stale in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
         study.tell(stale.number, state=optuna.trial.TrialState.FAIL)  # a killed search's
-    key = "eval_mean_return" if objective == "final" else "best_eval_mean_return"
+
+    def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
+        if objective == "final":
+            return {"score": float(summary["eval_mean_return"])}
+        if objective == "best":
+            return {"score": float(summary["best_eval_mean_return"])}
+        saved = read_run(run_dir, which="best")
+        replays = {
+            mode: recipe.evaluate_checkpoint(
+                saved, episodes=held_out_episodes, sample=mode == "sampled"
+            )["mean_return"]
+            for mode in ("greedy", "sampled")
+        }
+        return {"score": min(replays.values()), **replays}
 
     def run_trial(trial) -> float:
         settings = {}
@@ -142,19 +178,17 @@ def tune(
                 continue  # read by GAE alone: not a dimension of trials without it
             settings[name] = SEARCH_SPACE[name](trial)
         trial.set_user_attr("settings", settings)
-        scores = []
+        scores, runs = [], {}
         for seed in seeds:
+            run_dir = study_dir / f"trial{trial.number}" / f"seed{seed}"
             cfg = dataclasses.replace(
-                base,
-                **settings,
-                seed=seed,
-                run_dir=study_dir / f"trial{trial.number}" / f"seed{seed}",
-                resume=False,
-                progress=False,
+                base, **settings, seed=seed, run_dir=run_dir, resume=False, progress=False
             )
-            scores.append(float(recipe.train(cfg)[key]))
+            runs[str(seed)] = score(recipe.train(cfg), run_dir)
+            scores.append(runs[str(seed)]["score"])
             trial.set_user_attr("scores", scores)
-        return statistics.fmean(scores)
+            trial.set_user_attr("runs", runs)  # with held_out, the greedy and sampled means
+        return min(scores) if seed_score == "worst" else statistics.fmean(scores)
 
     done = len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE]))
     if done < trials:
@@ -163,11 +197,13 @@ def tune(
     result = {
         "recipe": recipe.name,
         "objective": objective,
+        "seed_score": seed_score,
         "seeds": list(seeds),
         "trials": len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE])),
         "best_trial": best.number,
         "best_score": best.value,
         "best_scores": best.user_attrs.get("scores"),
+        "best_runs": best.user_attrs.get("runs"),
         "best_settings": best.user_attrs["settings"],
     }
     write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
