@@ -9,7 +9,8 @@ from conftest import hide_module
 
 from rl_pg.recipes import evaluate, load
 from rl_pg.recipes.cli import main
-from rl_pg.training.tuning import tune
+from rl_pg.training.loop import evaluation_seed, fresh_seed
+from rl_pg.training.tuning import replay_seed, tune
 
 optuna = pytest.importorskip("optuna")
 gridworld = load("gridworld")
@@ -74,11 +75,15 @@ def test_held_out_scores_hold_both_ways_and_worst_takes_the_weakest_seed(tmp_pat
         objective="held_out", held_out_episodes=6, seed_score="worst", study_dir=tmp_path,
     )  # fmt: skip
     runs = result["best_runs"]
-    for seed, run in runs.items():  # each run: its best checkpoint, as rl-pg evaluate plays it
-        run_dir = tmp_path / "trial0" / f"seed{seed}"
+    for key, run in runs.items():  # each run: its best checkpoint, as rl-pg evaluate plays it
+        seed, run_dir = int(key), tmp_path / "trial0" / f"seed{key}"
+        # on episodes of their own: rl-pg evaluate's default ones confirm what was tuned
+        assert replay_seed(seed) not in (fresh_seed(seed), evaluation_seed(seed))
         for mode in ("greedy", "sampled"):
-            replay = evaluate.main(evaluate.Args(run=run_dir, episodes=6, sample=mode == "sampled"))
-            assert run[mode] == replay["mean_return"]
+            args = evaluate.Args(
+                run=run_dir, episodes=6, sample=mode == "sampled", seed=replay_seed(seed)
+            )
+            assert run[mode] == evaluate.main(args)["mean_return"]
         assert run["score"] == min(run["greedy"], run["sampled"])
     assert result["best_score"] == min(run["score"] for run in runs.values())
     assert result["seed_score"] == "worst" and result["objective"] == "held_out"

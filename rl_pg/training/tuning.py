@@ -25,9 +25,10 @@ from typing import Any, Literal
 from rl_pg.checkpoint import write_atomically
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig
+from rl_pg.training.loop import fresh_seed
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["SEARCH_SPACE", "TuneArgs", "tune"]
+__all__ = ["SEARCH_SPACE", "TuneArgs", "replay_seed", "tune"]
 
 # What each tunable setting may take: ``trial -> value``. Ranges are those that make
 # sense for the recipes' MLP policies; a setting the config lacks cannot be tuned.
@@ -50,6 +51,13 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
     "reward_scale": lambda trial: trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
     "value_norm": lambda trial: trial.suggest_categorical("value_norm", ["none", "popart"]),
 }
+
+
+def replay_seed(seed: int) -> int:
+    """The seed of the held_out objective's replays of a run with ``seed``: apart from
+    its evaluations during training and from ``rl-pg evaluate``'s default episodes, so
+    that the tuned settings can be confirmed on episodes the search never saw."""
+    return (fresh_seed(seed) + 1_000_003) % 2**32
 
 
 @dataclasses.dataclass
@@ -165,10 +173,11 @@ def tune(
         saved = read_run(run_dir, which="best")
         replays = {
             mode: recipe.evaluate_checkpoint(
-                saved, episodes=held_out_episodes, sample=mode == "sampled"
+                saved, episodes=held_out_episodes, sample=mode == "sampled",
+                seed=replay_seed(saved["config"]["seed"]),
             )["mean_return"]
             for mode in ("greedy", "sampled")
-        }
+        }  # fmt: skip
         return {"score": min(replays.values()), **replays}
 
     def run_trial(trial) -> float:
