@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import datetime
 import json
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from conftest import hide_module
@@ -10,7 +15,8 @@ from conftest import hide_module
 from rl_pg.recipes import evaluate, load
 from rl_pg.recipes.cli import main
 from rl_pg.training.loop import evaluation_seed, fresh_seed
-from rl_pg.training.tuning import replay_seed, tune
+from rl_pg.training.run_dir import locked
+from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, replay_seed, tune
 
 optuna = pytest.importorskip("optuna")
 gridworld = load("gridworld")
@@ -45,16 +51,53 @@ def test_a_study_is_stored_and_continued(tmp_path):
     assert more["trials"] == 3 and (tmp_path / "trial2").exists()
 
 
-def test_a_killed_search_s_trial_is_failed_and_the_search_goes_on(tmp_path):
+def _running_trial(study_dir):
+    """A trial the study lists as running, as a search that is (or was) in it leaves it."""
     study = optuna.create_study(
-        study_name="gridworld", storage=f"sqlite:///{tmp_path / 'study.db'}",
-        direction="maximize",
+        study_name="gridworld", storage=f"sqlite:///{study_dir / 'study.db'}",
+        direction="maximize", load_if_exists=True,
     )  # fmt: skip
-    study.ask()  # a trial left RUNNING, as by a process killed mid-trial
+    trial = study.ask()
+    (study_dir / f"trial{trial.number}").mkdir()
+    return study_dir / f"trial{trial.number}" / TRIAL_LOCK
+
+
+def test_a_killed_search_s_trial_is_failed_and_the_search_goes_on(tmp_path):
+    _running_trial(tmp_path).touch()  # its lock file, free: the process that held it died
     result = tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
     states = [t.state for t in _study(tmp_path).trials]
     assert states == [optuna.trial.TrialState.FAIL, optuna.trial.TrialState.COMPLETE]
     assert result["best_trial"] == 1
+
+
+def test_a_second_search_on_the_same_study_leaves_the_first_one_s_trial_alone(tmp_path):
+    with locked(_running_trial(tmp_path)) as held:  # held as the live search holds it
+        assert held
+        result = tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
+    states = [t.state for t in _study(tmp_path).trials]
+    assert states == [optuna.trial.TrialState.RUNNING, optuna.trial.TrialState.COMPLETE]
+    assert result["trials"] == 1  # complete trials of both searches count towards --trials
+
+
+def test_two_searches_share_one_study(tmp_path):
+    code = (
+        "from rl_pg.recipes.cli import main; main(['tune', 'gridworld', '--trials', '4', "
+        f"'--params', 'lr', '--total-updates', '2', '--no-progress', '--run-dir', '{tmp_path}'])"
+    )
+    searches = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(2)]
+    assert [search.wait(timeout=300) for search in searches] == [0, 0]
+    states = [t.state for t in _study(tmp_path).trials]
+    complete = states.count(optuna.trial.TrialState.COMPLETE)
+    assert complete in (4, 5) and len(states) == complete  # at most one trial over
+    assert json.loads((tmp_path / "best.json").read_text())["trials"] >= 4
+
+
+def test_a_running_trial_without_a_lock_is_abandoned_once_it_is_old():
+    now = datetime.datetime.now()
+    young = SimpleNamespace(number=0, datetime_start=now)
+    old = SimpleNamespace(number=0, datetime_start=now - datetime.timedelta(minutes=5))
+    assert not _abandoned(young, Path("no-such-study"))  # a search that just asked for it
+    assert _abandoned(old, Path("no-such-study"))  # killed before it locked, or older code
 
 
 def test_the_sampled_settings_reach_the_runs(tmp_path):

@@ -14,6 +14,8 @@ import json
 import os
 import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +29,7 @@ from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
 from rl_pg.training.curves import plot_run
 
-__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "new_run_dir"]
+__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "locked", "new_run_dir"]
 
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
@@ -189,6 +191,23 @@ class RunDirectory:
     def contents(self) -> list[str]:
         """Names in the directory, the lock file aside."""
         return sorted(p.name for p in self.path.iterdir() if p.name != LOCK_FILE)
+
+
+@contextmanager
+def locked(path: Path) -> Iterator[bool]:
+    """Holds an exclusive lock on the file ``path`` (created if missing) for the block
+    and yields True; yields False, holding nothing, if another process holds it. Like
+    a run directory's, the lock dies with its process, however that ends."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            _lock(fd)
+        except OSError:
+            yield False
+        else:
+            yield True
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _lock(fd: int) -> None:

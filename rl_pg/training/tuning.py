@@ -15,6 +15,7 @@ command is run again; ``best.json`` holds the best settings found so far::
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import importlib.util
 import json
 import statistics
@@ -27,8 +28,13 @@ from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig
 from rl_pg.training.loop import fresh_seed
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.run_dir import locked
 
-__all__ = ["SEARCH_SPACE", "TuneArgs", "replay_seed", "tune"]
+__all__ = ["SEARCH_SPACE", "TRIAL_LOCK", "TuneArgs", "replay_seed", "tune"]
+
+TRIAL_LOCK = ".trial.lock"
+"""Held in ``trial<N>/`` by the process running the trial: a trial left running whose
+lock is free was cut short (its process died) and is marked failed."""
 
 # What each tunable setting may take: ``trial -> value``. Ranges are those that make
 # sense for the recipes' MLP policies; a setting the config lacks cannot be tuned.
@@ -162,8 +168,9 @@ def tune(
         direction="maximize",
         sampler=optuna.samplers.TPESampler(seed=sampler_seed),
     )
-    for stale in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
-        study.tell(stale.number, state=optuna.trial.TrialState.FAIL)  # a killed search's
+    for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
+        if _abandoned(running, study_dir):  # not another live search's: a killed one's
+            study.tell(running.number, state=optuna.trial.TrialState.FAIL)
 
     def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
         if objective == "final":
@@ -181,6 +188,12 @@ def tune(
         return {"score": min(replays.values()), **replays}
 
     def run_trial(trial) -> float:
+        trial_dir = study_dir / f"trial{trial.number}"
+        trial_dir.mkdir(exist_ok=True)
+        with locked(trial_dir / TRIAL_LOCK):  # a new number: no other search has it
+            return run_seeds(trial)
+
+    def run_seeds(trial) -> float:
         settings = {}
         for name in sorted(params, key=lambda name: name == "gae_lambda"):  # λ after returns
             if name == "gae_lambda" and settings.get("returns", base.returns) != "gae":
@@ -199,9 +212,11 @@ def tune(
             trial.set_user_attr("runs", runs)  # with held_out, the greedy and sampled means
         return min(scores) if seed_score == "worst" else statistics.fmean(scores)
 
-    done = len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE]))
-    if done < trials:
-        study.optimize(run_trial, n_trials=trials - done)
+    complete = (optuna.trial.TrialState.COMPLETE,)
+    if len(study.get_trials(states=complete)) < trials:
+        # Until the study holds `trials` complete ones, counting those of any other
+        # search running on the same directory (each finishes the trial it is in).
+        study.optimize(run_trial, callbacks=[optuna.study.MaxTrialsCallback(trials, complete)])
     best = study.best_trial
     result = {
         "recipe": recipe.name,
@@ -217,3 +232,15 @@ def tune(
     }
     write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
     return result
+
+
+def _abandoned(trial, study_dir: Path) -> bool:
+    """Whether a trial the study lists as running has no live process running it."""
+    lock = study_dir / f"trial{trial.number}" / TRIAL_LOCK
+    if lock.exists():
+        with locked(lock) as free:
+            return free
+    # No lock yet: a search that has just asked for it, or one killed before it
+    # locked (or older than trial locks). Only the first is young.
+    started = trial.datetime_start
+    return started is None or datetime.datetime.now() - started > datetime.timedelta(minutes=1)
