@@ -19,6 +19,7 @@ import datetime
 import importlib.util
 import json
 import statistics
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -30,8 +31,10 @@ from rl_pg.training.loop import fresh_seed
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import locked
 
-__all__ = ["SEARCH_SPACE", "TRIAL_LOCK", "TuneArgs", "replay_seed", "tune"]
+__all__ = ["SEARCH_SPACE", "STUDY_LOCK", "TRIAL_LOCK", "TuneArgs", "replay_seed", "tune"]
 
+STUDY_LOCK = ".study.lock"
+"""Held in the study directory while a search opens the study."""
 TRIAL_LOCK = ".trial.lock"
 """Held in ``trial<N>/`` by the process running the trial: a trial left running whose
 lock is free was cut short (its process died) and is marked failed."""
@@ -161,16 +164,23 @@ def tune(
     study_dir = Path(study_dir)
     study_dir.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = optuna.create_study(
-        study_name=recipe.name,
-        storage=f"sqlite:///{study_dir / 'study.db'}",
-        load_if_exists=True,
-        direction="maximize",
-        sampler=optuna.samplers.TPESampler(seed=sampler_seed),
-    )
-    for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
-        if _abandoned(running, study_dir):  # not another live search's: a killed one's
-            study.tell(running.number, state=optuna.trial.TrialState.FAIL)
+    # One search at a time opens the study: two creating the SQLite tables at once
+    # collide, and two would both fail a killed search's trial.
+    while True:
+        with locked(study_dir / STUDY_LOCK) as held:
+            if held:
+                study = optuna.create_study(
+                    study_name=recipe.name,
+                    storage=f"sqlite:///{study_dir / 'study.db'}",
+                    load_if_exists=True,
+                    direction="maximize",
+                    sampler=optuna.samplers.TPESampler(seed=sampler_seed),
+                )
+                for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
+                    if _abandoned(running, study_dir):  # not a live search's: a killed one's
+                        study.tell(running.number, state=optuna.trial.TrialState.FAIL)
+                break
+        time.sleep(0.1)
 
     def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
         if objective == "final":
