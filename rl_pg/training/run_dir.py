@@ -194,14 +194,15 @@ class RunDirectory:
 
 
 @contextmanager
-def locked(path: Path) -> Iterator[bool]:
+def locked(path: Path, *, wait: bool = False) -> Iterator[bool]:
     """Holds an exclusive lock on the file ``path`` (created if missing) for the block
-    and yields True; yields False, holding nothing, if another process holds it. Like
-    a run directory's, the lock dies with its process, however that ends."""
+    and yields True; if another process holds it, yields False, holding nothing (or,
+    with ``wait``, waits for it). Like a run directory's, the lock dies with its
+    process, however that ends."""
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         try:
-            _lock(fd)
+            _lock(fd, wait=wait)
         except OSError:
             yield False
         else:
@@ -210,12 +211,13 @@ def locked(path: Path) -> Iterator[bool]:
         os.close(fd)  # releases the lock
 
 
-def _lock(fd: int) -> None:
-    """An exclusive, non-blocking lock on ``fd``; ``OSError`` if another process has it."""
+def _lock(fd: int, *, wait: bool = False) -> None:
+    """An exclusive lock on ``fd``; ``OSError`` if another process has it (unless
+    ``wait``: then it waits for it)."""
     if fcntl is not None:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
     else:
-        msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        msvcrt.locking(fd, msvcrt.LK_LOCK if wait else msvcrt.LK_NBLCK, 1)
 
 
 def new_run_dir(recipe: str, seed: int) -> Path:

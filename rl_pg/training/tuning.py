@@ -19,7 +19,6 @@ import datetime
 import importlib.util
 import json
 import statistics
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -166,21 +165,17 @@ def tune(
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     # One search at a time opens the study: two creating the SQLite tables at once
     # collide, and two would both fail a killed search's trial.
-    while True:
-        with locked(study_dir / STUDY_LOCK) as held:
-            if held:
-                study = optuna.create_study(
-                    study_name=recipe.name,
-                    storage=f"sqlite:///{study_dir / 'study.db'}",
-                    load_if_exists=True,
-                    direction="maximize",
-                    sampler=optuna.samplers.TPESampler(seed=sampler_seed),
-                )
-                for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
-                    if _abandoned(running, study_dir):  # not a live search's: a killed one's
-                        study.tell(running.number, state=optuna.trial.TrialState.FAIL)
-                break
-        time.sleep(0.1)
+    with locked(study_dir / STUDY_LOCK, wait=True):
+        study = optuna.create_study(
+            study_name=recipe.name,
+            storage=f"sqlite:///{study_dir / 'study.db'}",
+            load_if_exists=True,
+            direction="maximize",
+            sampler=optuna.samplers.TPESampler(seed=sampler_seed),
+        )
+        for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
+            if _abandoned(running, study_dir):  # not a live search's: a killed one's
+                study.tell(running.number, state=optuna.trial.TrialState.FAIL)
 
     def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
         if objective == "final":
@@ -201,9 +196,9 @@ def tune(
         trial_dir = study_dir / f"trial{trial.number}"
         trial_dir.mkdir(exist_ok=True)
         with locked(trial_dir / TRIAL_LOCK):  # a new number: no other search has it
-            return run_seeds(trial)
+            return run_seeds(trial, trial_dir)
 
-    def run_seeds(trial) -> float:
+    def run_seeds(trial, trial_dir: Path) -> float:
         settings = {}
         for name in sorted(params, key=lambda name: name == "gae_lambda"):  # λ after returns
             if name == "gae_lambda" and settings.get("returns", base.returns) != "gae":
@@ -212,7 +207,7 @@ def tune(
         trial.set_user_attr("settings", settings)
         scores, runs = [], {}
         for seed in seeds:
-            run_dir = study_dir / f"trial{trial.number}" / f"seed{seed}"
+            run_dir = trial_dir / f"seed{seed}"
             cfg = dataclasses.replace(
                 base, **settings, seed=seed, run_dir=run_dir, resume=False, progress=False
             )
