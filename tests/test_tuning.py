@@ -49,6 +49,20 @@ def test_a_study_is_stored_and_continued(tmp_path):
     # More trials: only the missing ones run.
     more = tune(gridworld, _base(), params=["lr", "entropy_coeff"], trials=3, study_dir=tmp_path)
     assert more["trials"] == 3 and (tmp_path / "trial2").exists()
+    # ... with settings of its own: a search run again does not replay the first one's.
+    lrs = [trial.params["lr"] for trial in _study(tmp_path).trials]
+    assert len(set(lrs)) == 3
+
+
+def test_the_first_trial_runs_the_given_settings(tmp_path):
+    result = tune(gridworld, _base(lr=3e-3), params=["lr"], trials=2, study_dir=tmp_path)
+    first, second = _study(tmp_path).trials
+    assert first.user_attrs["reference"] and first.user_attrs["settings"] == {"lr": 3e-3}
+    assert second.params["lr"] != 3e-3 and "reference" not in second.user_attrs
+    assert result["reference_score"] == first.value
+    # Settings outside the search space have no trial that could run them.
+    tune(gridworld, _base(lr=0.5), params=["lr"], trials=1, study_dir=tmp_path / "outside")
+    assert "reference" not in _study(tmp_path / "outside").trials[0].user_attrs
 
 
 def _running_trial(study_dir):
@@ -89,6 +103,8 @@ def test_two_searches_share_one_study(tmp_path):
     states = [t.state for t in _study(tmp_path).trials]
     complete = states.count(optuna.trial.TrialState.COMPLETE)
     assert complete in (4, 5) and len(states) == complete  # at most one trial over
+    lrs = [trial.params["lr"] for trial in _study(tmp_path).trials]
+    assert len(set(lrs)) == len(lrs)  # neither repeats the other's settings
     assert json.loads((tmp_path / "best.json").read_text())["trials"] >= 4
 
 
@@ -159,10 +175,11 @@ def test_without_optuna(tmp_path, monkeypatch):
 
 def test_the_command(tmp_path, capsys):
     args = ["tune", "gridworld", "--trials", "1", "--params", "lr", "normalize_advantage",
-            "--objective", "best", "--total-updates", "2", "--no-progress",
+            "--objective", "best", "--total-updates", "2", "--no-progress", "--lr", "0.003",
             "--run-dir", str(tmp_path)]  # fmt: skip
     main(args)
     out = capsys.readouterr().out
     assert f"1 trials in {tmp_path}; best: trial 0" in out
-    assert "--lr " in out and ("--normalize-advantage" in out)  # as flags of rl-pg train
+    assert "The settings as given (trial 0) scored" in out
+    assert "--lr 0.003 --no-normalize-advantage" in out  # as flags of rl-pg train
     assert json.loads((tmp_path / "best.json").read_text())["objective"] == "best"

@@ -132,6 +132,8 @@ def _tune(name: str, args: list[str]) -> None:
         f"score {result['best_score']:.2f} ({result['objective']} evaluation, "
         f"{result['seed_score']} over seeds {result['seeds']}). Its flags: {flags}"
     )
+    if result["reference_score"] is not None:
+        print(f"The settings as given (trial 0) scored {result['reference_score']:.2f}.")
 
 
 def _flag(name: str, value) -> str:

@@ -19,6 +19,7 @@ import datetime
 import importlib.util
 import json
 import statistics
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -58,6 +59,10 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
     "lr_schedule": lambda trial: trial.suggest_categorical("lr_schedule", ["constant", "linear"]),
     "reward_scale": lambda trial: trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
     "value_norm": lambda trial: trial.suggest_categorical("value_norm", ["none", "popart"]),
+}
+# The settings searched under another name: setting -> (Optuna's name, setting -> its value).
+_SEARCHED_AS: dict[str, tuple[str, Callable[[Any], Any]]] = {
+    "gamma": ("one_minus_gamma", lambda gamma: 1 - gamma),
 }
 
 
@@ -127,11 +132,15 @@ def tune(
             ``"mean"``.
         study_dir (Path): where the study (``study.db``), the trials' runs
             (``trial<N>/seed<S>``) and ``best.json`` go.
-        sampler_seed (int): seed of Optuna's TPE sampler. Defaults to ``0``.
+        sampler_seed (int): seed of Optuna's TPE sampler in the study's first search;
+            the study's n-th search uses ``sampler_seed + n``. Defaults to ``0``.
+
+    A new study's first trial runs ``base``'s own values of ``params`` (when they lie in
+    the search space): the reference the sampled trials are compared with.
 
     Returns:
         ``best.json``'s content: the best trial's number, score and settings (the
-        recipe's flags), and the number of completed trials.
+        recipe's flags), the number of completed trials and the reference trial's score.
 
     Raises:
         ImportError: Optuna is not installed (the message says how to install it).
@@ -171,8 +180,18 @@ def tune(
             storage=f"sqlite:///{study_dir / 'study.db'}",
             load_if_exists=True,
             direction="maximize",
-            sampler=optuna.samplers.TPESampler(seed=sampler_seed),
         )
+        # Each search on the study (a second one beside it, or the same command run
+        # again after a kill) draws its own settings: with one seed, its random first
+        # trials would repeat the other's.
+        searches = study.user_attrs.get("searches", 0)
+        study.set_user_attr("searches", searches + 1)
+        study.sampler = optuna.samplers.TPESampler(seed=sampler_seed + searches)
+        reference = _reference_params(base, params)
+        if not study.trials and reference is not None:
+            # The first trial runs the settings as given (the recipe's defaults, or the
+            # flags): the yardstick every sampled trial is compared with.
+            study.enqueue_trial(reference, user_attrs={"reference": True})
         for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
             if _abandoned(running, study_dir):  # not a live search's: a killed one's
                 study.tell(running.number, state=optuna.trial.TrialState.FAIL)
@@ -234,9 +253,36 @@ def tune(
         "best_scores": best.user_attrs.get("scores"),
         "best_runs": best.user_attrs.get("runs"),
         "best_settings": best.user_attrs["settings"],
+        "reference_score": next(
+            (t.value for t in study.get_trials(states=complete) if t.user_attrs.get("reference")),
+            None,
+        ),
     }
     write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
     return result
+
+
+def _reference_params(base: TrainConfig, params: Sequence[str]) -> dict[str, Any] | None:
+    """``base``'s own values of ``params`` as Optuna's parameters, or ``None`` when one
+    lies outside the search space (no trial can run it then)."""
+    import optuna
+
+    values = {}
+    for name in params:
+        if name == "gae_lambda" and base.returns != "gae" and "returns" not in params:
+            continue  # never searched then
+        key, to_param = _SEARCHED_AS.get(name, (name, lambda value: value))
+        values[key] = to_param(getattr(base, name))
+    fixed = optuna.trial.FixedTrial(values)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a float out of its range only warns
+            for name in params:
+                if name != "gae_lambda" or "gae_lambda" in values:
+                    SEARCH_SPACE[name](fixed)
+    except (ValueError, UserWarning):
+        return None
+    return values
 
 
 def _abandoned(trial, study_dir: Path) -> bool:
