@@ -13,7 +13,7 @@ import pytest
 from conftest import hide_module
 
 from rl_pg.recipes import evaluate, load
-from rl_pg.recipes.cli import main
+from rl_pg.recipes.cli import _flag, main
 from rl_pg.training.loop import evaluation_seed, fresh_seed
 from rl_pg.training.run_dir import locked
 from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, replay_seed, tune
@@ -183,3 +183,9 @@ def test_the_command(tmp_path, capsys):
     assert "The settings as given (trial 0) scored" in out
     assert "--lr 0.003 --no-normalize-advantage" in out  # as flags of rl-pg train
     assert json.loads((tmp_path / "best.json").read_text())["objective"] == "best"
+
+
+def test_the_printed_flags_give_back_the_trial_s_exact_values():
+    # Rounded, a sampled learning rate starts a different run from the same seed.
+    lr = 0.0020299660450482514
+    assert float(_flag("lr", lr).split()[1]) == lr

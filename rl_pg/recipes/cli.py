@@ -140,7 +140,8 @@ def _flag(name: str, value) -> str:
     flag = name.replace("_", "-")
     if isinstance(value, bool):
         return f"--{flag}" if value else f"--no-{flag}"
-    return f"--{flag} {value:g}" if isinstance(value, float) else f"--{flag} {value}"
+    # Every digit (repr): a run is repeatable from its seed only with the exact values.
+    return f"--{flag} {value!r}" if isinstance(value, float) else f"--{flag} {value}"
 
 
 def _resume(run_dir: Path, args: list[str]) -> None:
