@@ -331,15 +331,17 @@ def mlp_actor(
       Stable-Baselines3's and CleanRL's on-policy agents do;
     - ``"beta"``: a [`BoundedBeta`][rl_pg.distributions.BoundedBeta] on the bounds.
 
-    A policy-gradient loss recomputes the log-probability of the stored action. Once a
-    ``TanhNormal``'s mean drifts a few units past a bound, its samples round to the
-    bound in float32 and that log-probability is no longer theirs; a clipped Normal
-    whose mean drifts past a bound plays the bound whatever its noise, and learns no
-    more there. A Beta has neither failure: on Pendulum it is the one that learns (see
-    the recipe's page). Observations with several dimensions are flattened. A
-    Gaussian's scale is an output of the network, as its mean is, or with
-    ``state_independent_scale=True`` one learned parameter per action dimension
-    (tensordict's ``AddStateIndependentNormalScale``).
+    A policy-gradient loss recomputes the log-probability of the stored action. A
+    ``TanhNormal`` whose mean drifted far past a bound would sample the bound itself in
+    float32, and the loss would score that sample by a log-probability that is not its
+    own: its mean is squashed into [-5, 5] before the tanh (TorchRL's ``tanh_loc``;
+    ``tanh(5)`` is ``1 - 9e-5``). A clipped Normal whose mean drifts past a bound plays
+    the bound whatever its noise, and learns no more there. A Beta has neither
+    failure: on Pendulum it is the one that learns (see the recipe's page).
+    Observations with several dimensions are flattened. A Gaussian's scale is an
+    output of the network, as its mean is, or with ``state_independent_scale=True``
+    one learned parameter per action dimension (tensordict's
+    ``AddStateIndependentNormalScale``).
 
     Keyword Args:
         hidden (sequence of int): hidden layer widths. Defaults to ``(64, 64)``.
@@ -432,7 +434,9 @@ def mlp_actor(
             net = nn.Sequential(trunk(2 * n_act), NormalParamExtractor())
         distribution, kwargs = IndependentNormal, {}
         if bounds is not None and bounded == "tanh_normal":
-            distribution, kwargs = TanhNormal, {"low": bounds[0], "high": bounds[1]}
+            # tanh_loc: samples stay short of the bounds in float32 (see above).
+            distribution = TanhNormal
+            kwargs = {"low": bounds[0], "high": bounds[1], "tanh_loc": True}
     return ProbabilisticActor(
         TensorDictModule(net, [observation_key], params),
         in_keys=params,

@@ -123,18 +123,26 @@ class TestMlpActor:
         )
         assert torch.isfinite(ReinforceLoss(actor)(rollout)["loss_actor"])
 
-    def test_a_squashed_gaussian_loses_the_log_probability_of_saturated_samples(self):
-        # Why "normal" and "beta" exist: a TanhNormal whose mean is 20 units past the bound
-        # samples the bound itself in float32, and scores it far below its true density.
+    def test_a_squashed_gaussian_keeps_the_log_probability_of_its_samples(self):
+        # A mean far past the bound is squashed to within 5 units before the tanh, so the
+        # samples stay short of the bound in float32 and keep their log-probability.
+        # Unsquashed (TorchRL's default), a mean of 20 samples the bound itself and scores
+        # it far below its true density.
         env = gym_env("Pendulum-v1")
         actor = mlp_actor(env, state_independent_scale=True, init_scale=0.5)
-        td = TensorDict({"loc": torch.tensor([20.0]), "scale": torch.tensor([0.5])})
+        td = TensorDict({"loc": torch.full((1000, 1), 20.0), "scale": torch.full((1000, 1), 0.5)})
         dist = actor[-1].get_dist(td)  # the distribution from these parameters
         sample = dist.sample()
-        assert sample.item() == pytest.approx(2.0, abs=1e-5)
-        # Drawn near the mean of N(20, 0.5), where that Normal's log-density is -0.2, it is
-        # scored as a draw 16 units away.
-        assert dist.log_prob(sample) < -100
+        assert (sample < 2.0).all() and (sample > 1.99).all()
+        # Its density by change of variables, in float64 from the float32 sample.
+        y = sample.double() / 2
+        loc = 5 * torch.tanh(torch.tensor(20.0 / 5, dtype=torch.float64))
+        density = torch.distributions.Normal(loc, 0.5).log_prob(torch.atanh(y)) - torch.log(
+            2 * (1 - y**2)
+        )
+        torch.testing.assert_close(dist.log_prob(sample).double(), density[:, 0], atol=0.05, rtol=0)
+        unsquashed = TanhNormal(td["loc"], td["scale"], low=-2.0, high=2.0)
+        assert unsquashed.log_prob(unsquashed.sample()).max() < -100
 
     @pytest.mark.parametrize("num_envs", [None, 3])
     def test_beta_policy_on_per_dimension_bounds(self, num_envs):
