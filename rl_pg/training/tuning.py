@@ -218,11 +218,7 @@ def tune(
             return run_seeds(trial, trial_dir)
 
     def run_seeds(trial, trial_dir: Path) -> float:
-        settings = {}
-        for name in sorted(params, key=lambda name: name == "gae_lambda"):  # λ after returns
-            if name == "gae_lambda" and settings.get("returns", base.returns) != "gae":
-                continue  # read by GAE alone: not a dimension of trials without it
-            settings[name] = SEARCH_SPACE[name](trial)
+        settings = _settings(trial, params, base)
         trial.set_user_attr("settings", settings)
         scores, runs = [], {}
         for seed in seeds:
@@ -262,6 +258,16 @@ def tune(
     return result
 
 
+def _settings(trial, params: Sequence[str], base: TrainConfig) -> dict[str, Any]:
+    """The values ``trial`` gives ``params``."""
+    settings = {}
+    for name in sorted(params, key=lambda name: name == "gae_lambda"):  # λ after returns
+        if name == "gae_lambda" and settings.get("returns", base.returns) != "gae":
+            continue  # read by GAE alone: not a dimension of trials without it
+        settings[name] = SEARCH_SPACE[name](trial)
+    return settings
+
+
 def _reference_params(base: TrainConfig, params: Sequence[str]) -> dict[str, Any] | None:
     """``base``'s own values of ``params`` as Optuna's parameters, or ``None`` when one
     lies outside the search space (no trial can run it then)."""
@@ -269,17 +275,12 @@ def _reference_params(base: TrainConfig, params: Sequence[str]) -> dict[str, Any
 
     values = {}
     for name in params:
-        if name == "gae_lambda" and base.returns != "gae" and "returns" not in params:
-            continue  # never searched then
         key, to_param = _SEARCHED_AS.get(name, (name, lambda value: value))
         values[key] = to_param(getattr(base, name))
-    fixed = optuna.trial.FixedTrial(values)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # a float out of its range only warns
-            for name in params:
-                if name != "gae_lambda" or "gae_lambda" in values:
-                    SEARCH_SPACE[name](fixed)
+            _settings(optuna.trial.FixedTrial(values), params, base)
     except (ValueError, UserWarning):
         return None
     return values
