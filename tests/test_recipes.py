@@ -6,6 +6,7 @@ import importlib.util
 import json
 
 import pytest
+import torch
 from conftest import assert_same_run
 from PIL import Image
 
@@ -142,6 +143,42 @@ def test_evaluate_replays_the_runs_last_evaluation_and_defaults_to_fresh_episode
         json.loads(line) for line in (tmp_path / evaluate.EVALUATIONS).read_text().splitlines()
     ]
     assert records == [again, fresh]
+
+
+def test_training_evaluate_and_play_run_on_the_runs_threads_then_restore_them(
+    tmp_path, monkeypatch
+):
+    """Small models on torch's one-thread-per-core default wait on each other beside
+    other work: training, rl-pg evaluate and rl-pg play all run on cfg.threads, and
+    leave the caller's thread count as they found it."""
+    import rl_pg.recipes.play as play_module
+    import rl_pg.training.loop as loop_module
+    import rl_pg.training.recipe as recipe_module
+
+    seen = []
+
+    def spy(function):
+        def wrapped(*args, **kwargs):
+            seen.append(torch.get_num_threads())
+            return function(*args, **kwargs)
+
+        return wrapped
+
+    for module, name in ((loop_module, "evaluate"), (recipe_module, "evaluate"),
+                         (play_module, "play")):  # fmt: skip
+        monkeypatch.setattr(module, name, spy(getattr(module, name)))
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        cartpole.train(cartpole.config(run_dir=tmp_path, total_frames=300, **TINY))
+        assert torch.get_num_threads() == 2
+        evaluate.main(evaluate.Args(run=tmp_path, episodes=2))
+        assert torch.get_num_threads() == 2
+        play.main(play.Args(run=tmp_path, episodes=1))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(previous)
+    assert len(seen) == 3 and set(seen) == {1}  # the recipe's default threads=1
 
 
 def test_evaluate_reports_the_recipes_flags(tmp_path, capsys):

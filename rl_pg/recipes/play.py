@@ -17,6 +17,7 @@ import tyro
 from rl_pg.evaluation import check_recording, play
 from rl_pg.recipes import recipe_of
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
+from rl_pg.training.loop import torch_threads
 
 __all__ = ["Args", "main"]
 
@@ -51,22 +52,23 @@ def main(args: Args) -> list[float]:
     saved = read_run(args.run, which=args.checkpoint)
     recipe = recipe_of(saved, args.run)
     cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch
-    env = recipe.make_env(cfg, render=args.gif is not None)
-    try:
-        actor, critic = recipe.make_models(env, cfg)
-        load_models(saved, actor, critic)
-        torch.manual_seed(args.seed)
-        env.set_seed(args.seed)
-        returns = play(
-            actor,
-            env,
-            episodes=args.episodes,
-            deterministic=not args.sample,
-            record=args.gif,
-            fps=args.fps,
-        )
-    finally:
-        env.close()  # some simulators (MetaDrive) allow one open environment per process
+    with torch_threads(cfg.threads):
+        env = recipe.make_env(cfg, render=args.gif is not None)
+        try:
+            actor, critic = recipe.make_models(env, cfg)
+            load_models(saved, actor, critic)
+            torch.manual_seed(args.seed)
+            env.set_seed(args.seed)
+            returns = play(
+                actor,
+                env,
+                episodes=args.episodes,
+                deterministic=not args.sample,
+                record=args.gif,
+                fps=args.fps,
+            )
+        finally:
+            env.close()  # some simulators (MetaDrive) allow one open environment per process
     for episode, value in enumerate(returns):
         print(f"episode {episode}: return {value:.2f}")
     print(f"mean return {sum(returns) / len(returns):.2f} over {len(returns)} episodes")

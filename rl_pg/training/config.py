@@ -79,7 +79,8 @@ class TrainConfig:
     Environments step on the CPU. The recipes' small networks train fastest on the CPU,
     next to their environments; a GPU pays for large models (Pong's trunk)."""
     threads: Count | None = 1
-    """torch threads of this process: small models update fastest on one, and a second
+    """torch threads of this process while it trains, and while rl-pg evaluate and
+    rl-pg play run its checkpoints: small models update fastest on one, and a second
     thread only contends with the environment on a busy machine (None: torch's default)."""
     batch_mode: Literal["episodes", "segments"] = "episodes"
     """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""

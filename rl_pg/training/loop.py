@@ -23,7 +23,8 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -126,12 +127,14 @@ def train(
         "flags": check_names("eval_flags", eval_flags),
         "values": check_names("eval_values", eval_values),
     }
-    if cfg.threads is not None:
-        torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else new_run_dir(recipe, cfg.seed)
     # The directory is held until the run ends, however it ends; Ctrl-C ends the update
     # in progress, then the run saves and stops.
-    with RunDirectory(run_dir) as directory, InterruptRequest() as interrupt:
+    with (
+        torch_threads(cfg.threads),
+        RunDirectory(run_dir) as directory,
+        InterruptRequest() as interrupt,
+    ):
         saved = directory.open(cfg, recipe, recipe_module)
         run = _Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries)
         try:
@@ -327,6 +330,36 @@ def _policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
 def evaluation_seed(seed: int) -> int:
     """The seed of a run's evaluation environment (apart from its training seeds)."""
     return seed + 1_000_003
+
+
+@contextmanager
+def torch_threads(threads: int | None) -> Iterator[None]:
+    """Runs the block on ``threads`` torch threads (a run's ``cfg.threads``; None: as
+    they are), then restores the number it found.
+
+    Training, ``rl-pg evaluate`` and ``rl-pg play`` run a checkpoint's small models this
+    way: on a machine busy with other work (another run, its environments), torch's
+    default of one thread per core makes them wait on each other (an evaluation of a
+    LunarLander checkpoint beside a two-process training took 15 s on two threads, 3.6 s
+    on one).
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.training.loop import torch_threads
+        >>> before = torch.get_num_threads()
+        >>> with torch_threads(1):
+        ...     torch.get_num_threads()
+        1
+        >>> torch.get_num_threads() == before
+        True
+    """
+    previous = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def fresh_seed(seed: int) -> int:

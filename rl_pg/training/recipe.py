@@ -33,7 +33,7 @@ from rl_pg._checks import check_names
 from rl_pg.evaluation import EpisodeWorkers, evaluate
 from rl_pg.training.checkpoints import load_models
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.loop import fresh_seed, train
+from rl_pg.training.loop import fresh_seed, torch_threads, train
 
 __all__ = ["Recipe"]
 
@@ -135,20 +135,21 @@ class Recipe:
         """
         cfg = self.config.from_stored(saved["config"])
         seed = fresh_seed(cfg.seed) if seed is None else seed
-        env = self.test_env(cfg)
-        try:
-            actor, critic = self.make_models(env, cfg)
-            load_models(saved, actor, critic)
-            torch.manual_seed(seed)
-            env.set_seed(seed)
-            start = time.perf_counter()
-            result = evaluate(
-                actor, env, episodes=episodes, deterministic=not sample,
-                flags=self.eval_flags, values=self.eval_values,
-            )  # fmt: skip
-            seconds = time.perf_counter() - start
-        finally:
-            env.close()  # some simulators (MetaDrive) allow one open environment per process
+        with torch_threads(cfg.threads):  # as the run's own evaluations played
+            env = self.test_env(cfg)
+            try:
+                actor, critic = self.make_models(env, cfg)
+                load_models(saved, actor, critic)
+                torch.manual_seed(seed)
+                env.set_seed(seed)
+                start = time.perf_counter()
+                result = evaluate(
+                    actor, env, episodes=episodes, deterministic=not sample,
+                    flags=self.eval_flags, values=self.eval_values,
+                )  # fmt: skip
+                seconds = time.perf_counter() - start
+            finally:
+                env.close()  # some simulators (MetaDrive) allow one open environment per process
         return {
             "frames": saved.get("state", {}).get("frames"),
             "mode": "sampled" if sample else "greedy",
