@@ -41,7 +41,7 @@ from rl_pg.training import (
 )
 from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
-from rl_pg.training.loop import evaluation_seed
+from rl_pg.training.loop import confirmation_seed, evaluation_seed
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
 
@@ -332,8 +332,9 @@ class TestTrain:
             {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
             {"value_norm": "popart"},
             {"policy_ema": 0.9},
+            {"confirm_episodes": 3, "eval_interval": 100},
         ],
-        ids=["constant", "linear", "linear_entropy", "popart", "policy_ema"],
+        ids=["constant", "linear", "linear_entropy", "popart", "policy_ema", "confirm"],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
         straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)
@@ -915,6 +916,50 @@ class TestBestCheckpoint:
         env.set_seed(evaluation_seed(0))
         result = evaluate(actor, env, episodes=1)
         assert result["mean_return"] == pytest.approx(best["state"]["best_mean_return"])
+
+    def test_confirmation_keeps_the_checkpoint_whose_replays_score_best(self, tmp_path):
+        cfg = _cfg(tmp_path, total_updates=30, eval_interval=200, confirm_episodes=6)
+        summary = _train(cfg)
+        run = tmp_path / "run"
+        frames, scores = read_curve(run, "confirm/score")
+        assert len(scores) >= 2  # without a threshold, every new high is replayed
+        _, greedy = read_curve(run, "confirm/greedy_mean_return")
+        _, sampled = read_curve(run, "confirm/sampled_mean_return")
+        torch.testing.assert_close(scores, np.minimum(greedy, sampled))
+        best = read_run(run, which="best")
+        winner = int(np.argmax(scores))
+        assert summary["best_confirmed"] == best["state"]["best_confirmed"] == scores[winner]
+        assert summary["best_at_frames"] == best["state"]["frames"] == frames[winner]
+        # best.pt replays its confirmation: the lower of its greedy and sampled means
+        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
+        load_models(best, actor)
+        replays = []
+        for greedy_mode in (True, False):
+            torch.manual_seed(confirmation_seed(0))
+            env = make_grid()
+            env.set_seed(confirmation_seed(0))
+            replays.append(evaluate(actor, env, episodes=6, deterministic=greedy_mode))
+        assert min(r["mean_return"] for r in replays) == pytest.approx(scores[winner])
+
+    def test_confirmation_changes_the_checkpoint_kept_not_the_run(self, tmp_path):
+        common = {"total_updates": 8, "eval_interval": 200}
+        plain = _train(_cfg(tmp_path, run_dir=tmp_path / "plain", **common))
+        confirmed = _train(
+            _cfg(tmp_path, run_dir=tmp_path / "confirmed", confirm_episodes=4, **common)
+        )
+        assert read_curve(tmp_path / "confirmed", "confirm/score")[1].size >= 1
+        assert_same_run(confirmed, tmp_path / "confirmed", tmp_path / "plain")
+        assert plain["best_confirmed"] is None
+
+    def test_only_evaluations_at_the_threshold_are_confirmed(self, tmp_path):
+        summary = _train(
+            _cfg(tmp_path, total_updates=6, eval_interval=200, confirm_episodes=4,
+                 threshold=1e9, stop_when_solved=False)
+        )  # fmt: skip
+        assert not (tmp_path / "run" / "logs" / "csv" / "scalars" / "confirm").exists()
+        assert summary["best_confirmed"] is None
+        _, evaluations = read_curve(tmp_path / "run", "eval/mean_return")
+        assert summary["best_eval_mean_return"] == max(evaluations.tolist())
 
     def test_which_must_be_last_or_best(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=1))

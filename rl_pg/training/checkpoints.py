@@ -45,13 +45,34 @@ class RunState:
     last_eval: dict[str, float] = field(default_factory=dict)
     best_mean_return: float | None = None
     best_at_frames: int | None = None
+    best_confirmed: float | None = None
 
     def is_best(self) -> bool:
-        """Takes in the last evaluation; True if it beat every earlier one."""
+        """Takes in the last evaluation; True if it beat every earlier one (and no
+        confirmed evaluation has been kept: from the first on, only confirmations count)."""
         mean = self.last_eval["eval/mean_return"]
-        if self.best_mean_return is not None and mean <= self.best_mean_return:
+        if self.best_confirmed is not None or (
+            self.best_mean_return is not None and mean <= self.best_mean_return
+        ):
             return False
         self.best_mean_return, self.best_at_frames = mean, self.frames
+        return True
+
+    def worth_confirming(self, threshold: float | None) -> bool:
+        """Whether the last evaluation could beat the best confirmed one: at or above
+        ``threshold`` (if any) and above the best confirmed score."""
+        mean = self.last_eval["eval/mean_return"]
+        return (threshold is None or mean >= threshold) and (
+            self.best_confirmed is None or mean > self.best_confirmed
+        )
+
+    def is_best_confirmed(self, score: float) -> bool:
+        """Takes in the last evaluation's confirmation ``score``; True if it beat every
+        earlier confirmation."""
+        if self.best_confirmed is not None and score <= self.best_confirmed:
+            return False
+        self.best_confirmed = score
+        self.best_mean_return, self.best_at_frames = self.last_eval["eval/mean_return"], self.frames
         return True
 
 

@@ -152,6 +152,13 @@ class TrainConfig:
     actor's weights (torch's AveragedModel), moved towards the trained weights by
     1 - policy_ema after every update; the environments are still played with the
     trained weights. 0: evaluate the trained weights themselves."""
+    confirm_episodes: Count | None = None
+    """Replay each evaluation that could become best.pt on this many more episodes,
+    greedily and by sampling, and keep as best.pt the checkpoint whose lower mean of the
+    two is highest: the best of many short evaluations is partly the luckiest, and a
+    policy can act well greedily and badly by sampling. Evaluations at or above
+    threshold (when set) and above the best confirmed score are replayed. None: best.pt
+    is the evaluation with the highest mean return."""
     threshold: float | None = None
     """Evaluation mean return that counts as solved."""
     stop_when_solved: bool = True

@@ -256,7 +256,11 @@ class _Run:
         self.next_eval = self._next_evaluation()
         actor = self.actor if self.average is None else self.average.module
         _evaluate(cfg, actor, self.eval_env, self.eval_entries, state, self.logger)
-        if state.is_best():
+        if cfg.confirm_episodes is not None and state.worth_confirming(cfg.threshold):
+            best = state.is_best_confirmed(_confirm(cfg, actor, self.eval_env, state, self.logger))
+        else:
+            best = state.is_best()
+        if best:
             self._save(to="best")
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
         if solved and state.solved_at_frames is None:
@@ -360,6 +364,38 @@ def torch_threads(threads: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+def confirmation_seed(seed: int) -> int:
+    """The seed of the episodes that confirm a run's candidates for ``best.pt`` (apart
+    from its training, its evaluations and ``rl-pg evaluate``'s fresh episodes)."""
+    return (evaluation_seed(seed) + 2 * 1_000_003) % 2**32
+
+
+def _confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
+    """Replays ``actor`` on ``cfg.confirm_episodes`` episodes greedily, then by sampling,
+    both from the confirmation seed; logs both means and returns the lower one. Training's
+    random stream is left as it was: confirming changes which checkpoint is kept, not
+    the run."""
+    device = cfg.torch_device()
+    cuda = (
+        [torch.cuda.current_device() if device.index is None else device.index]
+        if device.type == "cuda"
+        else []
+    )
+    start = time.perf_counter()
+    means = {}
+    with torch.random.fork_rng(devices=cuda):
+        for mode, greedy in (("greedy", True), ("sampled", False)):
+            torch.manual_seed(confirmation_seed(cfg.seed))
+            eval_env.set_seed(confirmation_seed(cfg.seed))
+            result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
+            means[f"confirm/{mode}_mean_return"] = result["mean_return"]
+    score = min(means.values())
+    logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
+    for name, value in logged.items():
+        logger.log_scalar(name, value, step=state.frames)
+    return score
 
 
 def fresh_seed(seed: int) -> int:

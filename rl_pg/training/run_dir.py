@@ -304,6 +304,7 @@ def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> d
         "solved_at_frames": state.solved_at_frames,
         "best_eval_mean_return": state.best_mean_return,
         "best_at_frames": state.best_at_frames,
+        "best_confirmed": state.best_confirmed,
     }
     for key, value in state.last_eval.items():
         if key.endswith("_rate"):
