@@ -88,6 +88,25 @@ def test_highway_reports_the_crash_rate(tmp_path):
     assert 0.0 <= summary["crashed_rate"] <= 1.0
 
 
+def test_continuous_lunarlander_with_a_state_independent_scale():
+    cfg = lunarlander.config(continuous=True, bounded="normal", state_independent_scale=True)
+    env = lunarlander.make_env(cfg)
+    try:
+        actor, _ = lunarlander.make_models(env, cfg)
+    finally:
+        env.close()
+    scales = [p for name, p in actor.named_parameters() if "scale" in name]
+    assert [tuple(p.shape) for p in scales] == [(2,)]  # one per thrust dimension
+
+
+@pytest.mark.parametrize(
+    "flags", [{}, {"continuous": True, "bounded": "beta"}], ids=["discrete", "beta"]
+)
+def test_lunarlander_refuses_a_state_independent_scale_without_a_gaussian(flags):
+    with pytest.raises(ValueError, match=r"--state-independent-scale .* --continuous"):
+        lunarlander.config(state_independent_scale=True, **flags)
+
+
 def test_cartpole_reaches_475(tmp_path):
     summary = cartpole.train(cartpole.config(run_dir=tmp_path, progress=False))
     assert summary["solved_at_frames"] is not None

@@ -48,6 +48,9 @@ class Config(
     bounded: Literal["tanh_normal", "normal", "beta"] = "tanh_normal"
     """With continuous: the policy's distribution on the thrust bounds (see
     rl_pg.models.mlp_actor)."""
+    state_independent_scale: bool = False
+    """With continuous and a Gaussian policy: one learned scale per thrust dimension, the
+    same in every state (as Stable-Baselines3 and CleanRL), instead of a network output."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
@@ -55,6 +58,15 @@ class Config(
     backend: Literal["gymnasium", "envpool"] = "gymnasium"
     """What steps the training landers: gymnasium in this process, or EnvPool's C++
     threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
+
+    def validate(self) -> None:
+        super().validate()
+        if self.state_independent_scale and not (self.continuous and self.bounded != "beta"):
+            raise ValueError(
+                "--state-independent-scale sets the scale of a Gaussian thrust policy: use it "
+                "with --continuous and --bounded tanh_normal or normal (a Beta and the "
+                "discrete engines have no such scale)."
+            )
 
 
 def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase:
@@ -80,7 +92,12 @@ def make_eval_env(cfg: Config) -> EnvBase:
 
 
 def make_models(env: EnvBase, cfg: Config):
-    return mlp_actor_critic(env, hidden=(cfg.hidden, cfg.hidden), bounded=cfg.bounded)
+    return mlp_actor_critic(
+        env,
+        hidden=(cfg.hidden, cfg.hidden),
+        bounded=cfg.bounded,
+        state_independent_scale=cfg.state_independent_scale,
+    )
 
 
 RECIPE = Recipe(
