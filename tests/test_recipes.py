@@ -88,8 +88,9 @@ def test_highway_reports_the_crash_rate(tmp_path):
     assert 0.0 <= summary["crashed_rate"] <= 1.0
 
 
-def test_continuous_lunarlander_with_a_state_independent_scale():
-    cfg = lunarlander.config(continuous=True, bounded="normal", state_independent_scale=True)
+@pytest.mark.parametrize("flags", [{}, {"bounded": "tanh_normal"}], ids=["normal", "tanh_normal"])
+def test_continuous_lunarlander_learns_one_scale_per_thrust_dimension(flags):
+    cfg = lunarlander.config(continuous=True, **flags)
     env = lunarlander.make_env(cfg)
     try:
         actor, _ = lunarlander.make_models(env, cfg)
@@ -102,9 +103,19 @@ def test_continuous_lunarlander_with_a_state_independent_scale():
 @pytest.mark.parametrize(
     "flags", [{}, {"continuous": True, "bounded": "beta"}], ids=["discrete", "beta"]
 )
-def test_lunarlander_refuses_a_state_independent_scale_without_a_gaussian(flags):
-    with pytest.raises(ValueError, match=r"--state-independent-scale .* --continuous"):
-        lunarlander.config(state_independent_scale=True, **flags)
+def test_lunarlander_refuses_a_state_dependent_scale_without_a_gaussian(flags):
+    with pytest.raises(ValueError, match=r"--state-dependent-scale .* --continuous"):
+        lunarlander.config(state_dependent_scale=True, **flags)
+
+
+def test_continuous_lunarlander_can_output_its_scale():
+    cfg = lunarlander.config(continuous=True, state_dependent_scale=True)
+    env = lunarlander.make_env(cfg)
+    try:
+        actor, _ = lunarlander.make_models(env, cfg)
+    finally:
+        env.close()
+    assert not [name for name, _ in actor.named_parameters() if "scale" in name]
 
 
 def test_cartpole_reaches_475(tmp_path):

@@ -4,7 +4,8 @@
 bootstrapped from V where episodes are cut (whole-episode batches,
 ``--batch-mode episodes``, learned but did not hold 200 in our run: see RESULTS.md).
 Discrete engines by default; ``--continuous`` switches to continuous thrust with a
-Gaussian (TanhNormal) policy. Needs the box2d extra::
+Gaussian policy (one learned scale per dimension; the environment clips its samples).
+Needs the box2d extra::
 
     pip install -c constraints.txt "rl_pg[box2d]"
     rl-pg train lunarlander --help
@@ -45,12 +46,13 @@ class Config(
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))), with the policy bounded says."""
-    bounded: Literal["tanh_normal", "normal", "beta"] = "tanh_normal"
+    bounded: Literal["tanh_normal", "normal", "beta"] = "normal"
     """With continuous: the policy's distribution on the thrust bounds (see
     rl_pg.models.mlp_actor)."""
-    state_independent_scale: bool = False
-    """With continuous and a Gaussian policy: one learned scale per thrust dimension, the
-    same in every state (as Stable-Baselines3 and CleanRL), instead of a network output."""
+    state_dependent_scale: bool = False
+    """With continuous and a Gaussian policy: the network outputs the scale as it does the
+    mean, instead of one learned scale per thrust dimension, the same in every state (the
+    default, as in Stable-Baselines3 and CleanRL; the docs page has the runs)."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
@@ -59,11 +61,16 @@ class Config(
     """What steps the training landers: gymnasium in this process, or EnvPool's C++
     threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
+    @property
+    def gaussian(self) -> bool:
+        """Whether the policy is a Gaussian on continuous thrust."""
+        return self.continuous and self.bounded != "beta"
+
     def validate(self) -> None:
         super().validate()
-        if self.state_independent_scale and not (self.continuous and self.bounded != "beta"):
+        if self.state_dependent_scale and not self.gaussian:
             raise ValueError(
-                "--state-independent-scale sets the scale of a Gaussian thrust policy: use it "
+                "--state-dependent-scale sets the scale of a Gaussian thrust policy: use it "
                 "with --continuous and --bounded tanh_normal or normal (a Beta and the "
                 "discrete engines have no such scale)."
             )
@@ -96,7 +103,7 @@ def make_models(env: EnvBase, cfg: Config):
         env,
         hidden=(cfg.hidden, cfg.hidden),
         bounded=cfg.bounded,
-        state_independent_scale=cfg.state_independent_scale,
+        state_independent_scale=cfg.gaussian and not cfg.state_dependent_scale,
     )
 
 
