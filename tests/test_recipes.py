@@ -90,13 +90,7 @@ def test_highway_reports_the_crash_rate(tmp_path):
 
 @pytest.mark.parametrize("flags", [{}, {"bounded": "tanh_normal"}], ids=["normal", "tanh_normal"])
 def test_continuous_lunarlander_learns_one_scale_per_thrust_dimension(flags):
-    cfg = lunarlander.config(continuous=True, **flags)
-    env = lunarlander.make_env(cfg)
-    try:
-        actor, _ = lunarlander.make_models(env, cfg)
-    finally:
-        env.close()
-    scales = [p for name, p in actor.named_parameters() if "scale" in name]
+    scales = _scale_parameters(lunarlander.config(continuous=True, **flags))
     assert [tuple(p.shape) for p in scales] == [(2,)]  # one per thrust dimension
 
 
@@ -109,13 +103,17 @@ def test_lunarlander_refuses_a_state_dependent_scale_without_a_gaussian(flags):
 
 
 def test_continuous_lunarlander_can_output_its_scale():
-    cfg = lunarlander.config(continuous=True, state_dependent_scale=True)
+    assert not _scale_parameters(lunarlander.config(continuous=True, state_dependent_scale=True))
+
+
+def _scale_parameters(cfg) -> list[torch.nn.Parameter]:
+    """The parameters of the LunarLander actor ``cfg`` builds that hold a scale."""
     env = lunarlander.make_env(cfg)
     try:
         actor, _ = lunarlander.make_models(env, cfg)
     finally:
         env.close()
-    assert not [name for name, _ in actor.named_parameters() if "scale" in name]
+    return [p for name, p in actor.named_parameters() if "scale" in name]
 
 
 def test_cartpole_reaches_475(tmp_path):
