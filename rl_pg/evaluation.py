@@ -93,7 +93,8 @@ def evaluate(
     max_steps: int = 100_000,
     flags: Sequence[str] = (),
     values: Sequence[str] = (),
-) -> dict[str, float]:
+    action_stats: bool = False,
+) -> dict[str, Any]:
     """Plays ``episodes`` episodes; returns their mean and std return, flag rates, values.
 
     A batched ``env`` plays its environments side by side, each its share of the
@@ -113,10 +114,18 @@ def evaluate(
             [`first_episodes`][rl_pg.evaluation.first_episodes]). Defaults to ``()``.
         values (sequence of str): entries averaged at the episodes' last step, e.g.
             ``"route_completion"``. Defaults to ``()``.
+        action_stats (bool): also describe how a discrete policy acted, over every
+            step of the counted episodes (policies that write their ``"logits"``, as
+            [`mlp_actor`][rl_pg.models.mlp_actor]'s do): ``action_shares`` (the share
+            of steps each action was played), ``action_switch_rate`` (the share of
+            steps, after an episode's first, whose action differs from the one before),
+            ``greedy_action_rate`` (the share of steps that played the policy's most
+            probable action: 1 when greedy) and ``mean_entropy`` (of the policy, in
+            nats). Left out for other policies. Defaults to ``False``.
 
     Returns:
         ``{"mean_return", "std_return", "mean_length", "<flag>_rate", ...,
-        "mean_<value>", ...}``.
+        "mean_<value>", ...}``, and the action statistics when asked for.
 
     Raises:
         ValueError: for ``episodes < 1`` or ``max_steps < 1``.
@@ -140,7 +149,8 @@ def evaluate(
     """
     episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
     flags, values = check_names("flags", flags), check_names("values", values)
-    wanted = _Wanted(episodes, deterministic, max_steps, flags, values)
+    action_stats = check_bool("action_stats", action_stats)
+    wanted = _Wanted(episodes, deterministic, max_steps, flags, values, action_stats)
     if isinstance(env, EpisodeWorkers):
         stats = env.play(policy, wanted)
     else:
@@ -157,7 +167,60 @@ def evaluate(
     for key in values:
         if key in stats:
             out[f"mean_{key}"] = stats[key].mean().item()
+    if action_stats and "action_counts" in stats:
+        out.update(_describe_actions(stats))
     return out
+
+
+def _describe_actions(stats: dict[str, torch.Tensor]) -> dict[str, Any]:
+    """The action statistics of ``evaluate`` from its per-episode tallies."""
+    counts = stats["action_counts"].sum(0)
+    steps = counts.sum().clamp(min=1)
+    after_first = (stats["length"].sum() - (stats["length"] > 0).sum()).clamp(min=1)
+    return {
+        "action_shares": (counts / steps).tolist(),
+        "action_switch_rate": (stats["action_switches"].sum() / after_first).item(),
+        "greedy_action_rate": (stats["action_greedy"].sum() / steps).item(),
+        "mean_entropy": (stats["action_entropy"].sum() / steps).item(),
+    }
+
+
+def _action_steps(tensordict: TensorDictBase, n: int, steps: int) -> dict | None:
+    """Per step of an ``[n, steps]`` rollout: the discrete action's index, the policy's
+    entropy, and whether the action was its most probable; None without logits."""
+    logits, action = tensordict.get("logits", None), tensordict.get("action", None)
+    if logits is None or action is None or logits.numel() != n * steps * logits.shape[-1]:
+        return None
+    logits = logits.reshape(n, steps, logits.shape[-1]).float()
+    num_actions = logits.shape[-1]
+    action = action.reshape(n, steps, -1)
+    if action.shape[-1] == num_actions and num_actions > 1:  # one-hot
+        index = action.argmax(-1)
+    elif action.shape[-1] == 1:
+        index = action[..., 0].long()
+    else:
+        return None
+    return {
+        "index": index,
+        "entropy": torch.distributions.Categorical(logits=logits).entropy(),
+        "greedy": index == logits.argmax(-1),
+        "num_actions": num_actions,
+    }
+
+
+def _episode_actions(rollout: TensorDictBase, length: int) -> dict[str, torch.Tensor]:
+    """The action tallies of the first ``length`` steps of a ``[T]`` rollout, as one
+    episode (empty when the policy writes no logits)."""
+    acts = _action_steps(rollout[:length], 1, length) if length else None
+    if acts is None:
+        return {}
+    index = acts["index"][0]
+    return {
+        "action_counts": torch.bincount(index, minlength=acts["num_actions"])[None].float(),
+        "action_switches": (index[1:] != index[:-1]).sum()[None].float(),
+        "action_greedy": acts["greedy"][0].sum()[None].float(),
+        "action_entropy": acts["entropy"][0].sum()[None],
+    }
 
 
 def episode_shares(episodes: int, n: int) -> list[int]:
@@ -180,24 +243,31 @@ class _Wanted(NamedTuple):
     max_steps: int
     flags: Sequence[str]
     values: Sequence[str]
+    action_stats: bool = False
 
 
 def _episodes(
     policy: TensorDictModuleBase, env: EnvBase, wanted: _Wanted
 ) -> dict[str, torch.Tensor]:
     """One entry per episode: ``return``, ``length``, ``finished``, flags and values."""
-    episodes, deterministic, max_steps, flags, values = wanted
+    episodes, deterministic, max_steps, flags, values, action_stats = wanted
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     cast = _device_of(policy) not in (None, env.device)  # a policy on a GPU, say
     with set_exploration_type(exploration), torch.no_grad():
         if math.prod(env.batch_size) > 1:
-            return _side_by_side(policy, env, episodes, max_steps, flags, values, cast=cast)
+            return _side_by_side(
+                policy, env, episodes, max_steps, flags, values, cast=cast,
+                action_stats=action_stats,
+            )  # fmt: skip
         results: dict[str, list[torch.Tensor]] = {}
         for _ in range(episodes):
             rollout = env.rollout(
                 max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast
             )
-            for key, value in first_episodes(rollout, flags, values).items():
+            episode = first_episodes(rollout, flags, values)
+            if action_stats:
+                episode.update(_episode_actions(rollout.reshape(-1), int(episode["length"][0])))
+            for key, value in episode.items():
                 results.setdefault(key, []).append(value)
         return {key: torch.cat(value) for key, value in results.items()}
 
@@ -376,6 +446,7 @@ def _side_by_side(
     values: Sequence[str],
     *,
     cast: bool,
+    action_stats: bool = False,
     chunk: int = 64,
 ) -> dict[str, torch.Tensor]:
     """``episodes`` episodes of a batched ``env``, each of its environments playing its
@@ -393,6 +464,7 @@ def _side_by_side(
     played = torch.zeros(n, dtype=torch.long)
     running = {"return": torch.zeros(n), "length": torch.zeros(n, dtype=torch.long)}
     episodes_out: dict[str, list[torch.Tensor]] = {"finished": []}
+    previous = torch.full((n,), -1, dtype=torch.long)  # each episode's last action
     tensordict = env.reset()
     while (played < share).any():
         steps = min(chunk, max_steps - int(running["length"].max()))
@@ -419,6 +491,11 @@ def _side_by_side(
                 running.setdefault(key, torch.zeros(n))
         seen_flags = [flag for flag in flags if flag in per_step]
         seen_values = [key for key in values if key in per_step]
+        acts = _action_steps(part, n, steps) if action_stats else None
+        if acts is not None and "action_counts" not in running:
+            running["action_counts"] = torch.zeros(n, acts["num_actions"])
+            for key in ("action_switches", "action_greedy", "action_entropy"):
+                running[key] = torch.zeros(n)
         for t in range(steps):
             running["return"] += per_step["return"][:, t]
             running["length"] += 1
@@ -426,6 +503,13 @@ def _side_by_side(
                 running[flag] |= per_step[flag][:, t]
             for key in seen_values:
                 running[key] = per_step[key][:, t].clone()
+            if acts is not None:
+                index = acts["index"][:, t]
+                running["action_counts"][torch.arange(n), index] += 1
+                running["action_switches"] += ((previous >= 0) & (previous != index)).float()
+                running["action_greedy"] += acts["greedy"][:, t].float()
+                running["action_entropy"] += acts["entropy"][:, t]
+                previous = index.clone()
             done = per_step["done"][:, t]
             ended = done | (running["length"] >= max_steps)
             if ended.any():
@@ -435,6 +519,7 @@ def _side_by_side(
                     value[ended] = 0
                 episodes_out["finished"].append(done[counted])
                 played += ended.long()
+                previous[ended] = -1
         cut = (running["length"] == 0) & ~per_step["done"][:, -1]  # at max_steps, not done
         tensordict = step_mdp(part[..., -1])
         if cut.any():  # end those episodes as a time limit would, so they are reset

@@ -119,6 +119,15 @@ def test_report_tabulates_runs_with_their_best_checkpoints_evaluations(tmp_path,
                                 capsys=capsys)  # fmt: skip
     assert status == 1 and "logged no 'eval/nope'" in err
 
+    status, out, _ = in_process("evaluate", runs[0], "--episodes", "3", "--sample",
+                                "--action-stats", capsys=capsys)  # fmt: skip
+    assert status == 0 and "actions played (index: share of steps): 0:" in out
+    assert "action_switch_rate" in out and "mean_entropy" in out
+    record = json.loads((tmp_path / "seed0" / "evaluations.jsonl").read_text().splitlines()[-1])
+    assert len(record["action_shares"]) == 4 and sum(record["action_shares"]) == pytest.approx(1)
+    status, out, err = in_process("report", *runs, capsys=capsys)  # reads that record too
+    assert status == 0, err
+
 
 def test_a_mistake_in_a_subprocess_is_one_line_without_traceback(tmp_path):
     result = rl_pg("play", "nowhere", cwd=tmp_path)

@@ -216,3 +216,64 @@ def test_episode_workers_spawn_unless_a_start_method_is_set(monkeypatch):
     finally:
         env.close()
     assert result["mean_return"] == 10 * 3
+
+
+def _first_step_policy():
+    """Greedily plays action 0 at an episode's first step (observation 0) and 1 after
+    (``_Scenarios`` observes the steps taken): logits ``[0.5 - t, t]``."""
+    linear = torch.nn.Linear(1, 2)
+    with torch.no_grad():
+        linear.weight.copy_(torch.tensor([[-1.0], [1.0]]))
+        linear.bias.copy_(torch.tensor([0.5, 0.0]))
+    return ProbabilisticActor(
+        TensorDictModule(linear, ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=torch.distributions.Categorical,
+    )
+
+
+@pytest.mark.parametrize("batched", ["single", "serial", "processes"])
+def test_action_stats_count_each_episode_apart(batched):
+    from functools import partial
+
+    from torchrl.envs import SerialEnv
+
+    makers = [partial(_Scenarios, 0), partial(_Scenarios, 10)]
+    if batched == "single":
+        env, lengths = _Scenarios(0), [1, 2, 3]  # scenarios 0, 1, 2
+    else:
+        env = SerialEnv(2, makers) if batched == "serial" else EpisodeWorkers(makers)
+        lengths = [1, 2, 3, 3, 4]  # scenarios 0, 1, 2 and 10, 11
+    try:
+        out = evaluate(_first_step_policy(), env, episodes=len(lengths), action_stats=True)
+    finally:
+        env.close()
+    # A plain count: each episode plays 0 once, then 1; it switches once if it lasts 2+.
+    steps = sum(lengths)
+    assert out["action_shares"] == pytest.approx([len(lengths) / steps, 1 - len(lengths) / steps])
+    switches = sum(n >= 2 for n in lengths)  # none across episodes: each starts with 0 again
+    assert out["action_switch_rate"] == pytest.approx(switches / (steps - len(lengths)))
+    assert out["greedy_action_rate"] == 1.0
+    t = torch.tensor([float(i) for n in lengths for i in range(n)])
+    logits = torch.stack([0.5 - t, t], -1)
+    expected = torch.distributions.Categorical(logits=logits).entropy().mean()
+    assert out["mean_entropy"] == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_action_stats_of_a_sampling_policy_and_of_a_policy_without_logits():
+    from torchrl.envs.utils import RandomPolicy
+
+    torch.manual_seed(0)
+    env = GridWorldEnv(batch_size=4, max_steps=50)
+    out = evaluate(_fixed_actor(16, [2.0, 0.0, 0.0, 0.0]), env, episodes=8,
+                   deterministic=False, action_stats=True)  # fmt: skip
+    p = torch.softmax(torch.tensor([2.0, 0.0, 0.0, 0.0]), 0)
+    assert out["greedy_action_rate"] == pytest.approx(p[0].item(), abs=0.1)
+    assert out["action_shares"][0] == out["greedy_action_rate"]
+    assert out["action_switch_rate"] == pytest.approx(1 - (p**2).sum().item(), abs=0.1)
+    entropy = torch.distributions.Categorical(probs=p).entropy().item()
+    assert out["mean_entropy"] == pytest.approx(entropy, rel=1e-5)
+    plain = evaluate(RandomPolicy(env.action_spec), env, episodes=4, action_stats=True)
+    assert "action_shares" not in plain
+    with pytest.raises(TypeError, match="action_stats must be True or False"):
+        evaluate(RandomPolicy(env.action_spec), env, episodes=4, action_stats=1)

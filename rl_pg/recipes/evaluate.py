@@ -3,6 +3,7 @@
 rl-pg evaluate runs/lunarlander-seed0                 # best checkpoint, 100 greedy episodes
 rl-pg evaluate runs/lunarlander-seed0 --sample        # by sampling
 rl-pg evaluate runs/metadrive-seed0 --checkpoint last --episodes 20
+rl-pg evaluate runs/metadrive-seed0 --action-stats    # how the policy acts, too
 
 The recipe's test environment (its evaluation environment, on fresh seeds, unless the
 recipe keeps scenarios apart for scoring, as MetaDrive's does), with its metrics (flag
@@ -43,6 +44,10 @@ class Args:
     seed: Annotated[int, Range(low=0, high=2**32 - 1)] | None = None
     """Seed of the evaluation environment and of sampled actions (default: one that no
     evaluation during training used, so the episodes are fresh)."""
+    action_stats: bool = False
+    """Also report how a discrete policy acted: the share of steps of each action, how
+    often the action changes from one step to the next, how often it is the policy's
+    most probable one, and the policy's mean entropy."""
 
 
 def main(args: Args) -> dict[str, Any]:
@@ -50,8 +55,9 @@ def main(args: Args) -> dict[str, Any]:
     saved = read_run(args.run, which=args.checkpoint)
     recipe = recipe_of(saved, args.run)
     result = recipe.evaluate_checkpoint(
-        saved, episodes=args.episodes, sample=args.sample, seed=args.seed
-    )
+        saved, episodes=args.episodes, sample=args.sample, seed=args.seed,
+        action_stats=args.action_stats,
+    )  # fmt: skip
     record = {"checkpoint": args.checkpoint, **result}
     print(_describe(record))
     if args.run.is_dir():
@@ -73,7 +79,11 @@ def _describe(record: dict[str, Any]) -> str:
         for key, value in record.items()
         if key.endswith("_rate") or (key.startswith("mean_") and key not in _BASE)
     ]
-    return head + "".join(f", {item}" for item in extra) + f" ({record['seconds']:.0f} s)"
+    text = head + "".join(f", {item}" for item in extra) + f" ({record['seconds']:.0f} s)"
+    if "action_shares" in record:
+        shares = " ".join(f"{i}:{share:.1%}" for i, share in enumerate(record["action_shares"]))
+        text += f"\n  actions played (index: share of steps): {shares}"
+    return text
 
 
 _BASE = {"mean_return", "mean_length"}

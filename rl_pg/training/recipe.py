@@ -118,6 +118,7 @@ class Recipe:
         episodes: int = 100,
         sample: bool = False,
         seed: int | None = None,
+        action_stats: bool = False,
     ) -> dict[str, Any]:
         """Plays a checkpoint of this recipe's (from
         [`read_run`][rl_pg.training.checkpoints.read_run]) on the test environment.
@@ -128,6 +129,8 @@ class Recipe:
             seed (int, optional): seed of the environment and of sampled actions.
                 Defaults to one no evaluation during training used
                 ([`fresh_seed`][rl_pg.training.loop.fresh_seed]), so the episodes are fresh.
+            action_stats (bool): also report how a discrete policy acted (see
+                [`evaluate`][rl_pg.evaluation.evaluate]). Defaults to ``False``.
 
         Returns:
             The checkpoint's ``frames``, the ``mode`` (``"greedy"`` or ``"sampled"``),
@@ -145,7 +148,7 @@ class Recipe:
                 start = time.perf_counter()
                 result = evaluate(
                     actor, env, episodes=episodes, deterministic=not sample,
-                    flags=self.eval_flags, values=self.eval_values,
+                    flags=self.eval_flags, values=self.eval_values, action_stats=action_stats,
                 )  # fmt: skip
                 seconds = time.perf_counter() - start
             finally:
