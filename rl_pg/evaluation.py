@@ -336,7 +336,8 @@ class EpisodeWorkers:
         return self._specs[name]
 
     def set_seed(self, seed: int | None) -> int | None:
-        """Seeds every environment before each evaluation: process ``i`` with ``seed + i``."""
+        """Seeds every environment, and the actions sampled beside it, before each
+        evaluation: process ``i`` with ``seed + i``."""
         self._seed = seed
         return seed
 
@@ -421,8 +422,9 @@ def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
         while (message := pipe.recv()) is not None:
             policy, seed, wanted = message
             try:
-                if seed is not None:
+                if seed is not None:  # the environment, and the sampled actions
                     env.set_seed(seed)
+                    torch.manual_seed(seed)
                 pipe.send(("done", _episodes(policy, env, wanted)))
             except Exception:
                 pipe.send(("error", traceback.format_exc()))

@@ -277,3 +277,22 @@ def test_action_stats_of_a_sampling_policy_and_of_a_policy_without_logits():
     assert "action_shares" not in plain
     with pytest.raises(TypeError, match="action_stats must be True or False"):
         evaluate(RandomPolicy(env.action_spec), env, episodes=4, action_stats=1)
+
+
+def test_episode_workers_repeat_a_sampled_evaluation_from_its_seed():
+    from functools import partial
+
+    env = EpisodeWorkers([partial(GridWorldEnv, max_steps=30)] * 2)
+    policy = _fixed_actor(16, [0.0, 0.0, 0.0, 0.0])  # uniform: every step is a draw
+    try:
+        results = []
+        for _ in range(2):  # the same processes, their random streams moved on
+            env.set_seed(7)
+            results.append(evaluate(policy, env, episodes=20, deterministic=False,
+                                    action_stats=True))  # fmt: skip
+        env.set_seed(8)
+        other = evaluate(policy, env, episodes=20, deterministic=False, action_stats=True)
+    finally:
+        env.close()
+    assert results[0] == results[1]
+    assert other["action_shares"] != results[0]["action_shares"]
