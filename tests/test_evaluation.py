@@ -296,3 +296,23 @@ def test_episode_workers_repeat_a_sampled_evaluation_from_its_seed():
         env.close()
     assert results[0] == results[1]
     assert other["action_shares"] != results[0]["action_shares"]
+
+
+def test_action_stats_read_one_hot_actions():
+    from torchrl.envs import GymEnv
+    from torchrl.modules import OneHotCategorical
+
+    env = GymEnv("CartPole-v1", categorical_action_encoding=False)  # one-hot actions
+    linear = torch.nn.Linear(4, 2)
+    with torch.no_grad():
+        linear.weight.zero_()
+        linear.bias.copy_(torch.tensor([0.0, 3.0]))
+    actor = ProbabilisticActor(
+        TensorDictModule(linear, ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=OneHotCategorical,
+        spec=env.action_spec,
+    )
+    out = evaluate(actor, env, episodes=2, action_stats=True)  # always pushes right
+    assert out["action_shares"] == [0.0, 1.0]
+    assert out["action_switch_rate"] == 0.0 and out["greedy_action_rate"] == 1.0
