@@ -185,9 +185,14 @@ def _describe_actions(stats: dict[str, torch.Tensor]) -> dict[str, Any]:
     }
 
 
-def _action_steps(tensordict: TensorDictBase, n: int, steps: int) -> dict | None:
-    """Per step of an ``[n, steps]`` rollout: the discrete action's index, the policy's
-    entropy, and whether the action was its most probable; None without logits."""
+def _action_steps(
+    tensordict: TensorDictBase, n: int, steps: int, previous: torch.Tensor
+) -> tuple[dict[str, torch.Tensor], torch.Tensor] | None:
+    """What each step of an ``[n, steps]`` rollout adds to ``evaluate``'s action
+    statistics (a one-hot of the discrete action; whether it differs from the one before
+    in its episode; whether it is the policy's most probable; the policy's entropy), and
+    each environment's last action. ``previous`` holds each environment's action before
+    the rollout (-1: its episode starts with it). None for a policy without logits."""
     logits, action = tensordict.get("logits", None), tensordict.get("action", None)
     if logits is None or action is None or logits.numel() != n * steps * logits.shape[-1]:
         return None
@@ -200,27 +205,16 @@ def _action_steps(tensordict: TensorDictBase, n: int, steps: int) -> dict | None
         index = action[..., 0].long()
     else:
         return None
-    return {
-        "index": index,
-        "entropy": torch.distributions.Categorical(logits=logits).entropy(),
-        "greedy": index == logits.argmax(-1),
-        "num_actions": num_actions,
+    done = tensordict.get(("next", "done")).reshape(n, steps, -1).any(-1)
+    starts = torch.cat([torch.zeros(n, 1, dtype=torch.bool), done[:, :-1]], dim=1)
+    before = torch.cat([previous[:, None], index[:, :-1]], dim=1).masked_fill(starts, -1)
+    per_step = {
+        "action_counts": torch.nn.functional.one_hot(index, num_actions).float(),
+        "action_switches": ((before >= 0) & (before != index)).float(),
+        "action_greedy": (index == logits.argmax(-1)).float(),
+        "action_entropy": torch.distributions.Categorical(logits=logits).entropy(),
     }
-
-
-def _episode_actions(rollout: TensorDictBase, length: int) -> dict[str, torch.Tensor]:
-    """The action tallies of the first ``length`` steps of a ``[T]`` rollout, as one
-    episode (empty when the policy writes no logits)."""
-    acts = _action_steps(rollout[:length], 1, length) if length else None
-    if acts is None:
-        return {}
-    index = acts["index"][0]
-    return {
-        "action_counts": torch.bincount(index, minlength=acts["num_actions"])[None].float(),
-        "action_switches": (index[1:] != index[:-1]).sum()[None].float(),
-        "action_greedy": acts["greedy"][0].sum()[None].float(),
-        "action_entropy": acts["entropy"][0].sum()[None],
-    }
+    return per_step, index[:, -1]
 
 
 def episode_shares(episodes: int, n: int) -> list[int]:
@@ -265,8 +259,12 @@ def _episodes(
                 max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast
             )
             episode = first_episodes(rollout, flags, values)
-            if action_stats:
-                episode.update(_episode_actions(rollout.reshape(-1), int(episode["length"][0])))
+            if action_stats:  # the first episode's steps, tallied
+                length = int(episode["length"][0])
+                steps = rollout.reshape(-1)[:length]
+                acts = _action_steps(steps, 1, length, torch.tensor([-1])) if length else None
+                if acts is not None:
+                    episode.update({key: value.sum(1) for key, value in acts[0].items()})
             for key, value in episode.items():
                 results.setdefault(key, []).append(value)
         return {key: torch.cat(value) for key, value in results.items()}
@@ -466,7 +464,7 @@ def _side_by_side(
     played = torch.zeros(n, dtype=torch.long)
     running = {"return": torch.zeros(n), "length": torch.zeros(n, dtype=torch.long)}
     episodes_out: dict[str, list[torch.Tensor]] = {"finished": []}
-    previous = torch.full((n,), -1, dtype=torch.long)  # each episode's last action
+    previous = torch.full((n,), -1, dtype=torch.long)  # each episode's last action so far
     tensordict = env.reset()
     while (played < share).any():
         steps = min(chunk, max_steps - int(running["length"].max()))
@@ -493,11 +491,10 @@ def _side_by_side(
                 running.setdefault(key, torch.zeros(n))
         seen_flags = [flag for flag in flags if flag in per_step]
         seen_values = [key for key in values if key in per_step]
-        acts = _action_steps(part, n, steps) if action_stats else None
-        if acts is not None and "action_counts" not in running:
-            running["action_counts"] = torch.zeros(n, acts["num_actions"])
-            for key in ("action_switches", "action_greedy", "action_entropy"):
-                running[key] = torch.zeros(n)
+        acts = _action_steps(part, n, steps, previous) if action_stats else None
+        if acts is not None:
+            for key, value in acts[0].items():
+                running.setdefault(key, torch.zeros(n, *value.shape[2:]))
         for t in range(steps):
             running["return"] += per_step["return"][:, t]
             running["length"] += 1
@@ -506,12 +503,8 @@ def _side_by_side(
             for key in seen_values:
                 running[key] = per_step[key][:, t].clone()
             if acts is not None:
-                index = acts["index"][:, t]
-                running["action_counts"][torch.arange(n), index] += 1
-                running["action_switches"] += ((previous >= 0) & (previous != index)).float()
-                running["action_greedy"] += acts["greedy"][:, t].float()
-                running["action_entropy"] += acts["entropy"][:, t]
-                previous = index.clone()
+                for key, value in acts[0].items():
+                    running[key] += value[:, t]
             done = per_step["done"][:, t]
             ended = done | (running["length"] >= max_steps)
             if ended.any():
@@ -521,7 +514,8 @@ def _side_by_side(
                     value[ended] = 0
                 episodes_out["finished"].append(done[counted])
                 played += ended.long()
-                previous[ended] = -1
+        if acts is not None:  # `ended`: at the chunk's last step
+            previous = acts[1].masked_fill(ended, -1)
         cut = (running["length"] == 0) & ~per_step["done"][:, -1]  # at max_steps, not done
         tensordict = step_mdp(part[..., -1])
         if cut.any():  # end those episodes as a time limit would, so they are reset
