@@ -221,6 +221,28 @@ class TestTrain:
         assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
         assert _logged(run, "train/lr") == [0.02] * 6  # its own, constant, schedule
 
+    def test_entropy_schedule_into_a_penalty(self, tmp_path):
+        # entropy_coeff_end < 0: the bonus falls linearly through 0 into a penalty, and
+        # the entropy term the update minimised changes sign with it.
+        cfg = _cfg(
+            tmp_path,
+            batch_mode="segments",
+            segment_length=10,
+            total_frames=480,
+            total_updates=None,
+            entropy_coeff=0.05,
+            entropy_schedule="linear",
+            entropy_coeff_end=-0.1,
+        )
+        _train(cfg)
+        run = tmp_path / "run"
+        coeff = _logged(run, "train/entropy_coeff")
+        assert coeff == pytest.approx([0.05 - 0.15 * k / 6 for k in range(6)])
+        assert coeff[0] > 0 > coeff[-1]
+        entropy = _logged(run, "train/entropy")
+        expected = [-c * h for c, h in zip(coeff, entropy, strict=True)]
+        assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
+
     @pytest.mark.parametrize("returns", ["reward_to_go", "gae"])
     def test_reward_scale_is_seen_by_the_loss_only(self, tmp_path, returns):
         # One update with reward_scale=0.1 is the update on rewards multiplied by 0.1 (the
@@ -330,11 +352,25 @@ class TestTrain:
             {},
             {"lr_schedule": "linear", "total_frames": 1500},
             {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
+            {
+                "entropy_schedule": "linear",
+                "entropy_coeff": 0.05,
+                "entropy_coeff_end": -0.05,
+                "total_frames": 1500,
+            },
             {"value_norm": "popart"},
             {"policy_ema": 0.9},
             {"confirm_episodes": 3, "eval_interval": 100},
         ],
-        ids=["constant", "linear", "linear_entropy", "popart", "policy_ema", "confirm"],
+        ids=[
+            "constant",
+            "linear",
+            "linear_entropy",
+            "entropy_penalty",
+            "popart",
+            "policy_ema",
+            "confirm",
+        ],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
         straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=6, **schedule)
@@ -458,6 +494,12 @@ class TestTrain:
             ({"returns": "gae", "baseline": "running_mean"}, "--returns gae estimates"),
             ({"gae_lambda": 1.5}, r"gae_lambda \(--gae-lambda\) must be a finite number"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),
+            ({"entropy_coeff": 0.01, "entropy_coeff_end": -0.1}, "add --entropy-schedule linear"),
+            (
+                {"entropy_schedule": "linear", "entropy_coeff_end": -0.1},
+                "a positive --entropy-coeff",
+            ),
+            ({"entropy_coeff_end": float("nan")}, "entropy_coeff_end .* finite number"),
         ],
     )
     def test_bad_configuration(self, tmp_path, override, message):

@@ -113,8 +113,12 @@ class TrainConfig:
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
     entropy_schedule: Literal["constant", "linear"] = "constant"
-    """'linear': decay the entropy bonus from entropy_coeff at frame 0 to 0 at
-    total_frames, as lr_schedule does the learning rate."""
+    """'linear': move the entropy bonus from entropy_coeff at frame 0 to
+    entropy_coeff_end at total_frames, as lr_schedule decays the learning rate."""
+    entropy_coeff_end: float = 0.0
+    """Where the 'linear' entropy schedule ends. Below 0 the bonus turns into a penalty
+    on entropy once it crosses 0, which drives a policy that stays stochastic towards
+    the deterministic one a greedy evaluation plays (needs entropy_coeff > 0)."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
@@ -272,6 +276,14 @@ class TrainConfig:
             raise ValueError(
                 f"--returns gae estimates advantages with a critic, but --baseline is "
                 f"{self.baseline!r}: use --baseline critic, or --returns reward_to_go."
+            )
+        if self.entropy_coeff_end != 0 and (
+            self.entropy_schedule != "linear" or self.entropy_coeff == 0
+        ):
+            raise ValueError(
+                f"--entropy-coeff-end {self.entropy_coeff_end} is where the linear entropy "
+                "schedule ends: add --entropy-schedule linear and a positive --entropy-coeff "
+                "(the bonus it starts from), or leave --entropy-coeff-end at 0."
             )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(

@@ -86,17 +86,22 @@ def learning_rate(cfg: TrainConfig, frames: int) -> float:
 
 
 def entropy_coeff(cfg: TrainConfig, frames: int) -> float:
-    """The entropy bonus of the update that follows ``frames`` environment steps."""
-    return _scheduled(cfg.entropy_coeff, cfg.entropy_schedule, frames, cfg.total_frames)
+    """The entropy bonus of the update that follows ``frames`` environment steps
+    (negative: a penalty, past the zero of a schedule to ``entropy_coeff_end < 0``)."""
+    return _scheduled(
+        cfg.entropy_coeff, cfg.entropy_schedule, frames, cfg.total_frames, end=cfg.entropy_coeff_end
+    )
 
 
-def _scheduled(value: float, schedule: str, frames: int, total_frames: int) -> float:
-    """``value`` at ``frames``: constant, or decayed linearly to 0 at ``total_frames``.
+def _scheduled(
+    value: float, schedule: str, frames: int, total_frames: int, *, end: float = 0.0
+) -> float:
+    """``value`` at ``frames``: constant, or moved linearly to ``end`` at ``total_frames``.
 
     Computed from the frames seen so far, so a resumed run continues the same schedule.
     """
     if schedule == "linear":
-        return value * max(0.0, 1.0 - frames / total_frames)
+        return end + (value - end) * max(0.0, 1.0 - frames / total_frames)
     return value
 
 
