@@ -201,7 +201,10 @@ class TestTrain:
         assert _logged(tmp_path / "constant", "train/lr") == [0.02] * 6
         assert constant["eval_mean_return"] is not None
 
-    def test_linear_entropy_schedule(self, tmp_path):
+    @pytest.mark.parametrize("end", [0.0, -0.1], ids=["to_zero", "into_a_penalty"])
+    def test_linear_entropy_schedule(self, tmp_path, end):
+        # From entropy_coeff to entropy_coeff_end; below 0 the bonus falls through 0
+        # into a penalty.
         cfg = _cfg(
             tmp_path,
             batch_mode="segments",
@@ -210,38 +213,20 @@ class TestTrain:
             total_updates=None,
             entropy_coeff=0.05,
             entropy_schedule="linear",
+            entropy_coeff_end=end,
         )
         _train(cfg)
         run = tmp_path / "run"
         coeff = _logged(run, "train/entropy_coeff")
-        assert coeff == pytest.approx([0.05 * (1 - k / 6) for k in range(6)])
-        # The entropy term the update minimised is the decayed bonus times the entropy.
+        assert coeff == pytest.approx([0.05 + (end - 0.05) * k / 6 for k in range(6)])
+        # The entropy term the update minimised is the scheduled bonus times the entropy
+        # (with the penalty's sign where it is one).
         entropy = _logged(run, "train/entropy")
         expected = [-c * h for c, h in zip(coeff, entropy, strict=True)]
         assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
         assert _logged(run, "train/lr") == [0.02] * 6  # its own, constant, schedule
-
-    def test_entropy_schedule_into_a_penalty(self, tmp_path):
-        # entropy_coeff_end < 0: the bonus falls linearly through 0 into a penalty, and
-        # the entropy term the update minimised changes sign with it.
-        cfg = _cfg(
-            tmp_path,
-            batch_mode="segments",
-            segment_length=10,
-            total_frames=480,
-            total_updates=None,
-            entropy_coeff=0.05,
-            entropy_schedule="linear",
-            entropy_coeff_end=-0.1,
-        )
-        _train(cfg)
-        run = tmp_path / "run"
-        coeff = _logged(run, "train/entropy_coeff")
-        assert coeff == pytest.approx([0.05 - 0.15 * k / 6 for k in range(6)])
-        assert coeff[0] > 0 > coeff[-1]
-        entropy = _logged(run, "train/entropy")
-        expected = [-c * h for c, h in zip(coeff, entropy, strict=True)]
-        assert _logged(run, "loss/entropy") == pytest.approx(expected, rel=1e-5)
+        if end < 0:
+            assert coeff[0] > 0 > coeff[-1]
 
     @pytest.mark.parametrize("returns", ["reward_to_go", "gae"])
     def test_reward_scale_is_seen_by_the_loss_only(self, tmp_path, returns):
