@@ -55,7 +55,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
       ``"ema"`` (rate ``baseline_rate``) or ``"critic"`` (the estimator's
       ``advantage``, TorchRL's behaviour). Its state is a buffer in ``state_dict``.
     * ``entropy_coeff`` adds ``loss_entropy`` `= −β H(π(·|s))` and
-      a detached ``entropy``.
+      a detached ``entropy``. The attribute may be reassigned between updates, as a
+      schedule does; a negative value there penalises entropy.
     * ``normalize_advantage`` standardises `Ψ` over the batch.
     * ``value_norm`` (a TorchRL ``ValueNorm``, as ``MAPPOLoss`` takes) makes the
       critic regress on standardised targets; a [`PopArt`][rl_pg.models.PopArt]
