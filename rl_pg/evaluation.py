@@ -206,8 +206,9 @@ def _action_steps(
     else:
         return None
     done = tensordict.get(("next", "done")).reshape(n, steps, -1).any(-1)
-    starts = torch.cat([torch.zeros(n, 1, dtype=torch.bool), done[:, :-1]], dim=1)
-    before = torch.cat([previous[:, None], index[:, :-1]], dim=1).masked_fill(starts, -1)
+    starts = torch.cat([torch.zeros_like(done[:, :1]), done[:, :-1]], dim=1)
+    before = torch.cat([previous.to(index.device)[:, None], index[:, :-1]], dim=1)
+    before = before.masked_fill(starts, -1)
     per_step = {
         "action_counts": torch.nn.functional.one_hot(index, num_actions).float(),
         "action_switches": ((before >= 0) & (before != index)).float(),
