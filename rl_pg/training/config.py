@@ -283,7 +283,7 @@ class TrainConfig:
             raise ValueError(
                 f"--entropy-coeff-end {self.entropy_coeff_end} is where the linear entropy "
                 "schedule ends: add --entropy-schedule linear and a positive --entropy-coeff "
-                "(the bonus it starts from), or leave --entropy-coeff-end at 0."
+                "(the bonus it starts from), or pass --entropy-coeff-end 0."
             )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(
