@@ -114,6 +114,13 @@ def test_report_tabulates_runs_with_their_best_checkpoints_evaluations(tmp_path,
     assert rows[0][-2:] == [greedy, "— |"]  # no sampled evaluation yet
     assert rows[1][-2:] == ["—", "— |"]
     assert figure.read_bytes()[:4] == b"\x89PNG"
+    # A result on another of a recipe's test sets (`--on`) does not describe best.pt.
+    with open(tmp_path / "seed0" / "evaluations.jsonl", "a") as file:
+        file.write(json.dumps({**evaluated, "on": "training", "mean_return": -1.0}) + "\n")
+    status, out, err = in_process("report", runs[0], capsys=capsys)
+    assert status == 0 and greedy in out, err
+    status, _, err = in_process("evaluate", runs[0], "--on", "training", capsys=capsys)
+    assert status == 1 and "'gridworld' has no test set 'training'" in err
 
     status, _, err = in_process("report", runs[0], "--plot", str(figure), "--metric", "eval/nope",
                                 capsys=capsys)  # fmt: skip

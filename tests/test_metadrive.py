@@ -19,6 +19,7 @@ from PIL import Image
 from rl_pg.envs import metadrive as md
 from rl_pg.recipes import cli, evaluate, load, play
 from rl_pg.training import read_run
+from rl_pg.training.loop import evaluation_seed
 
 needs_metadrive = pytest.mark.skipif(
     importlib.util.find_spec("metadrive") is None,
@@ -251,6 +252,15 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
     assert counts and all(count == summary["frames"] for count in counts)
     result = evaluate.main(evaluate.Args(run=run, episodes=1))
     assert 0.0 <= result["mean_route_completion"] <= 1.0 and "crash_rate" in result
+    assert "on" not in result
+    on_training = evaluate.main(evaluate.Args(run=run, episodes=1, on="training"))
+    assert on_training["on"] == "training" and 0.0 <= on_training["mean_route_completion"] <= 1.0
+    # On the selection scenarios, with the training's seed: the run's last evaluation.
+    again = evaluate.main(
+        evaluate.Args(run=run, checkpoint="last", episodes=2, seed=evaluation_seed(0),
+                      on="selection")
+    )  # fmt: skip
+    assert again["mean_return"] == pytest.approx(summary["eval_mean_return"])
     assert BaseEngine.singleton is None
     gif = tmp_path / "drive.gif"
     returns = play.main(play.Args(run=run, episodes=1, gif=gif))

@@ -173,6 +173,15 @@ def test_evaluate_replays_the_runs_last_evaluation_and_defaults_to_fresh_episode
     assert records == [again, fresh]
 
 
+def test_evaluate_on_names_one_of_the_recipes_test_sets():
+    # Checked before any environment is built, so no simulator is needed here.
+    with pytest.raises(ValueError, match=r"'cartpole' has no test set 'training'.*leave --on"):
+        cartpole.test_env(cartpole.config(), on="training")
+    metadrive = load("metadrive")
+    with pytest.raises(ValueError, match=r"no test set 'train': choose one of \['selection', "):
+        metadrive.test_env(metadrive.config(), on="train")
+
+
 def test_training_evaluate_and_play_run_on_the_runs_threads_then_restore_them(
     tmp_path, monkeypatch
 ):

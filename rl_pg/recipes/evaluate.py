@@ -4,6 +4,7 @@ rl-pg evaluate runs/lunarlander-seed0                 # best checkpoint, 100 gre
 rl-pg evaluate runs/lunarlander-seed0 --sample        # by sampling
 rl-pg evaluate runs/metadrive-seed0 --checkpoint last --episodes 20
 rl-pg evaluate runs/metadrive-seed0 --action-stats    # how the policy acts, too
+rl-pg evaluate runs/metadrive-seed0 --on training     # on scenarios it trained on
 
 The recipe's test environment (its evaluation environment, on fresh seeds, unless the
 recipe keeps scenarios apart for scoring, as MetaDrive's does), with its metrics (flag
@@ -48,6 +49,9 @@ class Args:
     """Also report how a discrete policy acted: the share of steps of each action, how
     often the action changes from one step to the next, how often it is the policy's
     most probable one, and the policy's mean entropy."""
+    on: str | None = None
+    """Play on another set of the recipe's environments instead of its test set (MetaDrive:
+    ``training`` or ``selection`` scenarios, to compare with the held-out ones)."""
 
 
 def main(args: Args) -> dict[str, Any]:
@@ -56,7 +60,7 @@ def main(args: Args) -> dict[str, Any]:
     recipe = recipe_of(saved, args.run)
     result = recipe.evaluate_checkpoint(
         saved, episodes=args.episodes, sample=args.sample, seed=args.seed,
-        action_stats=args.action_stats,
+        action_stats=args.action_stats, on=args.on,
     )  # fmt: skip
     record = {"checkpoint": args.checkpoint, **result}
     print(_describe(record))
@@ -68,9 +72,10 @@ def main(args: Args) -> dict[str, Any]:
 
 def _describe(record: dict[str, Any]) -> str:
     frames = "" if record["frames"] is None else f" at {record['frames']:,} frames"
+    on = f", on {record['on']}" if "on" in record else ""
     head = (
         f"{record['checkpoint']} checkpoint{frames}, {record['mode']}, "
-        f"{record['episodes']} episodes (seed {record['seed']}): "
+        f"{record['episodes']} episodes (seed {record['seed']}{on}): "
         f"return {record['mean_return']:.2f} ± {record['std_return']:.2f}, "
         f"length {record['mean_length']:.1f}"
     )

@@ -9,6 +9,7 @@ apart from both. MetaDrive runs offline and headless (its asset download is skip
     pip install -c constraints.txt "rl_pg[metadrive]"    # Python < 3.12
     rl-pg train metadrive --run-dir runs/metadrive
     rl-pg evaluate runs/metadrive                        # the best checkpoint, held out
+    rl-pg evaluate runs/metadrive --on training          # ... on training scenarios
     rl-pg train metadrive --references                   # random and full-throttle drivers
 """
 
@@ -105,6 +106,13 @@ def make_test_env(cfg: Config) -> EpisodeWorkers:
     return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon, workers=cfg.workers)
 
 
+def make_training_test_env(cfg: Config) -> EpisodeWorkers:
+    """The training scenarios in order, split among ``cfg.workers`` processes, as the
+    other sets (100 episodes play 100 training scenarios, consecutive within each
+    worker's part, from where the evaluation's seed starts them)."""
+    return _in_order(cfg.env_id, cfg.actions, cfg.horizon, workers=cfg.workers)
+
+
 def _in_order(
     env_id: str, actions: str | None, horizon: int, *, workers: int = 1
 ) -> EpisodeWorkers:
@@ -177,6 +185,7 @@ RECIPE = Recipe(
     make_models=make_models,
     make_eval_env=make_eval_env,
     make_test_env=make_test_env,
+    test_sets={"training": make_training_test_env, "selection": make_eval_env},
     eval_flags=md.METADRIVE_FLAGS,
     eval_values=("route_completion",),
     commands={"references": references},

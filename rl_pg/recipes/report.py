@@ -56,8 +56,13 @@ def read_report(run_dir: Path) -> dict[str, Any]:
         for line in evaluations.read_text().splitlines():
             record = json.loads(line)
             # best.pt moves on when a resumed run evaluates better: only results of the
-            # checkpoint that is best now describe it.
-            if record["checkpoint"] == "best" and record["frames"] == report["best_at_frames"]:
+            # checkpoint that is best now, on the recipe's test set (not `--on` another
+            # one), describe it.
+            if (
+                record["checkpoint"] == "best"
+                and record["frames"] == report["best_at_frames"]
+                and "on" not in record
+            ):
                 report[record["mode"]] = record
     return report
 

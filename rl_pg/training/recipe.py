@@ -61,6 +61,10 @@ class Recipe:
             from the one that picked the checkpoint (a fixed set of levels, say:
             scored on those it was chosen on, the best checkpoint looks better than it
             is). Defaults to ``make_eval_env``, which fresh seeds then keep apart.
+        test_sets (dict, optional): ``{name: cfg -> EnvBase or EpisodeWorkers}``, other
+            environments ``rl-pg evaluate --on NAME`` can score an agent on (MetaDrive:
+            its training and selection scenarios, to compare with the held-out ones).
+            Defaults to none.
         eval_flags (sequence of str): boolean entries evaluations report as rates
             (``("crashed",)``). Defaults to ``()``.
         eval_values (sequence of str): entries whose value at an episode's end
@@ -80,6 +84,7 @@ class Recipe:
     make_models: Callable[[EnvBase, Any], Models]
     make_eval_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
     make_test_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
+    test_sets: dict[str, Callable[[Any], EnvBase | EpisodeWorkers]] = field(default_factory=dict)
     eval_flags: Sequence[str] = ()
     eval_values: Sequence[str] = ()
     prepare: Callable[[Any], Any] | None = None
@@ -106,10 +111,20 @@ class Recipe:
         """The module that defines the recipe's functions (recorded in its runs)."""
         return self.make_env.__module__
 
-    def test_env(self, cfg: TrainConfig) -> EnvBase | EpisodeWorkers:
-        """The environment that scores a trained agent (see ``make_test_env``)."""
-        make = self.make_test_env or self.make_eval_env or self.make_env
-        return make(cfg)
+    def test_env(self, cfg: TrainConfig, on: str | None = None) -> EnvBase | EpisodeWorkers:
+        """The environment that scores a trained agent (see ``make_test_env``), or with
+        ``on``, the one of ``test_sets`` of that name."""
+        if on is None:
+            make = self.make_test_env or self.make_eval_env or self.make_env
+            return make(cfg)
+        if on not in self.test_sets:
+            choices = (
+                f"choose one of {sorted(self.test_sets)}"
+                if self.test_sets
+                else "it scores agents on its test environment only: leave --on out"
+            )
+            raise ValueError(f"Recipe {self.name!r} has no test set {on!r}: {choices}.")
+        return self.test_sets[on](cfg)
 
     def evaluate_checkpoint(
         self,
@@ -119,6 +134,7 @@ class Recipe:
         sample: bool = False,
         seed: int | None = None,
         action_stats: bool = False,
+        on: str | None = None,
     ) -> dict[str, Any]:
         """Plays a checkpoint of this recipe's (from
         [`read_run`][rl_pg.training.checkpoints.read_run]) on the test environment.
@@ -131,15 +147,17 @@ class Recipe:
                 ([`fresh_seed`][rl_pg.training.loop.fresh_seed]), so the episodes are fresh.
             action_stats (bool): also report how a discrete policy acted (see
                 [`evaluate`][rl_pg.evaluation.evaluate]). Defaults to ``False``.
+            on (str, optional): play on this one of the recipe's ``test_sets`` instead.
 
         Returns:
             The checkpoint's ``frames``, the ``mode`` (``"greedy"`` or ``"sampled"``),
-            ``episodes``, ``seed``, the evaluation's metrics and the ``seconds`` it took.
+            ``episodes``, ``seed`` (and ``on``, if given), the evaluation's metrics and
+            the ``seconds`` it took.
         """
         cfg = self.config.from_stored(saved["config"])
         seed = fresh_seed(cfg.seed) if seed is None else seed
         with torch_threads(cfg.threads):  # as the run's own evaluations played
-            env = self.test_env(cfg)
+            env = self.test_env(cfg, on)
             try:
                 actor, critic = self.make_models(env, cfg)
                 load_models(saved, actor, critic)
@@ -158,6 +176,7 @@ class Recipe:
             "mode": "sampled" if sample else "greedy",
             "episodes": episodes,
             "seed": seed,
+            **({} if on is None else {"on": on}),
             **result,
             "seconds": seconds,
         }
