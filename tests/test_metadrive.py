@@ -219,6 +219,26 @@ def test_torchrl_env_tutorial_action_table_reaches_metadrive_as_fed():
         env.close()
 
 
+@needs_metadrive
+@pytest.mark.parametrize(
+    ("flags", "shapes"),
+    [
+        ({}, [(259, 128), (128, 9)]),  # the tutorial's network
+        ({"layers": 2, "hidden": 16}, [(259, 16), (16, 16), (16, 9)]),
+    ],
+)
+def test_network_has_the_configured_hidden_layers(flags, shapes):
+    env = md.metadrive_env(md.HELD_OUT, horizon=5)
+    try:
+        actor, critic = recipe.make_models(env, recipe.config(**flags))
+    finally:
+        env.close()
+    for module, out in ((actor, 9), (critic, 1)):
+        linears = [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
+        *trunk, (width, _) = shapes
+        assert [(m.in_features, m.out_features) for m in linears] == [*trunk, (width, out)]
+
+
 def test_missing_metadrive_says_how_to_install(monkeypatch, tmp_path):
     hide_module(monkeypatch, "metadrive")
     install = r'pip install -c constraints.txt "rl_pg\[metadrive\]"'

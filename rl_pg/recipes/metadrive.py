@@ -78,7 +78,9 @@ class Config(
     horizon: Count = md.DEFAULT_HORIZON
     """Time limit of an episode, in steps of 0.1 s."""
     hidden: Count = 128
-    """Width of the hidden layer (Linear(259, 128)-ReLU-Linear(128, 9))."""
+    """Width of the hidden layers (Linear(259, 128)-ReLU-Linear(128, 9))."""
+    layers: Count = 1
+    """Number of hidden layers of the actor and of the critic."""
     normalize_observations: bool = True
     """Standardise each observation feature with running statistics before the
     network (the features that steer, heading and lane position, vary by about 0.04)."""
@@ -130,8 +132,9 @@ def _in_order(
 
 
 def make_models(env: EnvBase, cfg: Config):
+    hidden = (cfg.hidden,) * cfg.layers
     return mlp_actor_critic(
-        env, hidden=(cfg.hidden,), activation=nn.ReLU, normalize=cfg.normalize_observations
+        env, hidden=hidden, activation=nn.ReLU, normalize=cfg.normalize_observations
     )
 
 
