@@ -11,6 +11,7 @@ from conftest import assert_same_run
 from PIL import Image
 
 from rl_pg.recipes import evaluate, load, play
+from rl_pg.training import load_models, read_run
 from rl_pg.training.loop import evaluation_seed, fresh_seed
 
 bandit, cartpole, gridworld, highway, lunarlander, pendulum, pong = (
@@ -171,6 +172,38 @@ def test_evaluate_replays_the_runs_last_evaluation_and_defaults_to_fresh_episode
         json.loads(line) for line in (tmp_path / evaluate.EVALUATIONS).read_text().splitlines()
     ]
     assert records == [again, fresh]
+
+
+def test_evaluate_plays_a_policy_average_or_on_request_the_trained_weights(
+    tmp_path, capsys, monkeypatch
+):
+    import rl_pg.training.recipe as recipe_module
+
+    played = []  # the actor's weights as evaluate_checkpoint loaded them
+
+    def spy(saved, actor, critic=None, **kwargs):
+        load_models(saved, actor, critic, **kwargs)
+        played.append({k: v.clone() for k, v in actor.state_dict().items()})
+
+    monkeypatch.setattr(recipe_module, "load_models", spy)
+    cfg = cartpole.config(
+        run_dir=tmp_path, total_frames=600, policy_ema=0.5, **{**TINY, "eval_episodes": 4}
+    )
+    summary = cartpole.train(cfg)
+    args = {"run": tmp_path, "checkpoint": "last", "episodes": 4, "seed": evaluation_seed(0)}
+    average = evaluate.main(evaluate.Args(**args))
+    assert average["weights"] == "average"  # what the run's evaluations played
+    assert average["mean_return"] == pytest.approx(summary["eval_mean_return"])
+    trained = evaluate.main(evaluate.Args(**args, trained_weights=True))
+    assert trained["weights"] == "trained" and "trained weights" in capsys.readouterr().out
+    last = read_run(tmp_path, which="last")
+    for weights, source, prefix in (
+        (played[0], last["policy_average"], "module."),
+        (played[1], last["loss"], "actor_network."),
+    ):
+        for key, value in weights.items():
+            assert torch.equal(value, source[prefix + key]), key
+    assert not all(torch.equal(played[0][k], played[1][k]) for k in played[0])
 
 
 def test_evaluate_on_names_one_of_the_recipes_test_sets():

@@ -936,6 +936,12 @@ class TestBestCheckpoint:
             torch.equal(value, last["loss"]["actor_network." + key])
             for key, value in actor.state_dict().items()
         )  # the average is not the trained weights
+        load_models(last, actor, average=False)  # ... which are one argument away
+        for key, value in actor.state_dict().items():
+            assert torch.equal(value, last["loss"]["actor_network." + key]), key
+        plain = {k: v for k, v in last.items() if k != "policy_average"}
+        with pytest.raises(CheckpointError, match=r"keeps no average.*leave average=False"):
+            load_models(plain, actor, average=False)
         # Evaluations played the average: best.pt's plays back its evaluation's return.
         best = read_run(tmp_path / "run", which="best")
         load_models(best, actor)

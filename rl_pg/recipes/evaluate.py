@@ -5,6 +5,7 @@ rl-pg evaluate runs/lunarlander-seed0 --sample        # by sampling
 rl-pg evaluate runs/metadrive-seed0 --checkpoint last --episodes 20
 rl-pg evaluate runs/metadrive-seed0 --action-stats    # how the policy acts, too
 rl-pg evaluate runs/metadrive-seed0 --on training     # on scenarios it trained on
+rl-pg evaluate runs/md-ema --trained-weights           # a --policy-ema run's own weights
 
 The recipe's test environment (its evaluation environment, on fresh seeds, unless the
 recipe keeps scenarios apart for scoring, as MetaDrive's does), with its metrics (flag
@@ -52,6 +53,9 @@ class Args:
     on: str | None = None
     """Play on another set of the recipe's environments instead of its test set (MetaDrive:
     ``training`` or ``selection`` scenarios, to compare with the held-out ones)."""
+    trained_weights: bool = False
+    """Of a run trained with --policy-ema: play the trained weights instead of their
+    average (which the run evaluated, kept as best.pt and deploys), to compare the two."""
 
 
 def main(args: Args) -> dict[str, Any]:
@@ -60,7 +64,7 @@ def main(args: Args) -> dict[str, Any]:
     recipe = recipe_of(saved, args.run)
     result = recipe.evaluate_checkpoint(
         saved, episodes=args.episodes, sample=args.sample, seed=args.seed,
-        action_stats=args.action_stats, on=args.on,
+        action_stats=args.action_stats, on=args.on, trained_weights=args.trained_weights,
     )  # fmt: skip
     record = {"checkpoint": args.checkpoint, **result}
     print(_describe(record))
@@ -73,6 +77,7 @@ def main(args: Args) -> dict[str, Any]:
 def _describe(record: dict[str, Any]) -> str:
     frames = "" if record["frames"] is None else f" at {record['frames']:,} frames"
     on = f", on {record['on']}" if "on" in record else ""
+    on += f", {record['weights']} weights" if "weights" in record else ""
     head = (
         f"{record['checkpoint']} checkpoint{frames}, {record['mode']}, "
         f"{record['episodes']} episodes (seed {record['seed']}{on}): "

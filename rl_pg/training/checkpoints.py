@@ -176,7 +176,25 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
     return load_checkpoint(path / files[which])
 
 
-def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | None = None) -> None:
+def check_average(saved: dict[str, Any], average: bool) -> None:
+    """Raises CheckpointError if ``average=False`` asks for the trained weights of a
+    checkpoint that keeps no average (see
+    [`load_models`][rl_pg.training.checkpoints.load_models])."""
+    if not average and "policy_average" not in saved:
+        raise CheckpointError(
+            "This checkpoint keeps no average of the policy's weights (its run trained "
+            "without policy_ema): its trained weights are the ones loaded anyway; "
+            "leave average=False (--trained-weights) out."
+        )
+
+
+def load_models(
+    saved: dict[str, Any],
+    actor: nn.Module,
+    critic: nn.Module | None = None,
+    *,
+    average: bool = True,
+) -> None:
     """Loads a checkpoint's weights into freshly built models.
 
     The actor gets the averaged weights of a run trained with ``policy_ema`` (those its
@@ -186,8 +204,15 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
 
     The checkpoint comes from [`read_run`][rl_pg.training.checkpoints.read_run].
 
+    Keyword Args:
+        average (bool): give the actor the averaged weights where the checkpoint has
+            them; ``False`` gives it the trained ones (which played the training
+            episodes), to compare the two. Defaults to ``True``.
+
     Raises:
-        CheckpointError: the weights do not fit the models.
+        CheckpointError: the weights do not fit the models, or ``average=False`` asks
+            for the trained weights of a checkpoint that keeps no average (its trained
+            weights are the ones loaded anyway).
 
     Examples:
         >>> import torch
@@ -212,10 +237,11 @@ def load_models(saved: dict[str, Any], actor: nn.Module, critic: nn.Module | Non
     def part(source: dict, prefix: str) -> dict:
         return {k.removeprefix(prefix): v for k, v in source.items() if k.startswith(prefix)}
 
-    average = saved.get("policy_average")  # an AveragedModel's: the actor's under "module."
+    check_average(saved, average)
+    averaged = saved.get("policy_average")  # an AveragedModel's: the actor's under "module."
     parts = {
-        "actor": (actor, part(saved["loss"], "actor_network.") if average is None
-                  else part(average, "module.")),
+        "actor": (actor, part(averaged, "module.") if average and averaged is not None
+                  else part(saved["loss"], "actor_network.")),
         "critic": (critic, part(saved["loss"], "critic_network.")),
     }  # fmt: skip
     for name, (module, weights) in parts.items():

@@ -31,7 +31,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EpisodeWorkers, evaluate
-from rl_pg.training.checkpoints import load_models
+from rl_pg.training.checkpoints import check_average, load_models
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.loop import fresh_seed, torch_threads, train
 
@@ -135,6 +135,7 @@ class Recipe:
         seed: int | None = None,
         action_stats: bool = False,
         on: str | None = None,
+        trained_weights: bool = False,
     ) -> dict[str, Any]:
         """Plays a checkpoint of this recipe's (from
         [`read_run`][rl_pg.training.checkpoints.read_run]) on the test environment.
@@ -148,19 +149,26 @@ class Recipe:
             action_stats (bool): also report how a discrete policy acted (see
                 [`evaluate`][rl_pg.evaluation.evaluate]). Defaults to ``False``.
             on (str, optional): play on this one of the recipe's ``test_sets`` instead.
+            trained_weights (bool): of a run trained with ``policy_ema``, play the
+                trained weights rather than their average (see
+                [`load_models`][rl_pg.training.checkpoints.load_models]). Defaults to
+                ``False``.
 
         Returns:
             The checkpoint's ``frames``, the ``mode`` (``"greedy"`` or ``"sampled"``),
-            ``episodes``, ``seed`` (and ``on``, if given), the evaluation's metrics and
-            the ``seconds`` it took.
+            ``episodes``, ``seed`` (and ``on``, if given; ``weights``, ``"average"`` or
+            ``"trained"``, if the checkpoint keeps an average), the evaluation's metrics
+            and the ``seconds`` it took.
         """
         cfg = self.config.from_stored(saved["config"])
+        check_average(saved, not trained_weights)  # before any simulator starts
+        averaged = "policy_average" in saved
         seed = fresh_seed(cfg.seed) if seed is None else seed
         with torch_threads(cfg.threads):  # as the run's own evaluations played
             env = self.test_env(cfg, on)
             try:
                 actor, critic = self.make_models(env, cfg)
-                load_models(saved, actor, critic)
+                load_models(saved, actor, critic, average=not trained_weights)
                 torch.manual_seed(seed)
                 env.set_seed(seed)
                 start = time.perf_counter()
@@ -177,6 +185,7 @@ class Recipe:
             "episodes": episodes,
             "seed": seed,
             **({} if on is None else {"on": on}),
+            **({"weights": "trained" if trained_weights else "average"} if averaged else {}),
             **result,
             "seconds": seconds,
         }
