@@ -204,6 +204,9 @@ def test_evaluate_plays_a_policy_average_or_on_request_the_trained_weights(
         for key, value in weights.items():
             assert torch.equal(value, source[prefix + key]), key
     assert not all(torch.equal(played[0][k], played[1][k]) for k in played[0])
+    file = evaluate.main(evaluate.Args(**{**args, "run": tmp_path / "checkpoint.pt"}))
+    assert file["checkpoint"] == "checkpoint.pt" and file["mean_return"] == average["mean_return"]
+    assert "checkpoint.pt at " in capsys.readouterr().out
 
 
 def test_evaluate_on_names_one_of_the_recipes_test_sets():

@@ -40,7 +40,8 @@ class Args:
     episodes: Count = 100
     """Episodes to evaluate on."""
     checkpoint: Literal["best", "last"] = "best"
-    """Evaluate the best evaluated checkpoint, or the last one."""
+    """Evaluate the best evaluated checkpoint, or the last one, of a run directory (a
+    checkpoint file is evaluated as it is)."""
     sample: bool = False
     """Sample actions from the policy instead of acting greedily."""
     seed: Annotated[int, Range(low=0, high=2**32 - 1)] | None = None
@@ -66,7 +67,8 @@ def main(args: Args) -> dict[str, Any]:
         saved, episodes=args.episodes, sample=args.sample, seed=args.seed,
         action_stats=args.action_stats, on=args.on, trained_weights=args.trained_weights,
     )  # fmt: skip
-    record = {"checkpoint": args.checkpoint, **result}
+    # A checkpoint file is itself the checkpoint: --checkpoint picks within a run directory.
+    record = {"checkpoint": args.checkpoint if args.run.is_dir() else args.run.name, **result}
     print(_describe(record))
     if args.run.is_dir():
         with open(args.run / EVALUATIONS, "a") as file:
@@ -79,7 +81,7 @@ def _describe(record: dict[str, Any]) -> str:
     on = f", on {record['on']}" if "on" in record else ""
     on += f", {record['weights']} weights" if "weights" in record else ""
     head = (
-        f"{record['checkpoint']} checkpoint{frames}, {record['mode']}, "
+        f"{_name(record['checkpoint'])}{frames}, {record['mode']}, "
         f"{record['episodes']} episodes (seed {record['seed']}{on}): "
         f"return {record['mean_return']:.2f} ± {record['std_return']:.2f}, "
         f"length {record['mean_length']:.1f}"
@@ -94,6 +96,10 @@ def _describe(record: dict[str, Any]) -> str:
         shares = " ".join(f"{i}:{share:.1%}" for i, share in enumerate(record["action_shares"]))
         text += f"\n  actions played (index: share of steps): {shares}"
     return text
+
+
+def _name(checkpoint: str) -> str:
+    return f"{checkpoint} checkpoint" if checkpoint in ("best", "last") else checkpoint
 
 
 _BASE = {"mean_return", "mean_length"}
