@@ -201,10 +201,15 @@ class TestTrain:
         assert _logged(tmp_path / "constant", "train/lr") == [0.02] * 6
         assert constant["eval_mean_return"] is not None
 
-    @pytest.mark.parametrize("end", [0.0, -0.1], ids=["to_zero", "into_a_penalty"])
-    def test_linear_entropy_schedule(self, tmp_path, end):
+    @pytest.mark.parametrize(
+        ("end", "start"),
+        [(0.0, 0.0), (-0.1, 0.0), (-0.1, 0.5)],
+        ids=["to_zero", "into_a_penalty", "held_for_half_the_run"],
+    )
+    def test_linear_entropy_schedule(self, tmp_path, end, start):
         # From entropy_coeff to entropy_coeff_end; below 0 the bonus falls through 0
-        # into a penalty.
+        # into a penalty. With a start, it holds at entropy_coeff for that fraction of
+        # total_frames first (here the first 3 of 6 updates), then moves over the rest.
         cfg = _cfg(
             tmp_path,
             batch_mode="segments",
@@ -214,11 +219,14 @@ class TestTrain:
             entropy_coeff=0.05,
             entropy_schedule="linear",
             entropy_coeff_end=end,
+            entropy_schedule_start=start,
         )
         _train(cfg)
         run = tmp_path / "run"
         coeff = _logged(run, "train/entropy_coeff")
-        assert coeff == pytest.approx([0.05 + (end - 0.05) * k / 6 for k in range(6)])
+        held = round(6 * start)
+        expected = [0.05] * held + [0.05 + (end - 0.05) * k / (6 - held) for k in range(6 - held)]
+        assert coeff == pytest.approx(expected)
         # The entropy term the update minimised is the scheduled bonus times the entropy
         # (with the penalty's sign where it is one).
         entropy = _logged(run, "train/entropy")
@@ -343,6 +351,13 @@ class TestTrain:
                 "entropy_coeff_end": -0.05,
                 "total_frames": 1500,
             },
+            {
+                "entropy_schedule": "linear",
+                "entropy_coeff": 0.05,
+                "entropy_coeff_end": -0.05,
+                "entropy_schedule_start": 0.4,
+                "total_frames": 1500,
+            },
             {"value_norm": "popart"},
             {"policy_ema": 0.9},
             {"confirm_episodes": 3, "eval_interval": 100},
@@ -352,6 +367,7 @@ class TestTrain:
             "linear",
             "linear_entropy",
             "entropy_penalty",
+            "late_entropy_penalty",
             "popart",
             "policy_ema",
             "confirm",
@@ -485,6 +501,11 @@ class TestTrain:
                 "a positive --entropy-coeff",
             ),
             ({"entropy_coeff_end": float("nan")}, "entropy_coeff_end .* finite number"),
+            ({"entropy_schedule_start": 0.5}, "starts moving: add --entropy-schedule linear"),
+            (
+                {"entropy_schedule": "linear", "entropy_schedule_start": 1.0},
+                "entropy_schedule_start .* must be",
+            ),
         ],
     )
     def test_bad_configuration(self, tmp_path, override, message):

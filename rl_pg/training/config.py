@@ -119,6 +119,11 @@ class TrainConfig:
     """Where the 'linear' entropy schedule ends. Below 0 the bonus turns into a penalty
     on entropy once it crosses 0, which drives a policy that stays stochastic towards
     the deterministic one a greedy evaluation plays (needs entropy_coeff > 0)."""
+    entropy_schedule_start: Annotated[float, Range(0, 1, high_open=True)] = 0.0
+    """Fraction of total_frames during which the 'linear' entropy schedule holds at
+    entropy_coeff before it starts moving to entropy_coeff_end (0: it moves from frame
+    0). With a penalty at the end, 0.75 lets the policy learn with the bonus for three
+    quarters of the run and then sharpens it towards the deterministic driver."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
@@ -284,6 +289,12 @@ class TrainConfig:
                 f"--entropy-coeff-end {self.entropy_coeff_end} is where the linear entropy "
                 "schedule ends: add --entropy-schedule linear and a positive --entropy-coeff "
                 "(the bonus it starts from), or pass --entropy-coeff-end 0."
+            )
+        if self.entropy_schedule_start != 0 and self.entropy_schedule != "linear":
+            raise ValueError(
+                f"--entropy-schedule-start {self.entropy_schedule_start} is where the linear "
+                "entropy schedule starts moving: add --entropy-schedule linear, or pass "
+                "--entropy-schedule-start 0."
             )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(

@@ -89,19 +89,33 @@ def entropy_coeff(cfg: TrainConfig, frames: int) -> float:
     """The entropy bonus of the update that follows ``frames`` environment steps
     (negative: a penalty, past the zero of a schedule to ``entropy_coeff_end < 0``)."""
     return _scheduled(
-        cfg.entropy_coeff, cfg.entropy_schedule, frames, cfg.total_frames, end=cfg.entropy_coeff_end
+        cfg.entropy_coeff,
+        cfg.entropy_schedule,
+        frames,
+        cfg.total_frames,
+        end=cfg.entropy_coeff_end,
+        start=cfg.entropy_schedule_start,
     )
 
 
 def _scheduled(
-    value: float, schedule: str, frames: int, total_frames: int, *, end: float = 0.0
+    value: float,
+    schedule: str,
+    frames: int,
+    total_frames: int,
+    *,
+    end: float = 0.0,
+    start: float = 0.0,
 ) -> float:
-    """``value`` at ``frames``: constant, or moved linearly to ``end`` at ``total_frames``.
+    """``value`` at ``frames``: constant, or held until the fraction ``start`` of
+    ``total_frames`` and then moved linearly to ``end`` at ``total_frames``.
 
     Computed from the frames seen so far, so a resumed run continues the same schedule.
     """
     if schedule == "linear":
-        return end + (value - end) * max(0.0, 1.0 - frames / total_frames)
+        held = start * total_frames
+        remaining = 1.0 - (frames - held) / (total_frames - held)
+        return end + (value - end) * min(1.0, max(0.0, remaining))
     return value
 
 
