@@ -113,8 +113,9 @@ class TrainConfig:
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
     entropy_schedule: Literal["constant", "linear"] = "constant"
-    """'linear': move the entropy bonus from entropy_coeff at frame 0 to
-    entropy_coeff_end at total_frames, as lr_schedule decays the learning rate."""
+    """'linear': move the entropy bonus from entropy_coeff at frame 0 (or from
+    entropy_schedule_start on) to entropy_coeff_end at total_frames, as lr_schedule
+    decays the learning rate."""
     entropy_coeff_end: float = 0.0
     """Where the 'linear' entropy schedule ends. Below 0 the bonus turns into a penalty
     on entropy once it crosses 0, which drives a policy that stays stochastic towards
