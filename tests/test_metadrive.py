@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -237,6 +238,48 @@ def test_network_has_the_configured_hidden_layers(flags, shapes):
         linears = [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
         *trunk, (width, _) = shapes
         assert [(m.in_features, m.out_features) for m in linears] == [*trunk, (width, out)]
+
+
+@needs_metadrive
+def test_lateral_reward_shapes_the_training_reward_and_no_evaluation():
+    from rl_pg.evaluation import evaluate as score
+
+    plain, lateral = (
+        recipe.config(horizon=40, workers=1, lateral_reward=on) for on in (False, True)
+    )
+    # A driver that steers hard left (action 0) from its lane's centre off the road.
+    env = recipe.make_env(plain)
+    try:
+        actor, _ = recipe.make_models(env, plain)
+    finally:
+        env.close()
+    last = [m for m in actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([100.0] + [0.0] * 8))
+
+    def rewards(env, seed=None):
+        try:
+            if seed is not None:  # random order: seeded for the same scenario
+                env.set_seed(seed)
+            rollout = env.rollout(40, actor, break_when_any_done=True)
+            return rollout["next", "reward"].flatten().double()
+        finally:
+            env.close()
+
+    shaped, default = (rewards(recipe.make_env(cfg), seed=0) for cfg in (lateral, plain))
+    assert len(shaped) == len(default) < 40 and shaped[-1] == default[-1] == -5.0  # off road
+    assert shaped[0].item() == pytest.approx(default[0].item(), rel=1e-2)  # lane's centre
+    assert (shaped - default).abs().max() > 0.05  # progress pays less away from it
+    # The evaluation plays the first held-out scenario, scored by MetaDrive's reward.
+    held_out = partial(md.metadrive_env, md.HELD_OUT, order="sequential", horizon=40)
+    default = rewards(held_out()).sum().item()
+    assert rewards(held_out(config={"use_lateral_reward": True})).sum().item() != default
+    env = recipe.make_test_env(lateral)
+    try:
+        assert score(actor, env, episodes=1)["mean_return"] == pytest.approx(default)
+    finally:
+        env.close()
 
 
 def test_missing_metadrive_says_how_to_install(monkeypatch, tmp_path):

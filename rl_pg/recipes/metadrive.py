@@ -81,6 +81,11 @@ class Config(
     """Width of the hidden layers (Linear(259, 128)-ReLU-Linear(128, 9))."""
     layers: Count = 1
     """Number of hidden layers of the actor and of the critic."""
+    lateral_reward: bool = False
+    """Train on MetaDrive's lane-keeping reward (its ``use_lateral_reward``): progress
+    pays in proportion to how near the car keeps to its lane's centre. Only the
+    training reward changes (its returns, and `rl-pg play` without `--gif`, are the
+    shaped ones); every evaluation scores MetaDrive's default reward."""
     normalize_observations: bool = True
     """Standardise each observation feature with running statistics before the
     network (the features that steer, heading and lane position, vary by about 0.04)."""
@@ -90,12 +95,14 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    """The training scenarios; with ``render``, the held-out ones in order, seen from above."""
+    """The training scenarios, with the training reward; with ``render``, the held-out
+    ones in order, seen from above."""
     if render:  # deployment: held-out scenarios in order
         return md.metadrive_env(
             md.HELD_OUT, actions=cfg.actions, order="sequential", horizon=cfg.horizon, render=True
         )
-    return md.metadrive_env(cfg.env_id, actions=cfg.actions, horizon=cfg.horizon)
+    config = {"use_lateral_reward": True} if cfg.lateral_reward else None
+    return md.metadrive_env(cfg.env_id, actions=cfg.actions, horizon=cfg.horizon, config=config)
 
 
 def make_eval_env(cfg: Config) -> EpisodeWorkers:
