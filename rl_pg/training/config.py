@@ -123,8 +123,8 @@ class TrainConfig:
     entropy_schedule_start: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Fraction of total_frames during which the 'linear' entropy schedule holds at
     entropy_coeff before it starts moving to entropy_coeff_end (0: it moves from frame
-    0). With a penalty at the end, 0.75 lets the policy learn with the bonus for three
-    quarters of the run and then sharpens it towards the deterministic driver."""
+    0). With lr_schedule 'linear' the learning rate has decayed by then, so a late
+    schedule moves the policy less than the same change early would."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
