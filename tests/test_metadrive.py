@@ -68,6 +68,22 @@ def test_resets_offline_without_assets_and_writes_nothing_into_metadrive(scenari
 
 
 @needs_metadrive
+def test_episode_speed_is_the_average_speed_over_the_episode_in_km_h(scenarios):
+    env = scenarios(horizon=40)
+    for episode in range(2):  # the average starts afresh at each reset
+        _, info = env.reset(seed=episode)
+        assert info["episode_speed"] == 0.0
+        speeds = []
+        for _ in range(25):
+            _, _, terminated, truncated, info = env.step(np.array([0.0, 1.0]))
+            speeds.append(3.6 * info["velocity"])
+            assert info["episode_speed"] == pytest.approx(np.mean(speeds))
+            if terminated or truncated:
+                break
+        assert 5.0 < info["episode_speed"] < max(speeds)  # accelerating from standstill
+
+
+@needs_metadrive
 @pytest.mark.parametrize(
     ("assets_present", "config", "skipped"),
     [
@@ -214,7 +230,7 @@ def test_torchrl_env_tutorial_action_table_reaches_metadrive_as_fed():
         td = env.step(td)
         raw = env.base_env._env.unwrapped.agent.last_current_action[-1]  # [steering, throttle]
         assert list(np.round(raw, 3)) == [1.0, 0.0]
-        for key in ("route_completion", "arrive_dest", "crash", "out_of_road", "max_step"):
+        for key in (*md.METADRIVE_VALUES, *md.METADRIVE_FLAGS):
             assert ("next", key) in td.keys(include_nested=True)
     finally:
         env.close()
@@ -315,6 +331,7 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
     assert counts and all(count == summary["frames"] for count in counts)
     result = evaluate.main(evaluate.Args(run=run, episodes=1))
     assert 0.0 <= result["mean_route_completion"] <= 1.0 and "crash_rate" in result
+    assert result["mean_episode_speed"] >= 0.0
     assert "on" not in result
     on_training = evaluate.main(evaluate.Args(run=run, episodes=1, on="training"))
     assert on_training["on"] == "training" and 0.0 <= on_training["mean_route_completion"] <= 1.0

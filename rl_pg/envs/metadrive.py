@@ -50,6 +50,7 @@ __all__ = [
     "DEFAULT_HORIZON",
     "HELD_OUT",
     "METADRIVE_FLAGS",
+    "METADRIVE_VALUES",
     "SCENARIO_SETS",
     "SELECTION",
     "MetaDriveScenarios",
@@ -83,6 +84,10 @@ SCENARIO_SETS: dict[str, tuple[int, int]] = {
 
 METADRIVE_FLAGS = ("arrive_dest", "crash", "out_of_road", "max_step")
 """MetaDrive's episode-end reasons: success, any collision, off the road, time limit."""
+
+METADRIVE_VALUES = ("route_completion", "episode_speed")
+"""Numbers read at an episode's end: the share of the route driven, and the average speed
+over the episode in km/h."""
 
 _INSTALL = 'pip install -c constraints.txt "rl_pg[metadrive]"'
 
@@ -136,6 +141,9 @@ class MetaDriveScenarios(gym.Wrapper):
       ``k`` itself. ``info["scenario"]`` says which one is played.
     * Episodes are truncated after ``horizon`` steps (MetaDrive's ``horizon`` setting:
       ``truncated`` is true, ``terminated`` false).
+    * ``info["episode_speed"]`` is the car's average speed over the episode so far, in
+      km/h (from MetaDrive's per-step ``info["velocity"]``, in m/s): how fast a driver
+      covers its route, which MetaDrive's own metrics do not say.
     * The asset download is skipped when the assets are absent and nothing is
       rendered in 3-D (see the module's documentation).
     * ``render_mode="rgb_array"``: ``render()`` returns MetaDrive's top-down view,
@@ -201,6 +209,8 @@ class MetaDriveScenarios(gym.Wrapper):
         self._render_mode = render_mode
         self._rng = np.random.default_rng()
         self._next = 0  # position of the next scenario in `scenarios` (sequential order)
+        self._distance = 0.0  # speed summed over the episode's steps, m/s
+        self._steps = 0
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -213,7 +223,16 @@ class MetaDriveScenarios(gym.Wrapper):
         with _assets_pull_skipped(self.env):
             observation, info = self.env.reset(seed=scenario)
         info["scenario"] = scenario
+        self._distance, self._steps = 0.0, 0
+        info["episode_speed"] = 0.0
         return observation, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        self._distance += float(info["velocity"])
+        self._steps += 1
+        info["episode_speed"] = 3.6 * self._distance / self._steps
+        return observation, reward, terminated, truncated, info
 
     @property
     def render_mode(self) -> str | None:
@@ -305,7 +324,8 @@ def metadrive_env(
             [`MetaDriveScenarios`][rl_pg.envs.metadrive.MetaDriveScenarios]).
         horizon (int): the time limit in steps. Defaults to ``DEFAULT_HORIZON``.
         flags (sequence of str): MetaDrive's boolean ``info`` entries to expose.
-            ``route_completion`` (a float, the share of the route driven) always is.
+            ``route_completion`` (a float, the share of the route driven) and
+            ``episode_speed`` (the average speed so far, km/h) always are.
         render (bool): add top-down frames under ``"pixels"``. Defaults to ``False``.
         scenarios (range, optional): play only these scenarios of the set (e.g. one
             evaluation worker's part, see
@@ -338,7 +358,7 @@ def metadrive_env(
     if render:
         kwargs.update(from_pixels=True, pixels_only=False)
     env = GymEnv(env_id, **kwargs)
-    env.set_info_dict_reader(InfoValues(["route_completion"]))
+    env.set_info_dict_reader(InfoValues(METADRIVE_VALUES))
     if flags:
         env.set_info_dict_reader(InfoFlags(flags))
     if actions is None:

@@ -197,6 +197,6 @@ RECIPE = Recipe(
     make_test_env=make_test_env,
     test_sets={"training": make_training_test_env, "selection": make_eval_env},
     eval_flags=md.METADRIVE_FLAGS,
-    eval_values=("route_completion",),
+    eval_values=md.METADRIVE_VALUES,
     commands={"references": references},
 )
