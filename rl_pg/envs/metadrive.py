@@ -209,7 +209,7 @@ class MetaDriveScenarios(gym.Wrapper):
         self._render_mode = render_mode
         self._rng = np.random.default_rng()
         self._next = 0  # position of the next scenario in `scenarios` (sequential order)
-        self._distance = 0.0  # speed summed over the episode's steps, m/s
+        self._speed_sum = 0.0  # m/s, summed over the episode's steps
         self._steps = 0
 
     def reset(
@@ -223,15 +223,15 @@ class MetaDriveScenarios(gym.Wrapper):
         with _assets_pull_skipped(self.env):
             observation, info = self.env.reset(seed=scenario)
         info["scenario"] = scenario
-        self._distance, self._steps = 0.0, 0
+        self._speed_sum, self._steps = 0.0, 0
         info["episode_speed"] = 0.0
         return observation, info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         observation, reward, terminated, truncated, info = self.env.step(action)
-        self._distance += float(info["velocity"])
+        self._speed_sum += float(info["velocity"])
         self._steps += 1
-        info["episode_speed"] = 3.6 * self._distance / self._steps
+        info["episode_speed"] = 3.6 * self._speed_sum / self._steps
         return observation, reward, terminated, truncated, info
 
     @property
