@@ -232,7 +232,9 @@ def _gridworld_batches(logits, n_batches, n_episodes, seed, max_steps=2000):
 GRID_ESTIMATES, GRID_EPISODES = 375, 16
 
 
-@pytest.fixture(scope="module")
+# Session-scoped: a test process (pytest-xdist) that is handed this module's tests in
+# several chunks would otherwise tear these down between chunks and rebuild them.
+@pytest.fixture(scope="session")
 def gridworld():
     torch.manual_seed(0)
     logits = 0.5 * torch.randn(SIDE * SIDE, len(MOVES), dtype=torch.float64)
@@ -259,7 +261,7 @@ def _gridworld_estimates(gridworld, value_type, baseline, critic_values=None):
     return _estimates(_make_loss(actor, critic, value_type, baseline), batches, GRID_EPISODES)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def gridworld_estimates(gridworld):
     return {
         (value_type.__name__, baseline): _gridworld_estimates(gridworld, value_type, baseline)
