@@ -257,12 +257,13 @@ def test_network_has_the_configured_hidden_layers(flags, shapes):
 
 
 @needs_metadrive
-def test_lateral_reward_shapes_the_training_reward_and_no_evaluation():
+def test_training_reward_flags_shape_the_training_reward_and_no_evaluation():
     from rl_pg.evaluation import evaluate as score
 
     plain, lateral = (
         recipe.config(horizon=40, workers=1, lateral_reward=on) for on in (False, True)
     )
+    penalised = recipe.config(horizon=40, workers=1, lateral_reward=True, failure_penalty=20.0)
     # A driver that steers hard left (action 0) from its lane's centre off the road.
     env = recipe.make_env(plain)
     try:
@@ -283,15 +284,19 @@ def test_lateral_reward_shapes_the_training_reward_and_no_evaluation():
         finally:
             env.close()
 
-    shaped, default = (rewards(recipe.make_env(cfg), seed=0) for cfg in (lateral, plain))
+    shaped, default, punished = (
+        rewards(recipe.make_env(cfg), seed=0) for cfg in (lateral, plain, penalised)
+    )
     assert len(shaped) == len(default) < 40 and shaped[-1] == default[-1] == -5.0  # off road
     assert shaped[0].item() == pytest.approx(default[0].item(), rel=1e-2)  # lane's centre
     assert (shaped - default).abs().max() > 0.05  # progress pays less away from it
+    # The same episode; only leaving the road costs more.
+    assert punished[-1] == -20.0 and torch.equal(punished[:-1], shaped[:-1])
     # The evaluation plays the first held-out scenario, scored by MetaDrive's reward.
     held_out = partial(md.metadrive_env, md.HELD_OUT, order="sequential", horizon=40)
     default = rewards(held_out()).sum().item()
     assert rewards(held_out(config={"use_lateral_reward": True})).sum().item() != default
-    env = recipe.make_test_env(lateral)
+    env = recipe.make_test_env(penalised)
     try:
         assert score(actor, env, episodes=1)["mean_return"] == pytest.approx(default)
     finally:

@@ -29,7 +29,7 @@ from torchrl.envs.utils import RandomPolicy
 from rl_pg.envs import metadrive as md
 from rl_pg.evaluation import EpisodeWorkers, evaluate
 from rl_pg.models import mlp_actor_critic
-from rl_pg.training import Count, TrainConfig
+from rl_pg.training import Count, NonNegative, TrainConfig
 from rl_pg.training.loop import evaluation_seed
 from rl_pg.training.recipe import Recipe
 
@@ -86,12 +86,21 @@ class Config(
     pays in proportion to how near the car keeps to its lane's centre. Only the
     training reward changes (its returns, and `rl-pg play` without `--gif`, are the
     shaped ones); every evaluation scores MetaDrive's default reward."""
+    failure_penalty: NonNegative = 5.0
+    """Train with this penalty for leaving the road or crashing into a vehicle or an
+    object (MetaDrive's ``out_of_road_penalty``, ``crash_vehicle_penalty`` and
+    ``crash_object_penalty``, 5 by default). Only the training reward changes, as with
+    `--lateral-reward`; every evaluation scores MetaDrive's default reward."""
     normalize_observations: bool = True
     """Standardise each observation feature with running statistics before the
     network (the features that steer, heading and lane position, vary by about 0.04)."""
     references: bool = False
     """Instead of training, evaluate a uniformly random and an always-full-throttle
     driver on the held-out scenarios."""
+
+
+# MetaDrive's terminal penalties that `--failure-penalty` sets (arriving pays +10).
+_FAILURE_PENALTIES = ("out_of_road_penalty", "crash_vehicle_penalty", "crash_object_penalty")
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
@@ -101,7 +110,8 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
         return md.metadrive_env(
             md.HELD_OUT, actions=cfg.actions, order="sequential", horizon=cfg.horizon, render=True
         )
-    config = {"use_lateral_reward": True} if cfg.lateral_reward else None
+    config = dict.fromkeys(_FAILURE_PENALTIES, cfg.failure_penalty)
+    config["use_lateral_reward"] = cfg.lateral_reward
     return md.metadrive_env(cfg.env_id, actions=cfg.actions, horizon=cfg.horizon, config=config)
 
 
