@@ -14,8 +14,9 @@ import subprocess
 import sys
 import textwrap
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -290,6 +291,26 @@ class TestTrain:
         with pytest.raises(CheckpointError, match=r"\(critic_steps: 1 -> 3\)"):
             _train(_cfg(tmp_path, resume=True, total_updates=3, critic_steps=3))
         assert _train(_cfg(tmp_path, resume=True, total_updates=3))["updates"] == 3
+
+    def test_a_run_from_before_a_default_changed_resumes_as_it_ran(self, tmp_path):
+        # A field whose default changed after it was added: a stored config without the
+        # field ran at the old default, which `absent_means` records.
+        from rl_pg.checkpoint import save_checkpoint
+
+        @dataclass
+        class Changed(TrainConfig, entropy_coeff=0.05):
+            absent_means: ClassVar[dict[str, Any]] = {"entropy_coeff": 0.0}
+
+        _train(_cfg(tmp_path, total_updates=2))  # entropy_coeff 0.0, the old default
+        path = tmp_path / "run" / "checkpoint.pt"
+        saved = load_checkpoint(path)
+        del saved["config"]["entropy_coeff"]  # as a version without the field wrote it
+        save_checkpoint(saved, path)
+        stored = Changed.from_stored(saved["config"], resume=True, total_updates=3)
+        assert (stored.entropy_coeff, Changed().entropy_coeff) == (0.0, 0.05)
+        with pytest.raises(CheckpointError, match=r"\(entropy_coeff: 0.0 -> 0.05\)"):
+            _train(replace(stored, entropy_coeff=0.05))
+        assert _train(stored)["updates"] == 3
 
     def test_resume_from_another_recipe(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))

@@ -18,7 +18,7 @@ import inspect
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import torch
 
@@ -59,6 +59,11 @@ RESUMABLE_FIELDS = frozenset(
 @dataclass
 class TrainConfig:
     """Settings of the training loop shared by every recipe."""
+
+    absent_means: ClassVar[dict[str, Any]] = {}
+    """Fields whose default changed after they were added, each with the value a stored
+    config that lacks the field ran with (it was written before the field existed). A
+    stored config that lacks any other field ran as that field's default does."""
 
     seed: Annotated[int, Range(low=0, high=2**32 - 1)] = 0
     """Seed of torch, numpy, random and the environments."""
@@ -232,9 +237,21 @@ class TrainConfig:
     def from_stored(cls, stored: dict[str, Any], **changes: Any) -> TrainConfig:
         """This config from a run's stored one (``config.json``, a checkpoint's
         ``"config"``) with ``changes``; fields this class lacks are ignored, fields the
-        stored config lacks keep their defaults."""
+        stored config lacks take the values the run had (``as_run``)."""
         names = {field.name for field in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in {**stored, **changes}.items() if k in names})
+        return cls(**{k: v for k, v in {**cls.as_run(stored), **changes}.items() if k in names})
+
+    @classmethod
+    def as_run(cls, stored: dict[str, Any]) -> dict[str, Any]:
+        """A stored config with the fields it lacks (newer than the run) at the values
+        the run had: their defaults, or ``absent_means`` where a default has changed
+        since. Values as ``config_dict`` writes them (paths as strings)."""
+        defaults = {
+            field.name: str(field.default) if isinstance(field.default, Path) else field.default
+            for field in dataclasses.fields(cls)
+            if field.default is not dataclasses.MISSING
+        }
+        return {**defaults, **cls.absent_means, **stored}
 
     def torch_device(self) -> torch.device:
         """``device`` as a ``torch.device`` ('auto' resolved).

@@ -9,7 +9,6 @@ the holder's process id, instead of both writing the same checkpoint and logs.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -225,15 +224,6 @@ def new_run_dir(recipe: str, seed: int) -> Path:
     return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def _defaults(cfg) -> dict[str, Any]:
-    """The config's fields that have a default, at that default (as ``config_dict`` writes it)."""
-    return {
-        field.name: str(field.default) if isinstance(field.default, Path) else field.default
-        for field in dataclasses.fields(cfg)
-        if field.default is not dataclasses.MISSING
-    }
-
-
 def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
     run_dir, checkpoint_path = directory.path, directory.checkpoint_path
     if cfg.resume:
@@ -243,9 +233,7 @@ def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
                 f"{checkpoint_path} was written by recipe {saved.get('recipe')!r}, not "
                 f"{recipe!r}; resume it with that recipe."
             )
-        # A field the stored config lacks is newer than the run, which ran as its
-        # default does (new fields default to the behaviour from before they existed).
-        stored = {**_defaults(cfg), **saved["config"]}
+        stored = type(cfg).as_run(saved["config"])  # fields newer than the run filled in
         changed = {
             key: (stored.get(key), value)
             for key, value in config_dict(cfg).items()
