@@ -256,12 +256,23 @@ def test_network_has_the_configured_hidden_layers(flags, shapes):
         assert [(m.in_features, m.out_features) for m in linears] == [*trunk, (width, out)]
 
 
+def test_runs_stored_before_the_failure_penalty_resume_with_metadrives_own():
+    from rl_pg.training.config import config_dict
+
+    stored = config_dict(recipe.config(seed=3))
+    assert stored["failure_penalty"] == 50.0  # the recipe's default
+    del stored["failure_penalty"]  # as a version without the field wrote it
+    assert recipe.config.from_stored(stored).failure_penalty == 5.0
+    assert recipe.config.from_stored(stored, failure_penalty=50.0).failure_penalty == 50.0
+
+
 @needs_metadrive
 def test_training_reward_flags_shape_the_training_reward_and_no_evaluation():
     from rl_pg.evaluation import evaluate as score
 
-    plain, lateral = (
-        recipe.config(horizon=40, workers=1, lateral_reward=on) for on in (False, True)
+    plain, lateral = (  # MetaDrive's own penalty of 5, not the recipe's default
+        recipe.config(horizon=40, workers=1, lateral_reward=on, failure_penalty=5.0)
+        for on in (False, True)
     )
     penalised = recipe.config(horizon=40, workers=1, lateral_reward=True, failure_penalty=20.0)
     # A driver that steers hard left (action 0) from its lane's centre off the road.

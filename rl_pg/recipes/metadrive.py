@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -66,6 +66,9 @@ class Config(
     """REINFORCE on MetaDrive: 9 discrete driving actions, standardised observations,
     GAE over 256-step segments, evaluated on held-out scenarios."""
 
+    # Runs stored before --failure-penalty existed trained with MetaDrive's 5.
+    absent_means: ClassVar[dict[str, Any]] = {"failure_penalty": 5.0}
+
     env_id: Literal[
         "MetaDrive-validation-v0", "MetaDrive-10env-v0", "MetaDrive-100envs-v0",
         "MetaDrive-1000envs-v0",
@@ -86,10 +89,11 @@ class Config(
     pays in proportion to how near the car keeps to its lane's centre. Only the
     training reward changes (its returns, and `rl-pg play` without `--gif`, are the
     shaped ones); every evaluation scores MetaDrive's default reward."""
-    failure_penalty: NonNegative = 5.0
+    failure_penalty: NonNegative = 50.0
     """Train with this penalty for leaving the road or crashing into a vehicle or an
     object (MetaDrive's ``out_of_road_penalty``, ``crash_vehicle_penalty`` and
-    ``crash_object_penalty``, 5 by default). Only the training reward changes, as with
+    ``crash_object_penalty``; MetaDrive's own is 5, which at gamma 0.99 weighs little
+    beside the driving a failure forfeits). Only the training reward changes, as with
     `--lateral-reward`; every evaluation scores MetaDrive's default reward."""
     normalize_observations: bool = True
     """Standardise each observation feature with running statistics before the
