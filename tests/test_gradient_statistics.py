@@ -1,0 +1,204 @@
+"""rl_pg.gradient_statistics: the statistics, the units, and what the measurement leaves alone.
+
+Exact answers (bandit, gridworld) are in test_exact_gradients.py."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import N_ACT, make_batch, make_categorical_actor, make_critic, make_gaussian_actor
+from hypothesis import given
+from hypothesis import strategies as st
+from tensordict import TensorDict
+from torch.distributions import Normal
+
+from rl_pg import ReinforceLoss
+from rl_pg.gradient_statistics import ESTIMATORS, GradientStatistics, noise_statistics, unit_index
+
+Z_MAX = 5.0
+
+
+class TestNoiseStatistics:
+    def test_recovers_a_known_gaussian_noise_scale(self):
+        # g_u = G + eps, eps ~ N(0, diag(s^2)): tr(Sigma) = sum s^2, |grad J|^2 = |G|^2,
+        # B = tr(Sigma) / |G|^2. Both estimates are unbiased per batch, so their means
+        # over 4 000 batches of 16 units are within 5 standard errors of the truth.
+        generator = torch.Generator().manual_seed(0)
+        signal = torch.tensor([1.0, -2.0, 0.5, 0.0, 3.0], dtype=torch.float64)
+        scale = torch.tensor([2.0, 1.0, 4.0, 3.0, 0.5], dtype=torch.float64)
+        batches = 4000
+        noise = torch.randn(batches, 16, 5, generator=generator, dtype=torch.float64)
+        stats = [noise_statistics(signal + scale * eps) for eps in noise]
+        trace = torch.stack([s["trace_covariance"] for s in stats])
+        norm_sq = torch.stack([s["grad_norm_sq"] for s in stats])
+        true_trace, true_norm_sq = scale.pow(2).sum().item(), signal.pow(2).sum().item()
+        for estimate, truth in ((trace, true_trace), (norm_sq, true_norm_sq)):
+            se = estimate.std() / batches**0.5
+            assert abs(estimate.mean().item() - truth) <= Z_MAX * se
+        # The noise scale as a ratio of the means (per-batch ratios are biased).
+        noise_scale = trace.mean() / norm_sq.mean()
+        assert noise_scale.item() == pytest.approx(true_trace / true_norm_sq, rel=0.05)
+        snr = torch.stack([s["snr"] for s in stats]).mean().item()
+        assert snr == pytest.approx(16 * true_norm_sq / true_trace, rel=0.1)
+        # Halves agree when the signal dominates.
+        assert torch.stack([s["half_cosine"] for s in stats]).mean() > 0.5
+
+    def test_pure_noise_gives_no_signal(self):
+        generator = torch.Generator().manual_seed(1)
+        stats = [noise_statistics(torch.randn(32, 50, generator=generator)) for _ in range(500)]
+        assert abs(torch.stack([s["snr"] for s in stats]).mean().item()) < 0.1
+        assert abs(torch.stack([s["half_cosine"] for s in stats]).mean().item()) < 0.02
+
+    def test_noise_scale_is_nan_when_the_signal_estimate_is_not_positive(self):
+        stats = noise_statistics(torch.tensor([[1.0, 0.0], [-1.0, 0.0]]))
+        assert stats["grad_norm_sq"].item() < 0
+        assert torch.isnan(stats["noise_scale"])
+
+    @pytest.mark.parametrize(
+        ("bad", "match"),
+        [
+            (torch.zeros(1, 3), "at least 2 independent units"),
+            (torch.zeros(3), r"\[units, parameters\]"),
+            (torch.tensor([[0.0, float("nan")], [1.0, 2.0]]), "NaN"),
+        ],
+    )
+    def test_rejects(self, bad, match):
+        with pytest.raises(ValueError, match=match):
+            noise_statistics(bad)
+
+
+def _plain_unit_index(done: list[list[bool]], unit: str) -> list[list[int]]:
+    out, next_id = [], 0
+    for row in done:
+        ids = []
+        for t, _ in enumerate(row):
+            if t > 0 and unit == "episode" and row[t - 1]:
+                next_id += 1
+            ids.append(next_id)
+        out.append(ids)
+        next_id += 1
+    return out
+
+
+class TestUnitIndex:
+    @given(
+        st.integers(1, 4).flatmap(
+            lambda rows: st.integers(1, 9).flatmap(
+                lambda steps: st.lists(
+                    st.lists(st.booleans(), min_size=steps, max_size=steps),
+                    min_size=rows,
+                    max_size=rows,
+                )
+            )
+        ),
+        st.sampled_from(["episode", "row"]),
+    )
+    def test_matches_a_plain_loop(self, done, unit):
+        mask = torch.tensor(done)
+        batch = TensorDict({"next": {"done": mask.unsqueeze(-1)}}, list(mask.shape))
+        index, units = unit_index(batch, unit=unit)
+        assert index.tolist() == _plain_unit_index(done, unit)
+        assert units == int(index.max()) + 1
+
+    def test_time_dimension_by_name(self):
+        done = torch.tensor([[False, True], [False, False], [True, False]])  # [T=3, B=2]
+        batch = TensorDict({"next": {"done": done.unsqueeze(-1)}}, [3, 2], names=["time", None])
+        index, units = unit_index(batch)
+        assert index.T.tolist() == [[0, 0, 0], [1, 2, 2]]
+        assert units == 3
+
+    def test_rejects(self):
+        batch = TensorDict({"next": {"done": torch.zeros(3, 1, dtype=torch.bool)}}, [3])
+        with pytest.raises(ValueError, match="unit must be one of"):
+            unit_index(batch, unit="step")
+        with pytest.raises(KeyError, match="episode ends"):
+            unit_index(batch, done_key="ended")
+
+
+def _segment_batch(seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    return make_batch(torch.randint(N_ACT, (6, 20), generator=generator), p_done=0.1, seed=seed)
+
+
+class TestGradientStatistics:
+    def test_every_estimator_with_a_critic(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor(), make_critic())
+        stats = GradientStatistics(loss)(_segment_batch())
+        assert sorted(stats.keys()) == sorted(ESTIMATORS)
+        for name in ESTIMATORS:
+            assert stats[name, "units"].item() > 6  # episodes, not rows
+            assert torch.isfinite(stats[name, "trace_covariance"])
+
+    def test_row_units(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor())
+        stats = GradientStatistics(loss, unit="row")(_segment_batch())
+        assert stats["reward_to_go", "units"].item() == 6
+
+    def test_mean_gradient_is_the_loss_gradient(self):
+        # With the sum reduction, -d(loss_actor)/d(theta) is the sum of unit gradients.
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor(), make_critic(), reduction="sum")
+        batch = _segment_batch()
+        stats = GradientStatistics(loss, estimators=["loss"])
+        gradients = stats.unit_gradients(batch, stats.weights(batch))["loss"]
+        params = list(loss.actor_network_params.values(True, True))
+        grads = torch.autograd.grad(loss(batch.clone())["loss_actor"], params)
+        expected = -torch.cat([g.reshape(-1) for g in grads])
+        torch.testing.assert_close(gradients.sum(0), expected)
+
+    def test_continuous_policy(self):
+        torch.manual_seed(0)
+        actor = make_gaussian_actor(distribution_class=Normal)
+        loss = ReinforceLoss(actor, functional=False)
+        batch = make_batch(torch.randn(4, 10, N_ACT), p_done=0.2)
+        stats = GradientStatistics(loss, estimators=["reward_to_go"])(batch)
+        n_params = sum(p.numel() for p in actor.parameters())
+        assert stats["reward_to_go", "mean_gradient"].shape == (n_params,)
+
+    def test_leaves_the_loss_and_the_random_stream_alone(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor(), baseline="running_mean")
+        loss(_segment_batch(1))  # the baseline has a state now
+        before = {k: v.clone() for k, v in loss.state_dict().items()}
+        rng = torch.get_rng_state()
+        GradientStatistics(loss)(_segment_batch(2))
+        assert torch.equal(rng, torch.get_rng_state())
+        for key, value in loss.state_dict().items():
+            assert torch.equal(value, before[key]), key
+        assert all(p.grad is None for p in loss.parameters())
+
+    def test_padding_steps_do_not_count(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor())
+        batch = _segment_batch()
+        batch["collector", "mask"] = torch.ones(batch.shape, dtype=torch.bool)
+        full = GradientStatistics(loss, estimators=["reward_to_go"], unit="row")(batch.clone())
+        batch["collector", "mask"][:, 15:] = False
+        batch["action"][:, 15:] = 0  # whatever sits on padding must not matter
+        cut = GradientStatistics(loss, estimators=["reward_to_go"], unit="row")(batch)
+        assert not torch.allclose(
+            full["reward_to_go", "mean_gradient"], cut["reward_to_go", "mean_gradient"]
+        )
+
+    @pytest.mark.parametrize(
+        ("kwargs", "match"),
+        [
+            ({"estimators": ["gae"]}, "has no critic"),
+            ({"estimators": ["advantage"]}, "estimators must be names"),
+            ({"unit": "step"}, "unit must be one of"),
+            ({"chunk": 0}, "chunk must be a positive integer"),
+            ({"gae_lambda": 1.5}, "gae_lambda"),
+        ],
+    )
+    def test_rejects(self, kwargs, match):
+        loss = ReinforceLoss(make_categorical_actor())
+        with pytest.raises(ValueError, match=match):
+            GradientStatistics(loss, **kwargs)
+
+    def test_one_unit_is_refused(self):
+        loss = ReinforceLoss(make_categorical_actor())
+        batch = _segment_batch()[:1]
+        with pytest.raises(ValueError, match="at least 2 independent units"):
+            GradientStatistics(loss, unit="row")(batch)
