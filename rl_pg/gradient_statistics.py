@@ -378,8 +378,8 @@ class GradientStatistics:
 
     def __call__(self, batch: TensorDictBase) -> TensorDict:
         """The statistics of every estimator on ``batch``: a ``TensorDict`` keyed by
-        estimator name, each holding [`noise_statistics`][rl_pg.gradient_statistics.noise_statistics]'
-        entries.
+        estimator name, each holding the entries of
+        [`noise_statistics`][rl_pg.gradient_statistics.noise_statistics].
 
         Raises:
             ValueError: fewer than two units in the batch.
@@ -403,4 +403,3 @@ def _actor_parameters(loss) -> list[torch.Tensor]:
     if not params:
         raise ValueError("The loss's actor has no trainable parameter: nothing to measure.")
     return params
-

@@ -338,7 +338,8 @@ class TestBanditNoiseStatistics:
         critic = _tabular_critic(torch.tensor([BANDIT_VALUE], dtype=torch.float64))
         loss = _make_loss(_tabular_actor(1, N_ARMS, logits), critic, RewardToGo, "critic")
         stats = GradientStatistics(loss, scalar_baseline=BANDIT_CONSTANT)
-        parts = [stats.unit_gradients(b, stats.weights(b)) for b in _bandit_batches(logits, 60, 100, seed=4)]
+        batches = _bandit_batches(logits, 60, 100, seed=4)
+        parts = [stats.unit_gradients(b, stats.weights(b)) for b in batches]
         gradients = {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
         # One-step episodes: Psi = r(a) - b with b per estimator; g(a) = Psi (e_a - pi).
         baselines = {
@@ -441,8 +442,6 @@ class TestGridworldNoiseStatistics:
     @pytest.fixture(scope="class")
     @classmethod
     def measured(cls, gridworld):
-        from rl_pg.gradient_statistics import GradientStatistics
-
         # 24 000 episodes: the trace of R(tau)'s covariance, the most heavy-tailed,
         # then has a standard error of about 2.5 %, a quarter of the 10 % target.
         logits, _, values, _ = gridworld
