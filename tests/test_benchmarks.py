@@ -155,3 +155,20 @@ def test_evaluation(tmp_path):
         scores["ParallelEnv"]["mean_return"]
     )
     assert out["parallel_env_over_workers"] > 0
+
+
+def test_grad_stats(tmp_path):
+    grad_stats = _script("grad_stats")
+    cfg = grad_stats.Config(
+        cartpole_frames=2_000,
+        lunarlander_frames=1_000,
+        intervals=[1],
+        repeats=1,
+        json_path=tmp_path / "g.json",
+    )
+    out = grad_stats.main(cfg)
+    assert set(out["time_over_time_without"]) == {
+        "CartPole --grad-stats 1",
+        "LunarLander --grad-stats 1",
+    }
+    assert all(v > 0 for v in out["time_over_time_without"].values())

@@ -13,6 +13,8 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config and the
   summary;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
+* [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours,
+  and the gradient-noise measurement);
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;
@@ -25,6 +27,7 @@ this package.
 """
 
 from rl_pg._checks import check_fields
+from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import load_models, read_run
 from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConfig
 from rl_pg.training.loop import train
@@ -34,6 +37,7 @@ from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import RunDirBusy, RunDirectory
 
 __all__ = [
+    "Callback",
     "Count",
     "NonNegative",
     "Positive",

@@ -51,6 +51,7 @@ RESUMABLE_FIELDS = frozenset(
         "threads",
         "device",
         "keep_every",
+        "grad_stats",
     }
 )
 """Config fields that may change when a run is resumed; any other change is refused."""
@@ -202,6 +203,10 @@ class TrainConfig:
     default, or $MLFLOW_TRACKING_URI)."""
     progress: bool = True
     """Show a progress bar."""
+    grad_stats: Count | None = None
+    """Every N updates, measure the policy gradient's noise (noise scale, SNR, half-batch
+    cosine) for every return estimator on that update's batch and log it as
+    grad/<estimator>/<statistic> (None: never). Changes nothing in the training."""
 
     def __init_subclass__(cls, **defaults: Any) -> None:
         """``class Config(TrainConfig, lr=5e-3)``: new defaults for inherited fields."""

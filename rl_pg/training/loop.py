@@ -36,6 +36,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.training.callbacks import Callback, Callbacks, from_config
 from rl_pg.training.checkpoints import RunState, restore, restore_rng, seed_everything
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
@@ -52,7 +53,7 @@ from rl_pg.training.optimisation import (
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 
-__all__ = ["evaluation_seed", "fresh_seed", "train"]
+__all__ = ["Run", "evaluation_seed", "fresh_seed", "train"]
 
 
 def train(
@@ -66,6 +67,7 @@ def train(
     eval_values: Sequence[str] = (),
     recipe_module: str | None = None,
     summarise: Callable[[Path], dict[str, Any]] | None = None,
+    callbacks: Sequence[Callback] = (),
 ) -> dict[str, Any]:
     """Trains ``make_models``' actor (and critic) on ``make_env`` with REINFORCE.
 
@@ -90,6 +92,9 @@ def train(
             that ``rl-pg play`` can rebuild the run.
         summarise (callable, optional): ``run_dir -> dict`` of fields added to the
             summary, computed from the run's logs when it ends.
+        callbacks (sequence of Callback): behaviours of your own, called after those
+            the config asks for (see [`Callback`][rl_pg.training.callbacks.Callback]).
+            Defaults to ``()``.
 
     Returns:
         The summary written to ``run_dir/summary.json``.
@@ -101,7 +106,8 @@ def train(
             overwritten).
         RunDirBusy: another process is running in ``run_dir``.
         TrainingDiverged: the loss or gradient became non-finite.
-        ValueError: an invalid configuration (the message names the field).
+        ValueError: an invalid configuration (the message names the field), or two
+            callbacks with the same key.
 
     Examples:
         >>> import tempfile
@@ -127,6 +133,7 @@ def train(
         "flags": check_names("eval_flags", eval_flags),
         "values": check_names("eval_values", eval_values),
     }
+    hooks = Callbacks([*from_config(cfg), *callbacks])
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else new_run_dir(recipe, cfg.seed)
     # The directory is held until the run ends, however it ends; Ctrl-C ends the update
     # in progress, then the run saves and stops.
@@ -136,23 +143,34 @@ def train(
         InterruptRequest() as interrupt,
     ):
         saved = directory.open(cfg, recipe, recipe_module)
-        run = _Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries)
+        run = Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries, hooks)
         try:
             for batch in run.collection:
+                hooks.on_batch(run, batch)
                 metrics = run.update(batch)
+                hooks.on_update(run, batch, metrics)
                 done = run.budget_spent()
                 evaluated = done or run.evaluation_due()
                 if evaluated:
                     done = run.evaluate() or done
+                    hooks.on_evaluation(run, run.state.last_eval)
+                done = hooks.stop_training(run) or done
                 run.console.update(
-                    run.state.frames, run.spent, metrics, run.state.last_eval, evaluated=evaluated
+                    run.state.frames,
+                    run.spent,
+                    metrics if run.logs_update() else None,
+                    run.state.last_eval,
+                    evaluated=evaluated,
                 )
                 if done or interrupt.requested or run.checkpoint_due():
                     run.checkpoint()
                 if done or interrupt.requested:
                     break
         finally:
-            run.close()
+            try:
+                hooks.on_end(run)
+            finally:
+                run.close()
         extra = summarise(run_dir) if summarise is not None else None
         summary = directory.finish(run.state, interrupted=interrupt.requested, extra=extra)
     if interrupt.requested:
@@ -165,13 +183,18 @@ def train(
     return summary
 
 
-class _Run:
-    """The pieces of one run and the steps the loop calls them through."""
+class Run:
+    """The pieces of one run and the steps the loop calls them through.
+
+    Callbacks read it: ``cfg``, ``state`` (a ``RunState``: ``frames``, ``updates``,
+    ``last_eval``, …), ``loss``, ``actor``, ``optimizer``, ``path`` and ``log``.
+    """
 
     def __init__(
-        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries
+        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries, hooks
     ) -> None:
         self.cfg, self.directory, self.eval_entries = cfg, directory, eval_entries
+        self.hooks = hooks
         seed_everything(cfg.seed)
         env = make_env()
         if not isinstance(env, EnvBase):
@@ -209,12 +232,29 @@ class _Run:
             if "episodes" in saved:
                 self.episode_returns.load_state_dict(saved["episodes"])
             restore_rng(saved)
+        if saved is not None:
+            hooks.load_state_dict(saved.get("callbacks", {}))
         self.next_eval = self._next_evaluation()
         self.spent = 0
+        hooks.on_start(self)
         self._clock = time.perf_counter()  # training time excludes evaluations and saving
 
-    def update(self, batch: TensorDictBase) -> dict[str, float] | None:
-        """One optimiser step on ``batch``; returns the metrics when this update logs."""
+    @property
+    def path(self) -> Path:
+        """The run directory."""
+        return self.directory.path
+
+    def log(self, name: str, value: float) -> None:
+        """Sends ``name = value`` to every logger of the run, at the current frames."""
+        self.logger.log_scalar(name, value, step=self.state.frames)
+
+    def logs_update(self) -> bool:
+        """Whether the update just made logs its metrics (every ``log_interval``)."""
+        return self.state.updates % self.cfg.log_interval == 0
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One optimiser step on ``batch``; returns its metrics (logged every
+        ``log_interval`` updates)."""
         cfg, state = self.cfg, self.state
         metrics = update(
             cfg,
@@ -232,8 +272,8 @@ class _Run:
         state.frames += self.spent
         if self.collection.after_update(state.updates):
             self.episode_returns.reset()
-        if state.updates % cfg.log_interval != 0:
-            return None
+        if not self.logs_update():
+            return metrics
         metrics["train/episode_return"] = self.episode_returns.pop_mean()
         for name, value in metrics.items():
             if math.isfinite(value):
@@ -287,7 +327,7 @@ class _Run:
         self.directory.save(
             self.loss, self.optimizer, self.state, to=to,
             collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
-            **average,
+            callbacks=self.hooks.state_dict(), **average,
         )  # fmt: skip
 
     def close(self) -> None:

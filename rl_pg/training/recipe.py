@@ -31,6 +31,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import check_average, load_models
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.loop import fresh_seed, torch_threads, train
@@ -195,8 +196,12 @@ class Recipe:
         """The first line of the config's docstring."""
         return (self.config.__doc__ or self.name).strip().splitlines()[0]
 
-    def train(self, cfg: TrainConfig | None = None) -> dict[str, Any]:
-        """Trains with ``cfg`` (default: the recipe's defaults); returns the summary."""
+    def train(
+        self, cfg: TrainConfig | None = None, *, callbacks: Sequence[Callback] = ()
+    ) -> dict[str, Any]:
+        """Trains with ``cfg`` (default: the recipe's defaults) and ``callbacks`` of
+        your own (see [`Callback`][rl_pg.training.callbacks.Callback]); returns the
+        summary."""
         cfg = self.config() if cfg is None else cfg
         if not isinstance(cfg, self.config):
             raise TypeError(
@@ -216,6 +221,7 @@ class Recipe:
             eval_flags=self.eval_flags,
             eval_values=self.eval_values,
             summarise=None if self.summarise is None else partial(self.summarise, cfg),
+            callbacks=callbacks,
         )
 
     def run(self, cfg: TrainConfig) -> dict[str, Any]:

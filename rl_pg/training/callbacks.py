@@ -1,0 +1,233 @@
+"""Behaviours plugged into the training loop: a [`Callback`][rl_pg.training.callbacks.Callback]
+is called at fixed points of every run, and sees the run's pieces by name.
+
+``train(cfg, ..., callbacks=[...])`` (or ``recipe.train(cfg, callbacks=[...])``) adds
+your own; the config's optional behaviours that are callbacks are built by
+[`from_config`][rl_pg.training.callbacks.from_config]. A callback that keeps state
+returns it from ``state_dict()``: it is saved in every checkpoint and handed back to
+``load_state_dict()`` when the run resumes, so a resumed run continues as it would have.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from tensordict import TensorDictBase
+
+from rl_pg.gradient_statistics import GradientStatistics
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.optimisation import scale_rewards
+
+if TYPE_CHECKING:
+    from rl_pg.training.loop import Run
+
+__all__ = ["Callback", "Callbacks", "GradientNoise", "from_config"]
+
+
+class Callback:
+    """A behaviour the training loop calls; override the hooks you need.
+
+    Every hook gets the [`Run`][rl_pg.training.loop.Run]: ``run.cfg``, ``run.state``
+    (``frames``, ``updates``, ``last_eval``, …), ``run.loss``, ``run.actor``,
+    ``run.optimizer``, ``run.path`` (the run directory) and ``run.log(name, value)``,
+    which sends a scalar to every logger of the run at the current frame count.
+
+    Order within one update: ``on_batch`` (the parameters that collected the batch,
+    before the optimiser step), ``on_update`` (after it, frames and updates counted),
+    ``on_evaluation`` when an evaluation ran, then ``stop_training``.
+
+    Examples:
+        >>> import tempfile
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor_critic
+        >>> from rl_pg.training import Callback, TrainConfig, train
+        >>> class StopAfter(Callback):
+        ...     '''Logs each batch's size; stops the run after `updates` updates.'''
+        ...     def __init__(self, updates):
+        ...         self.updates = updates
+        ...     def on_update(self, run, batch, metrics):
+        ...         run.log("train/batch_steps", batch.numel())
+        ...     def stop_training(self, run):
+        ...         return run.state.updates >= self.updates
+        >>> cfg = TrainConfig(run_dir=tempfile.mkdtemp(), eval_episodes=1, progress=False)
+        >>> summary = train(
+        ...     cfg, recipe="demo", make_env=lambda: GridWorldEnv(batch_size=4),
+        ...     make_models=mlp_actor_critic, callbacks=[StopAfter(3)],
+        ... )
+        >>> summary["updates"]
+        3
+    """
+
+    key: str | None = None
+    """Where the callback's state goes in a checkpoint (default: the class name)."""
+
+    def on_start(self, run: Run) -> None:
+        """The run is built (and, when resumed, restored); nothing is collected yet."""
+
+    def on_batch(self, run: Run, batch: TensorDictBase) -> None:
+        """A batch arrived; the policy is still the one that collected it."""
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        """The optimiser stepped on ``batch``; ``metrics`` are the update's (``loss/*``,
+        ``train/*``), whether or not this update logs them."""
+
+    def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
+        """An evaluation ended with ``result`` (``eval/*`` entries)."""
+
+    def stop_training(self, run: Run) -> bool:
+        """True ends the run after this update, as a spent budget does."""
+        return False
+
+    def on_end(self, run: Run) -> None:
+        """The run is ending (its last checkpoint written), however it ends."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint keeps of this callback (tensors, numbers, lists, dicts)."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores what ``state_dict`` returned, on resume."""
+
+
+class Callbacks:
+    """The run's callbacks, called in order; their states are keyed by ``key``.
+
+    Raises:
+        TypeError: an entry that is not a ``Callback``.
+        ValueError: two callbacks with the same key (their states would collide).
+    """
+
+    def __init__(self, callbacks: Sequence[Callback]) -> None:
+        self.callbacks = list(callbacks)
+        keys = []
+        for callback in self.callbacks:
+            if not isinstance(callback, Callback):
+                raise TypeError(
+                    f"callbacks must be rl_pg.training.Callback instances, got "
+                    f"{type(callback).__name__}: subclass Callback and override its hooks."
+                )
+            keys.append(_key(callback))
+        repeated = sorted({k for k in keys if keys.count(k) > 1})
+        if repeated:
+            raise ValueError(
+                f"Several callbacks have the key(s) {repeated}, under which their states are "
+                f"saved: give each instance its own `key`."
+            )
+
+    def on_start(self, run: Run) -> None:
+        for callback in self.callbacks:
+            callback.on_start(run)
+
+    def on_batch(self, run: Run, batch: TensorDictBase) -> None:
+        for callback in self.callbacks:
+            callback.on_batch(run, batch)
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        for callback in self.callbacks:
+            callback.on_update(run, batch, metrics)
+
+    def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
+        for callback in self.callbacks:
+            callback.on_evaluation(run, result)
+
+    def stop_training(self, run: Run) -> bool:
+        # Every callback is asked (none is skipped because an earlier one said stop).
+        return any([callback.stop_training(run) for callback in self.callbacks])
+
+    def on_end(self, run: Run) -> None:
+        for callback in self.callbacks:
+            callback.on_end(run)
+
+    def state_dict(self) -> dict[str, dict[str, Any]]:
+        return {_key(c): c.state_dict() for c in self.callbacks}
+
+    def load_state_dict(self, states: dict[str, dict[str, Any]]) -> None:
+        """Hands each callback the state saved under its key (a callback added since the
+        checkpoint was written starts fresh)."""
+        for callback in self.callbacks:
+            if _key(callback) in states:
+                callback.load_state_dict(states[_key(callback)])
+
+
+def _key(callback: Callback) -> str:
+    return callback.key or type(callback).__name__
+
+
+class GradientNoise(Callback):
+    """Measures the policy gradient's noise every ``every`` updates and logs it as
+    ``grad/<estimator>/<statistic>`` (see [`rl_pg.gradient_statistics`][rl_pg.gradient_statistics]),
+    with its cost as ``time/grad_stats_s``.
+
+    Measured on the batch the update learns from (rewards scaled as the loss sees
+    them), at the parameters that collected it. It draws no random number and changes
+    no state: a run measured this way trains exactly as one that is not.
+
+    Args:
+        every (int): updates between measurements.
+
+    Keyword Args:
+        estimators (sequence of str, optional): as ``GradientStatistics`` takes them.
+            Defaults to all the loss can compute.
+        unit (str): ``"episode"`` or ``"row"``. Defaults to ``"episode"``.
+    """
+
+    STATISTICS = (
+        "noise_scale",
+        "snr",
+        "half_cosine",
+        "trace_covariance",
+        "grad_norm_sq",
+        "mean_grad_norm_sq",
+    )
+    """The scalars logged for each estimator (and ``units`` once)."""
+
+    def __init__(
+        self, every: int, *, estimators: Sequence[str] | None = None, unit: str = "episode"
+    ) -> None:
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ValueError(f"every must be a positive number of updates, got {every!r}.")
+        self.every, self.estimators, self.unit = every, estimators, unit
+        self._statistics: GradientStatistics | None = None
+        self._pending: dict[str, float] | None = None
+
+    def on_start(self, run: Run) -> None:
+        self._statistics = GradientStatistics(run.loss, estimators=self.estimators, unit=self.unit)
+
+    def on_batch(self, run: Run, batch: TensorDictBase) -> None:
+        if (run.state.updates + 1) % self.every != 0:
+            return
+        start = time.perf_counter()
+        scale = run.cfg.reward_scale
+        if scale != 1.0:
+            batch = scale_rewards(batch, scale, run.loss.tensor_keys.reward)
+        try:
+            stats = self._statistics(batch)
+        except ValueError as err:
+            if "at least 2 independent units" not in str(err):
+                raise
+            self._pending = None  # a batch of one episode has no spread to measure
+            return
+        logged = {}
+        for name in stats.keys():
+            logged[f"grad/{name}/units"] = float(stats[name, "units"])
+            for stat in self.STATISTICS:
+                logged[f"grad/{name}/{stat}"] = float(stats[name, stat])
+        logged["time/grad_stats_s"] = time.perf_counter() - start
+        self._pending = logged
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        if self._pending is None:
+            return
+        for name, value in self._pending.items():
+            run.log(name, value)
+        self._pending = None
+
+
+def from_config(cfg: TrainConfig) -> list[Callback]:
+    """The callbacks the config's optional behaviours ask for (``grad_stats``)."""
+    callbacks: list[Callback] = []
+    if cfg.grad_stats is not None:
+        callbacks.append(GradientNoise(cfg.grad_stats))
+    return callbacks
