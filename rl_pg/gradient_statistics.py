@@ -23,14 +23,18 @@ a ``[U, P]`` tensor of unit gradients.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import CompositeDistribution
+from torchrl.objectives.utils import _sum_td_features
 from torchrl.objectives.value import GAE
 
 from rl_pg._checks import check_real
-from rl_pg.estimators import DiscountedReturn, RewardToGo
+from rl_pg.estimators import RewardToGo
+from rl_pg.functional import discounted_return, reward_to_go
 
 __all__ = ["ESTIMATORS", "GradientStatistics", "noise_statistics", "unit_index"]
 
@@ -48,22 +52,24 @@ whole-episode return `R(τ)`; the reward-to-go `G_t`; `G_t` minus a scalar basel
 minus the critic's `V(s_t)`; and GAE(λ) with the critic. The last two need a critic."""
 _NEED_CRITIC = frozenset({"reward_to_go_minus_value", "gae"})
 _UNITS = ("episode", "row")
+_METHODS = ("auto", "vmap", "backward")
+_DENSE_UNITS = 8  # up to this many units in a chunk, the dense product is the faster
 
 
 def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
-    """The spread of ``U`` independent unit gradients ``[U, P]`` (module docstring).
+    """The spread of ``U`` independent unit gradients ``[..., U, P]`` (module docstring).
 
     Args:
-        unit_gradients (torch.Tensor): one flattened gradient per unit, ``[U, P]``,
-            ``U >= 2``.
+        unit_gradients (torch.Tensor): one flattened gradient per unit, ``[U, P]``, or
+            several sets of them ``[*S, U, P]`` (e.g. one per estimator), ``U >= 2``.
 
     Returns:
-        A ``TensorDict(batch_size=[])`` with ``mean_gradient`` (``[P]``), ``units``,
+        A ``TensorDict(batch_size=S)`` with ``mean_gradient`` (``[*S, P]``), ``units``,
         ``mean_grad_norm_sq`` (`|ḡ|²`), ``grad_norm_sq``, ``trace_covariance``,
         ``noise_scale``, ``snr`` and ``half_cosine``.
 
     Raises:
-        ValueError: not a 2-D tensor with at least two rows, or non-finite entries.
+        ValueError: fewer than two dimensions or two units, or non-finite entries.
 
     Examples:
         >>> import torch
@@ -75,29 +81,32 @@ def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
         >>> stats["grad_norm_sq"].item(), stats["noise_scale"].item(), stats["snr"].item()
         (3.0, 1.3333333730697632, 3.0)
     """
-    if not isinstance(unit_gradients, torch.Tensor) or unit_gradients.ndim != 2:
+    if not isinstance(unit_gradients, torch.Tensor) or unit_gradients.ndim < 2:
         raise ValueError(
-            f"unit_gradients must be a [units, parameters] tensor, got "
+            f"unit_gradients must be a [..., units, parameters] tensor, got "
             f"{getattr(unit_gradients, 'shape', type(unit_gradients).__name__)}."
         )
-    units = unit_gradients.shape[0]
+    units = unit_gradients.shape[-2]
     if units < 2:
         raise ValueError(
             f"The spread of gradients needs at least 2 independent units, got {units}: "
             f"collect more episodes (or environments) per batch."
         )
-    if not bool(torch.isfinite(unit_gradients).all()):
+    mean = unit_gradients.mean(-2)
+    centred = torch.linalg.vector_norm(unit_gradients - mean.unsqueeze(-2), dim=(-2, -1))
+    trace = centred.pow(2) / (units - 1)
+    # NaN or inf anywhere reaches the mean or the spread (one pass less than a check).
+    if not bool(torch.isfinite(trace).all() and torch.isfinite(mean).all()):
         raise ValueError("unit_gradients holds NaN/inf: check the returns and the policy.")
-    mean = unit_gradients.mean(0)
-    trace = (unit_gradients - mean).pow(2).sum() / (units - 1)
-    mean_norm_sq = mean.pow(2).sum()
+    mean_norm_sq = mean.pow(2).sum(-1)
     norm_sq = mean_norm_sq - trace / units
-    halves = unit_gradients[0::2].mean(0), unit_gradients[1::2].mean(0)
-    cosine = torch.nn.functional.cosine_similarity(*halves, dim=0, eps=1e-30)
+    halves = unit_gradients[..., 0::2, :].mean(-2), unit_gradients[..., 1::2, :].mean(-2)
+    cosine = torch.nn.functional.cosine_similarity(*halves, dim=-1, eps=1e-30)
+    sets = unit_gradients.shape[:-2]
     return TensorDict(
         {
             "mean_gradient": mean,
-            "units": torch.tensor(units),
+            "units": torch.full(sets, units),
             "mean_grad_norm_sq": mean_norm_sq,
             "grad_norm_sq": norm_sq,
             "trace_covariance": trace,
@@ -105,7 +114,7 @@ def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
             "snr": norm_sq / (trace / units).clamp_min(torch.finfo(trace.dtype).tiny),
             "half_cosine": cosine,
         },
-        batch_size=[],
+        batch_size=sets,
     )
 
 
@@ -192,8 +201,17 @@ class GradientStatistics:
         scalar_baseline (float, optional): the `b` of ``"reward_to_go_minus_mean"``.
             Defaults to ``None``: the mean return of the batch's episodes at their
             first step (which, using the batch itself, shrinks `E[ĝ]` by `1 − 1/U`).
-        chunk (int): unit gradients computed per batched backward pass (memory against
-            speed). Defaults to ``64``.
+        chunk (int, optional): steps whose gradients are held at once (memory against
+            speed: ``chunk`` x the actor's parameter count numbers). Defaults to
+            ``None``: about two million numbers.
+        method (str): how the per-unit gradients are computed. ``"vmap"``: each step's
+            gradient of ``log π`` with ``torch.func`` (``vmap`` of ``grad``), summed
+            into units weighted by every estimator's `Ψ` (cost grows with steps x
+            parameters); ``"backward"``: one batched backward pass per group of units
+            through autograd (works for any policy autograd can differentiate, at a
+            cost that grows with units x steps); ``"auto"``: ``"vmap"``, falling back to
+            ``"backward"`` for a policy that ``torch.func`` cannot transform.
+            Defaults to ``"auto"``.
 
     Raises:
         ValueError: an unknown estimator or unit, or one that needs a critic the loss
@@ -234,7 +252,8 @@ class GradientStatistics:
         unit: str = "episode",
         gae_lambda: float | None = None,
         scalar_baseline: float | None = None,
-        chunk: int = 64,
+        chunk: int | None = None,
+        method: str = "auto",
     ) -> None:
         has_critic = bool(getattr(loss, "has_critic", False))
         if estimators is None:
@@ -251,8 +270,13 @@ class GradientStatistics:
             )
         if unit not in _UNITS:
             raise ValueError(f"unit must be one of {_UNITS}, got {unit!r}.")
-        if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        if chunk is not None and (
+            isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
+        ):
             raise ValueError(f"chunk must be a positive integer, got {chunk!r}.")
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
+        self.method = method
         estimator = loss.value_estimator
         gamma = float(estimator.gamma)
         if gae_lambda is None:
@@ -262,51 +286,54 @@ class GradientStatistics:
         self.scalar_baseline = check_real("scalar_baseline", scalar_baseline, optional=True)
         critic = loss.critic_network if has_critic else None
         keys = loss.tensor_keys
-        self._returns = {
-            "episode_return": DiscountedReturn(gamma=gamma, value_network=critic),
-            "reward_to_go": RewardToGo(gamma=gamma, value_network=critic),
-        }
-        if has_critic:
-            self._returns["gae"] = GAE(
-                gamma=gamma, lmbda=self.gae_lambda, value_network=critic, average_gae=False
-            )
-        for module in self._returns.values():
-            module.set_keys(
-                reward=keys.reward, done=keys.done, terminated=keys.terminated, value=keys.value
-            )
+        self._gamma = gamma
+        self._reward_to_go = RewardToGo(gamma=gamma, value_network=critic)
+        self._reward_to_go.set_keys(
+            reward=keys.reward, done=keys.done, terminated=keys.terminated, value=keys.value
+        )
 
     def weights(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        """Each estimator's detached `Ψ_t`, shaped ``[*batch_size]`` (0 on padding)."""
-        loss = self.loss
+        """Each estimator's detached `Ψ_t`, shaped ``[*batch_size]`` (0 on padding).
+
+        The critic runs once: its `V(s_t)` and `V(s_{t+1})` bootstrap every return, as
+        rl_pg's estimators do, and GAE is the reward-to-go of the TD errors
+        `δ_t = r_t + γ V(s_{t+1}) − V(s_t)` discounted by `γλ` (TorchRL's GAE).
+        """
+        loss, wanted = self.loss, set(self.estimators)
+        keys = loss.tensor_keys
         psi = {}
         with torch.no_grad():
-            data = batch.copy()
-            if "loss" in self.estimators:
+            if "loss" in wanted:
                 psi["loss"] = self._loss_weights(batch)
-            wanted = set(self.estimators)
-            computed = {}
-            for name in ("episode_return", "reward_to_go", "gae"):
-                if name in wanted or (
-                    name == "reward_to_go"
-                    and wanted & {"reward_to_go_minus_mean", "reward_to_go_minus_value"}
-                ):
-                    out = self._returns[name](data.copy())
-                    computed[name] = out
+            data = batch.copy()
+            self._reward_to_go(data)  # writes the values it bootstraps from, if any
+            to_go = data.get("value_target")
+            reward = data.get(("next", keys.reward))
+            done = data.get(("next", keys.done))
+            terminated = data.get(("next", keys.terminated), None)
+            value = data.get(keys.value, None) if loss.has_critic else None
+            next_value = data.get(("next", keys.value), None) if loss.has_critic else None
+            time_dim = self._time_dim(data)
+            gamma = self._gamma
             if "episode_return" in wanted:
-                psi["episode_return"] = computed["episode_return"].get("value_target")
+                psi["episode_return"] = discounted_return(
+                    reward, done, gamma, time_dim=time_dim, terminated=terminated,
+                    next_value=next_value,
+                )  # fmt: skip
             if "reward_to_go" in wanted:
-                psi["reward_to_go"] = computed["reward_to_go"].get("value_target")
+                psi["reward_to_go"] = to_go
             if "reward_to_go_minus_mean" in wanted:
-                rtg = computed["reward_to_go"].get("value_target")
                 baseline = self.scalar_baseline
                 if baseline is None:
-                    valid = loss._valid_steps(data, rtg)
-                    baseline = loss._episode_returns(data, rtg, valid).mean()
-                psi["reward_to_go_minus_mean"] = rtg - baseline
+                    valid = loss._valid_steps(data, to_go)
+                    baseline = loss._episode_returns(data, to_go, valid).mean()
+                psi["reward_to_go_minus_mean"] = to_go - baseline
             if "reward_to_go_minus_value" in wanted:
-                psi["reward_to_go_minus_value"] = computed["reward_to_go"].get("advantage")
+                psi["reward_to_go_minus_value"] = to_go - value
             if "gae" in wanted:
-                psi["gae"] = computed["gae"].get("advantage")
+                ended = done if terminated is None else terminated
+                delta = reward + gamma * next_value * ~ended.bool() - value
+                psi["gae"] = reward_to_go(delta, done, gamma * self.gae_lambda, time_dim=time_dim)
         valid = loss._valid_steps(batch, torch.zeros(batch.batch_size))
         out = {}
         for name in self.estimators:
@@ -315,6 +342,13 @@ class GradientStatistics:
                 value = value.masked_fill(~valid, 0.0)
             out[name] = value
         return out
+
+    @staticmethod
+    def _time_dim(data: TensorDictBase) -> int:
+        """The time dimension of a ``[*B, T, 1]`` per-step entry, counted from the end."""
+        names = data.names if data._has_names() else []
+        dim = names.index("time") if "time" in names else data.batch_dims - 1
+        return dim - data.batch_dims - 1
 
     def _loss_weights(self, batch: TensorDictBase) -> torch.Tensor:
         """The `Ψ` the loss itself weights ``log π`` with, its baseline's state kept."""
@@ -337,18 +371,87 @@ class GradientStatistics:
         self, batch: TensorDictBase, weights: dict[str, torch.Tensor]
     ) -> dict[str, torch.Tensor]:
         """Each estimator's ``[U, P]`` unit gradients `Σ_{t∈u} Ψ_t ∇ log π(a_t|s_t)`,
-        the actor's parameters flattened in ``named_parameters`` order."""
+        the actor's parameters flattened in its ``named_parameters`` order."""
         loss = self.loss
         index, units = unit_index(batch, unit=self.unit, done_key=("next", loss.tensor_keys.done))
-        params = _actor_parameters(loss)
         names = list(weights)
+        time_dim = self._time_dim(batch) + batch.batch_dims + 1
+        if time_dim != batch.batch_dims - 1:  # time last: each unit's steps are contiguous
+            order = [d for d in range(batch.batch_dims) if d != time_dim] + [time_dim]
+            batch, index = batch.permute(*order).contiguous(), index.permute(*order)
+            weights = {name: value.permute(*order) for name, value in weights.items()}
         steps = batch.reshape(-1)
         index = index.reshape(-1)
         psi = torch.stack([weights[n].reshape(-1) for n in names])  # [E, N]
-        # Units in groups of at most `chunk // E`: the policy runs once on each group's
-        # steps, and one batched backward pass gives every (estimator, unit) gradient,
-        # so the cost grows with the batch, not with units x steps.
-        per_group = max(1, self.chunk // len(names))
+        with torch.no_grad():  # refuses actions the policy cannot have taken, as the loss does
+            self._log_prob(steps)
+        params = _actor_parameters(loss)
+        if self.method != "backward":
+            try:
+                flat = self._by_steps(steps, index, units, psi, params)
+            except RuntimeError:
+                if self.method == "vmap":
+                    raise
+                self.method = "backward"  # this policy stays on autograd from now on
+        if self.method == "backward":
+            flat = self._by_units(steps, index, units, psi, params)
+        return {name: flat[i] for i, name in enumerate(names)}
+
+    def _by_steps(self, steps, index, units, psi, params) -> torch.Tensor:
+        """Per-step gradients (``vmap`` of ``grad``), summed into units by each `Ψ`.
+
+        Steps go in chunks of about two million gradient numbers (``chunk`` steps when
+        given): larger blocks cost more in fresh memory than they save in calls. A
+        unit's steps are contiguous, so each chunk's units form a range; a product of
+        the matrix of `Ψ` on each (estimator, unit)'s own steps with the chunk's
+        gradients sums them: dense for a few units (BLAS), sparse for many (it then
+        does only the multiplications that count).
+        """
+        one_step = _StepLogProb(self.loss)
+        detached = {f"actor.{name}": p.detach() for name, p in params.items()}
+
+        def log_prob(values, step):
+            return torch.func.functional_call(one_step, values, (step,), strict=True)
+
+        per_step = torch.func.vmap(torch.func.grad(log_prob), in_dims=(None, 0))
+        size = sum(p.numel() for p in detached.values())
+        chunk = self.chunk or max(1, 2**21 // size)
+        estimators = psi.shape[0]
+        out = torch.zeros(estimators, units, size, dtype=psi.dtype, device=psi.device)
+        for start in range(0, steps.numel(), chunk):
+            stop = min(steps.numel(), start + chunk)
+            grads = per_step(detached, one_step.inputs(steps[start:stop]))
+            where = index[start:stop].to(psi.device)
+            first, last = int(where.min()), int(where.max()) + 1
+            span = last - first
+            if span <= _DENSE_UNITS:  # [E, units, steps]: Ψ on each unit's own steps
+                local = torch.nn.functional.one_hot(where - first, span).T.to(psi)
+                weights = psi[:, start:stop].unsqueeze(1) * local
+            else:  # the same matrix as [E * units, steps], sparse: one Ψ per step
+                rows = torch.arange(estimators, device=psi.device).unsqueeze(1) * span
+                rows = (rows + where - first).reshape(-1)
+                cols = torch.arange(stop - start, device=psi.device).repeat(estimators)
+                weights = torch.sparse_coo_tensor(
+                    torch.stack([rows, cols]),
+                    psi[:, start:stop].reshape(-1),
+                    (estimators * span, stop - start),
+                    check_invariants=False,  # built valid: every index is in range
+                )
+            offset = 0
+            for grad in grads.values():
+                width = grad[0].numel()
+                flat = grad.reshape(stop - start, width).to(psi)
+                summed = weights @ flat if span <= _DENSE_UNITS else torch.sparse.mm(weights, flat)
+                out[:, first:last, offset : offset + width] += summed.reshape(
+                    estimators, span, width
+                )
+                offset += width
+        return out
+
+    def _by_units(self, steps, index, units, psi, params) -> torch.Tensor:
+        """Groups of units through one batched backward pass each."""
+        params = list(params.values())
+        per_group = max(1, (self.chunk or 256) // (4 * psi.shape[0]))
         grads = []
         for first in range(0, units, per_group):
             last = min(units, first + per_group)
@@ -363,9 +466,8 @@ class GradientStatistics:
                 log_prob, params, grad_outputs=cotangents, is_grads_batched=True
             )
             flat = torch.cat([g.reshape(cotangents.shape[0], -1) for g in out], dim=1)
-            grads.append(flat.reshape(len(names), last - first, -1).detach())
-        flat = torch.cat(grads, dim=1)
-        return {name: flat[i] for i, name in enumerate(names)}
+            grads.append(flat.reshape(psi.shape[0], last - first, -1).detach())
+        return torch.cat(grads, dim=1)
 
     def _log_prob(self, steps: TensorDictBase) -> torch.Tensor:
         """``log π(a_t|s_t)`` of a flat batch of steps, through the loss's own policy."""
@@ -385,21 +487,50 @@ class GradientStatistics:
             ValueError: fewer than two units in the batch.
         """
         gradients = self.unit_gradients(batch, self.weights(batch))
-        return TensorDict(
-            {name: noise_statistics(g) for name, g in gradients.items()}, batch_size=[]
-        )
+        stats = noise_statistics(torch.stack(list(gradients.values())))
+        return TensorDict({name: stats[i] for i, name in enumerate(gradients)}, batch_size=[])
 
 
-def _actor_parameters(loss) -> list[torch.Tensor]:
-    if loss.functional:
-        values = loss.actor_network_params.values(True, True)
-    else:
-        values = loss.actor_network.parameters()
-    seen, params = set(), []
-    for p in values:
-        if p.requires_grad and id(p) not in seen:
-            seen.add(id(p))
-            params.append(p)
+def _actor_parameters(loss) -> dict[str, torch.Tensor]:
+    """The actor's trainable parameters by ``named_parameters`` name (for a functional
+    loss, the loss's own copies)."""
+    actor = loss.actor_network
+    context = (
+        loss.actor_network_params.to_module(actor) if loss.functional else contextlib.nullcontext()
+    )
+    with context:
+        params = {name: p for name, p in actor.named_parameters() if p.requires_grad}
     if not params:
         raise ValueError("The loss's actor has no trainable parameter: nothing to measure.")
     return params
+
+
+class _StepLogProb(torch.nn.Module):
+    """``log π(a|s)`` of one step (the joint over action dimensions): what
+    ``torch.func`` differentiates per step. No checks here: ``vmap`` cannot branch on
+    data, and ``unit_gradients`` has run the loss's own checks on the whole batch."""
+
+    def __init__(self, loss) -> None:
+        super().__init__()
+        self.actor = loss.actor_network
+        self.action_key = loss.tensor_keys.action
+        # A composite distribution reads its actions under keys of its own: keep all.
+        self.composite = any(
+            isinstance(cls, type) and issubclass(cls, CompositeDistribution)
+            for cls in (getattr(m, "distribution_class", None) for m in self.actor.modules())
+        )
+
+    def inputs(self, steps: TensorDictBase) -> TensorDictBase:
+        """The entries of ``steps`` the policy and its log-probability read (``vmap``
+        splits every entry it is given, so the rest is left behind)."""
+        if self.composite:
+            return steps
+        keys = [k for k in (*self.actor.in_keys, self.action_key) if k in steps.keys(True)]
+        return steps.select(*keys)
+
+    def forward(self, step: TensorDictBase) -> torch.Tensor:
+        step = step.unsqueeze(0)  # a batch of one, as the policy expects
+        dist = self.actor.get_dist(step)
+        if isinstance(dist, CompositeDistribution):
+            return _sum_td_features(dist.log_prob(step)).sum()
+        return dist.log_prob(step.get(self.action_key)).sum()

@@ -58,7 +58,7 @@ class TestNoiseStatistics:
         ("bad", "match"),
         [
             (torch.zeros(1, 3), "at least 2 independent units"),
-            (torch.zeros(3), r"\[units, parameters\]"),
+            (torch.zeros(3), r"\[\.\.\., units, parameters\]"),
             (torch.tensor([[0.0, float("nan")], [1.0, 2.0]]), "NaN"),
         ],
     )
@@ -143,7 +143,8 @@ class TestGradientStatistics:
         batch = _segment_batch()
         stats = GradientStatistics(loss, estimators=["loss"])
         gradients = stats.unit_gradients(batch, stats.weights(batch))["loss"]
-        params = list(loss.actor_network_params.values(True, True))
+        with loss.actor_network_params.to_module(loss.actor_network):
+            params = [p for _, p in loss.actor_network.named_parameters()]
         grads = torch.autograd.grad(loss(batch.clone())["loss_actor"], params)
         expected = -torch.cat([g.reshape(-1) for g in grads])
         torch.testing.assert_close(gradients.sum(0), expected)
@@ -156,6 +157,40 @@ class TestGradientStatistics:
         stats = GradientStatistics(loss, estimators=["reward_to_go"])(batch)
         n_params = sum(p.numel() for p in actor.parameters())
         assert stats["reward_to_go", "mean_gradient"].shape == (n_params,)
+
+    @pytest.mark.parametrize("functional", [True, False])
+    @pytest.mark.parametrize("policy", ["categorical", "gaussian"])
+    def test_both_methods_agree_and_vmap_needs_no_fallback(self, functional, policy):
+        torch.manual_seed(0)
+        if policy == "categorical":
+            actor, batch = make_categorical_actor(), _segment_batch()
+        else:
+            actor = make_gaussian_actor(distribution_class=Normal)
+            batch = make_batch(torch.randn(4, 10, N_ACT), p_done=0.2)
+        loss = ReinforceLoss(actor, make_critic(), functional=functional)
+        by_steps = GradientStatistics(loss, method="auto", chunk=7)  # several chunks
+        by_units = GradientStatistics(loss, method="backward", chunk=7)
+        weights = by_steps.weights(batch)
+        expected = by_units.unit_gradients(batch, weights)
+        for name, value in by_steps.unit_gradients(batch, weights).items():
+            torch.testing.assert_close(value, expected[name], rtol=1e-4, atol=1e-5)
+        assert by_steps.method == "auto"  # torch.func handled it: no fallback was taken
+
+    def test_a_time_dimension_first_gives_the_same_units(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor(), make_critic())
+        batch = _segment_batch()
+        stats = GradientStatistics(loss, chunk=5)
+        expected = stats(batch)
+        # The same data laid out time first, the dimension named.
+        flipped = batch.transpose(0, 1).contiguous()
+        flipped.names = ["time", None]
+        got = stats(flipped)
+        for name in expected.keys():
+            torch.testing.assert_close(got[name, "mean_gradient"], expected[name, "mean_gradient"])
+            torch.testing.assert_close(
+                got[name, "trace_covariance"], expected[name, "trace_covariance"]
+            )
 
     def test_leaves_the_loss_and_the_random_stream_alone(self):
         torch.manual_seed(0)
