@@ -7,6 +7,7 @@
     rl-pg play runs/cartpole-seed1-... --gif cartpole.gif
     rl-pg tune cartpole --trials 20 --params lr gamma --total-frames 100000
     rl-pg report runs/cartpole-seed* --plot seeds.png
+    rl-pg lab variance cartpole --seeds 0 1 2
 
 ``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
 recipes/<name>.py`` runs ``rl-pg train <name>`` and ``python recipes/play.py``
@@ -32,7 +33,7 @@ from rl_pg.training.run_dir import RunDirBusy
 
 __all__ = ["main", "run_checkout_script"]
 
-USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report} ...
+USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report,lab} ...
 
   rl-pg list                       the recipes and what they train
   rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
@@ -42,6 +43,9 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report} ...
   rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
   rl-pg tune RECIPE [FLAGS]        search a recipe's hyperparameters with Optuna (--help)
   rl-pg report RUN_DIR... [FLAGS]  runs side by side: a table, and curves with --plot
+  rl-pg lab variance RECIPE [FLAGS]
+                                   train seeds measuring the gradient noise of every
+                                   return estimator; a figure and a table (--help)
 """
 
 
@@ -64,6 +68,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             _report_runs(rest)
         elif command == "tune" and rest and not rest[0].startswith("-"):
             _tune(rest[0], rest[1:])
+        elif command == "lab" and rest[:1] == ["variance"] and len(rest) > 1:
+            _lab_variance(rest[1], rest[2:])
         elif command in ("-h", "--help"):
             print(USAGE, end="")
         else:
@@ -134,6 +140,25 @@ def _tune(name: str, args: list[str]) -> None:
     )
     if result["reference_score"] is not None:
         print(f"The settings as given (trial 0) scored {result['reference_score']:.2f}.")
+
+
+def _lab_variance(name: str, args: list[str]) -> None:
+    from rl_pg.training.variance_lab import LabArgs, variance_lab
+
+    try:
+        recipe = load(name)
+    except ValueError as err:
+        sys.exit(f"rl-pg lab variance: {err}")
+    prog = f"rl-pg lab variance {name}"
+    lab, rest = tyro.cli(LabArgs, args=args, prog=prog, return_unknown_args=True)
+    base = parse_config(recipe.config, rest, prog=prog)
+    root = Path(base.run_dir if base.run_dir is not None else f"runs/lab-variance-{name}")
+    try:
+        variance_lab(recipe, base, seeds=lab.seeds, every=lab.every, root=root)
+    except (ValueError, FileNotFoundError) as err:  # bad flags, or runs measured nothing
+        sys.exit(f"rl-pg lab variance: {err}")
+    print((root / "variance.md").read_text(), end="")
+    print(f"Figure: {root / 'variance.png'}; every seed's run in {root}/seed<S>.")
 
 
 def _flag(name: str, value) -> str:

@@ -1,0 +1,224 @@
+"""The variance lesson on a real task: train a recipe's seeds while measuring the policy
+gradient's noise for every return estimator, then draw and tabulate it.
+
+``rl-pg lab variance RECIPE`` runs [`variance_lab`][rl_pg.training.variance_lab.variance_lab]:
+each seed trains with ``grad_stats`` set (the same batches, the same parameters, every
+estimator), in ``ROOT/seed<S>`` (a stopped seed resumes, a finished one is kept), and
+[`summarise`][rl_pg.training.variance_lab.summarise] reads their logs into
+``ROOT/variance.png`` (noise scale and SNR by frame, seeds aggregated) and
+``ROOT/variance.md`` / ``ROOT/variance.json`` (a table).
+
+A noise scale is a ratio of means, `B = mean(tr Σ) / mean(|∇J|²)` over the measurements
+of a window, as McCandlish et al. (2018) average it: each batch's `|∇J|²` estimate is
+unbiased but often negative, their ratio per batch is not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rl_pg.checkpoint import write_atomically
+from rl_pg.gradient_statistics import ESTIMATORS
+from rl_pg.plots import png_figure
+from rl_pg.training.checkpoints import CHECKPOINT
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.curves import read_curve
+from rl_pg.training.run_dir import SUMMARY
+
+__all__ = ["LabArgs", "measurements", "noise_scale_curve", "summarise", "variance_lab"]
+
+
+@dataclasses.dataclass
+class LabArgs:
+    """Train a recipe's seeds measuring the gradient noise of every return estimator,
+    then draw it (ROOT/variance.png) and tabulate it (ROOT/variance.md). Every other
+    flag is the recipe's (rl-pg train RECIPE --help) and applies to every seed; --run-dir
+    is ROOT (default runs/lab-variance-RECIPE)."""
+
+    seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1, 2])
+    """Seeds trained (each in ROOT/seed<S>; a finished one is kept, a stopped one resumes)."""
+    every: int = 20
+    """Updates between measurements (the measurement of every estimator on one batch
+    costs about one to two updates of the recipes' small networks)."""
+
+
+WINDOWS = 10
+"""Equal frame windows the measurements are pooled in, for the curves."""
+
+
+def variance_lab(recipe, cfg: TrainConfig, *, seeds: Sequence[int], every: int, root: Path):
+    """Trains ``recipe`` with ``cfg`` on each seed, measuring every ``every`` updates,
+    then writes the figure and the table; returns the table's data.
+
+    Raises:
+        ValueError: no seed, or ``every`` below 1.
+    """
+    if not seeds:
+        raise ValueError("The lab needs at least one seed (--seeds).")
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"--every must be a positive number of updates, got {every!r}.")
+    root = Path(root)
+    runs = {}
+    for seed in seeds:
+        run_dir = root / f"seed{seed}"
+        runs[seed] = run_dir
+        if _finished(run_dir):
+            continue
+        resume = (run_dir / CHECKPOINT).exists()
+        recipe.train(
+            dataclasses.replace(cfg, seed=seed, run_dir=run_dir, grad_stats=every, resume=resume)
+        )
+    return summarise(runs, root, title=f"{recipe.name}: gradient noise of each return estimator")
+
+
+def _finished(run_dir: Path) -> bool:
+    path = run_dir / SUMMARY
+    if not path.is_file():
+        return False
+    try:
+        return not json.loads(path.read_text()).get("interrupted", False)
+    except json.JSONDecodeError:
+        return False
+
+
+def measurements(run_dir: Path, estimator: str) -> dict[str, np.ndarray]:
+    """A run's logged measurements of ``estimator``: ``frames``, ``trace_covariance``,
+    ``grad_norm_sq`` and ``units``, one entry per measured update."""
+    out = {}
+    for name in ("trace_covariance", "grad_norm_sq", "units"):
+        out["frames"], out[name] = read_curve(run_dir, f"grad/{estimator}/{name}")
+    return out
+
+
+def noise_scale_curve(
+    runs: Sequence[dict[str, np.ndarray]], edges: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(frames, noise scale, snr)`` in each window ``edges[i] <= frames < edges[i+1]``,
+    pooling the measurements of every run in it: `B` is the ratio of their means, the
+    SNR at the batch size used their mean units over `B`. NaN where a window has no
+    measurement or its mean `|∇J|²` is not positive.
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.training.variance_lab import noise_scale_curve
+        >>> run = {"frames": np.array([64.0, 128.0]), "trace_covariance": np.array([4.0, 8.0]),
+        ...        "grad_norm_sq": np.array([1.0, -1.0]), "units": np.array([8.0, 8.0])}
+        >>> noise_scale_curve([run], np.array([0.0, 100.0, 200.0]))
+        (array([ 50., 150.]), array([ 4., nan]), array([ 2., nan]))
+        >>> noise_scale_curve([run], np.array([0.0, 200.0]))[1]  # pooled: 6 / 0
+        array([nan])
+    """
+    centres, scale, snr = [], [], []
+    for low, high in itertools.pairwise(edges):
+        pooled = {key: [] for key in ("trace_covariance", "grad_norm_sq", "units")}
+        for run in runs:
+            inside = (run["frames"] >= low) & (run["frames"] < high)
+            for key, values in pooled.items():
+                values.append(run[key][inside])
+        trace, signal, units = (np.concatenate(v) for v in pooled.values())
+        b = np.nan
+        if len(signal) and signal.mean() > 0:
+            b = trace.mean() / signal.mean()
+        centres.append((low + high) / 2)
+        scale.append(b)
+        snr.append(units.mean() / b if np.isfinite(b) else np.nan)
+    return np.array(centres), np.array(scale), np.array(snr)
+
+
+def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any]:
+    """The figure (``root/variance.png``) and the table (``root/variance.md``,
+    ``root/variance.json``) of the runs ``{seed: run_dir}``; returns the table's data:
+    for each estimator measured, each seed's noise scale over its whole run and over
+    each half, and the mean units per measurement."""
+    estimators = [
+        e
+        for e in ESTIMATORS
+        if all(
+            (r / "logs/csv/scalars/grad" / e / "trace_covariance.csv").is_file()
+            for r in runs.values()
+        )
+    ]
+    if not estimators:
+        raise FileNotFoundError(
+            f"No gradient statistics in the runs under {root}: train them with --grad-stats N."
+        )
+    table: dict[str, Any] = {"seeds": list(runs), "estimators": {}}
+    for estimator in estimators:
+        measured = {seed: measurements(run_dir, estimator) for seed, run_dir in runs.items()}
+        end = max(m["frames"].max() for m in measured.values()) + 1
+        pooled = noise_scale_curve(list(measured.values()), np.array([0.0, end / 2, end]))
+        whole = noise_scale_curve(list(measured.values()), np.array([0.0, end]))
+        table["estimators"][estimator] = {
+            "noise_scale": float(whole[1][0]),
+            "noise_scale_first_half": float(pooled[1][0]),
+            "noise_scale_second_half": float(pooled[1][1]),
+            "snr": float(whole[2][0]),
+            "units": float(np.concatenate([m["units"] for m in measured.values()]).mean()),
+            "measurements": int(sum(len(m["frames"]) for m in measured.values())),
+            "noise_scale_by_seed": {
+                seed: float(noise_scale_curve([m], np.array([0.0, end]))[1][0])
+                for seed, m in measured.items()
+            },
+        }
+    write_atomically(root / "variance.json", json.dumps(table, indent=2))
+    write_atomically(root / "variance.md", _markdown(table))
+    _figure(runs, estimators, root / "variance.png", title=title)
+    return table
+
+
+def _markdown(table: dict[str, Any]) -> str:
+    """The table: each estimator's noise scale over every seed's measurements pooled,
+    in the first and the second half of training, the SNR at the batch size used, and
+    each seed alone (— where the mean signal was not positive: noise dominates)."""
+    lines = [
+        "| estimator | noise scale B | first half | second half | SNR at the batch size "
+        "(units) | B by seed |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    for estimator, row in table["estimators"].items():
+        by_seed = " / ".join(_number(b) for b in row["noise_scale_by_seed"].values())
+        lines.append(
+            f"| {estimator} | {_number(row['noise_scale'])} | "
+            f"{_number(row['noise_scale_first_half'])} | "
+            f"{_number(row['noise_scale_second_half'])} | "
+            f"{_number(row['snr'])} ({row['units']:.3g}) | {by_seed} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _number(value: float) -> str:
+    return "—" if not np.isfinite(value) else f"{value:,.3g}"
+
+
+def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: str) -> None:
+    """Noise scale (top) and SNR at the batch size used (bottom) by frame, log scale:
+    every seed's measurements pooled in each window (the line), shaded between the
+    lowest and the highest seed alone."""
+    with png_figure(path, size=(8, 7)) as ax, warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # windows where no seed has a B
+        figure = ax.figure
+        ax.remove()
+        top, bottom = figure.subplots(2, 1, sharex=True)
+        for estimator in estimators:
+            measured = [measurements(run_dir, estimator) for run_dir in runs.values()]
+            end = max(m["frames"].max() for m in measured) + 1
+            edges = np.linspace(0.0, end, WINDOWS + 1)
+            frames, scale, snr = noise_scale_curve(measured, edges)
+            alone = [noise_scale_curve([m], edges) for m in measured]
+            for axis, column, pooled in ((top, 1, scale), (bottom, 2, snr)):
+                (line,) = axis.plot(frames, pooled, marker=".", label=estimator)
+                if len(alone) > 1:
+                    seeds = np.stack([curve[column] for curve in alone])
+                    low, high = np.nanmin(seeds, 0), np.nanmax(seeds, 0)
+                    axis.fill_between(frames, low, high, color=line.get_color(), alpha=0.15)
+        top.set(yscale="log", ylabel="noise scale B (units)", title=title)
+        bottom.set(yscale="log", ylabel="SNR at the batch size used", xlabel="frames")
+        top.legend(loc="best", fontsize="small")

@@ -1,0 +1,74 @@
+"""rl_pg.training.variance_lab and ``rl-pg lab variance``: seeds trained with the
+gradient statistics, then a figure and a table drawn from their logs alone."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_cli import in_process
+
+from rl_pg.training.variance_lab import noise_scale_curve
+
+QUICK = ["--total-updates", "4", "--episodes-per-batch", "6"]
+
+
+class TestNoiseScaleCurve:
+    def test_pools_every_run_of_a_window(self):
+        # B = mean trace / mean signal over all the runs' measurements in the window.
+        a = {"frames": np.array([10.0, 20.0]), "trace_covariance": np.array([2.0, 6.0]),
+             "grad_norm_sq": np.array([1.0, 3.0]), "units": np.array([4.0, 4.0])}  # fmt: skip
+        b = {"frames": np.array([15.0]), "trace_covariance": np.array([10.0]),
+             "grad_norm_sq": np.array([-1.0]), "units": np.array([10.0])}  # fmt: skip
+        frames, scale, snr = noise_scale_curve([a, b], np.array([0.0, 30.0]))
+        assert frames.tolist() == [15.0]
+        assert scale[0] == pytest.approx((18 / 3) / (3 / 3))
+        assert snr[0] == pytest.approx(6 / scale[0])
+
+    def test_an_empty_window_has_no_noise_scale(self):
+        run = {"frames": np.array([5.0]), "trace_covariance": np.array([1.0]),
+               "grad_norm_sq": np.array([1.0]), "units": np.array([2.0])}  # fmt: skip
+        _, scale, _ = noise_scale_curve([run], np.array([0.0, 10.0, 20.0]))
+        assert scale[0] == 1.0 and np.isnan(scale[1])
+
+
+class TestLabCommand:
+    def test_trains_the_seeds_then_writes_the_figure_and_the_table(self, tmp_path, capsys):
+        root = tmp_path / "lab"
+        args = ["lab", "variance", "gridworld", "--seeds", "0", "1", "--every", "1"]
+        status, out, err = in_process(*args, "--run-dir", str(root), *QUICK, capsys=capsys)
+        assert status == 0, err
+        assert out.startswith("| estimator | noise scale B |")
+        table = json.loads((root / "variance.json").read_text())
+        assert table["seeds"] == [0, 1]
+        assert "reward_to_go_minus_value" in table["estimators"]
+        assert all(row["measurements"] == 8 for row in table["estimators"].values())
+        assert (root / "variance.png").read_bytes()[:4] == b"\x89PNG"
+        # A second call keeps the finished seeds (no new training) and redraws.
+        before = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
+        status, out, err = in_process(*args, "--run-dir", str(root), *QUICK, capsys=capsys)
+        assert status == 0, err
+        assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == before
+
+    @pytest.mark.parametrize(
+        ("flags", "match"),
+        [(["--seeds"], "at least one seed"), (["--every", "0"], "positive number of updates")],
+    )
+    def test_rejects(self, tmp_path, capsys, flags, match):
+        status, _, err = in_process(
+            "lab", "variance", "gridworld", *flags, "--run-dir", str(tmp_path), capsys=capsys
+        )
+        assert status != 0 and match in err
+
+    def test_runs_without_statistics_are_refused(self, tmp_path, capsys):
+        root = tmp_path / "lab"
+        status, _, err = in_process(
+            "train", "gridworld", "--run-dir", str(root / "seed0"), *QUICK, capsys=capsys
+        )
+        assert status == 0, err
+        status, _, err = in_process(
+            "lab", "variance", "gridworld", "--seeds", "0", "--run-dir", str(root), *QUICK,
+            capsys=capsys,
+        )  # fmt: skip
+        assert status != 0 and "--grad-stats" in err
