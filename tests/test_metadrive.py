@@ -385,3 +385,27 @@ def test_references_measure_random_and_full_throttle(capsys):
         results["full throttle"]["mean_route_completion"]
         > results["random"]["mean_route_completion"]
     )
+
+
+@needs_metadrive
+@pytest.mark.parametrize("bounded", ["normal", "beta"])
+def test_continuous_actions_train_and_evaluate(tmp_path, bounded):
+    # MetaDrive's own [steering, throttle] in [-1, 1]^2, from a Gaussian or a Beta.
+    run = tmp_path / "run"
+    cfg = recipe.config(
+        run_dir=run, workers=1, horizon=6, actions="continuous", bounded=bounded,
+        segment_length=16, total_updates=2, eval_episodes=2, progress=False, grad_stats=1,
+    )  # fmt: skip
+    summary = recipe.train(cfg)
+    assert summary["updates"] == 2
+    actor, _ = recipe.make_models(md.metadrive_env(md.HELD_OUT, actions=None, horizon=5), cfg)
+    assert type(actor.module[-1]).__name__ != "Categorical"
+    result = evaluate.main(evaluate.Args(run=run, episodes=1))
+    assert 0.0 <= result["mean_route_completion"] <= 1.0
+    scalars = run / "logs" / "csv" / "scalars" / "grad" / "gae"
+    assert (scalars / "noise_scale.csv").is_file()
+
+
+def test_bounded_needs_continuous_actions():
+    with pytest.raises(ValueError, match="add --actions continuous"):
+        recipe.config(bounded="beta")

@@ -75,9 +75,16 @@ class Config(
     ] = "MetaDrive-validation-v0"  # fmt: skip
     """Training scenarios (the best checkpoint is picked on scenarios 10100-10199 and
     scored on the held-out 10000-10099)."""
-    actions: Literal["tutorial", "swapped"] = "tutorial"
+    actions: Literal["tutorial", "swapped", "continuous"] = "tutorial"
     """The 9-action table as the tutorial fed it to MetaDrive (steering +-1, throttle
-    +-0.6), or swapped (steering +-0.6, throttle +-1)."""
+    +-0.6), or swapped (steering +-0.6, throttle +-1); or 'continuous': MetaDrive's own
+    [steering, throttle] in [-1, 1]^2, from the policy that --bounded names."""
+    bounded: Literal["normal", "beta", "tanh_normal"] = "normal"
+    """With --actions continuous: the policy's distribution on the action bounds. 'normal':
+    a Gaussian whose mean the network outputs, one learned scale per dimension in every
+    state, its samples clipped by the environment (what LunarLanderContinuous learns
+    with); 'beta': a Beta on the bounds (Pendulum's); 'tanh_normal': a Gaussian squashed
+    into them."""
     horizon: Count = md.DEFAULT_HORIZON
     """Time limit of an episode, in steps of 0.1 s."""
     hidden: Count = 128
@@ -102,6 +109,20 @@ class Config(
     """Instead of training, evaluate a uniformly random and an always-full-throttle
     driver on the held-out scenarios."""
 
+    def validate(self) -> None:
+        super().validate()
+        if self.bounded != "normal" and self.actions != "continuous":
+            raise ValueError(
+                f"--bounded {self.bounded} chooses the distribution of continuous actions, "
+                f"but --actions is {self.actions!r}: add --actions continuous, or drop "
+                f"--bounded."
+            )
+
+
+def _table(cfg: Config) -> str | None:
+    """The action table the environment applies (None: MetaDrive's continuous actions)."""
+    return None if cfg.actions == "continuous" else cfg.actions
+
 
 # MetaDrive's terminal penalties that `--failure-penalty` sets (arriving pays +10).
 _FAILURE_PENALTIES = ("out_of_road_penalty", "crash_vehicle_penalty", "crash_object_penalty")
@@ -112,28 +133,28 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     ones in order, seen from above."""
     if render:  # deployment: held-out scenarios in order
         return md.metadrive_env(
-            md.HELD_OUT, actions=cfg.actions, order="sequential", horizon=cfg.horizon, render=True
+            md.HELD_OUT, actions=_table(cfg), order="sequential", horizon=cfg.horizon, render=True
         )
     config = dict.fromkeys(_FAILURE_PENALTIES, cfg.failure_penalty)
     config["use_lateral_reward"] = cfg.lateral_reward
-    return md.metadrive_env(cfg.env_id, actions=cfg.actions, horizon=cfg.horizon, config=config)
+    return md.metadrive_env(cfg.env_id, actions=_table(cfg), horizon=cfg.horizon, config=config)
 
 
 def make_eval_env(cfg: Config) -> EpisodeWorkers:
     """The selection scenarios in order, split among ``cfg.workers`` processes."""
-    return _in_order(md.SELECTION, cfg.actions, cfg.horizon, workers=cfg.workers)
+    return _in_order(md.SELECTION, _table(cfg), cfg.horizon, workers=cfg.workers)
 
 
 def make_test_env(cfg: Config) -> EpisodeWorkers:
     """The held-out scenarios in order, split among ``cfg.workers`` processes."""
-    return _in_order(md.HELD_OUT, cfg.actions, cfg.horizon, workers=cfg.workers)
+    return _in_order(md.HELD_OUT, _table(cfg), cfg.horizon, workers=cfg.workers)
 
 
 def make_training_test_env(cfg: Config) -> EpisodeWorkers:
     """The training scenarios in order, split among ``cfg.workers`` processes, as the
     other sets (100 episodes play 100 training scenarios, consecutive within each
     worker's part, from where the evaluation's seed starts them)."""
-    return _in_order(cfg.env_id, cfg.actions, cfg.horizon, workers=cfg.workers)
+    return _in_order(cfg.env_id, _table(cfg), cfg.horizon, workers=cfg.workers)
 
 
 def _in_order(
@@ -155,7 +176,12 @@ def _in_order(
 def make_models(env: EnvBase, cfg: Config):
     hidden = (cfg.hidden,) * cfg.layers
     return mlp_actor_critic(
-        env, hidden=hidden, activation=nn.ReLU, normalize=cfg.normalize_observations
+        env,
+        hidden=hidden,
+        activation=nn.ReLU,
+        normalize=cfg.normalize_observations,
+        bounded=cfg.bounded,
+        state_independent_scale=cfg.actions == "continuous" and cfg.bounded != "beta",
     )
 
 
@@ -164,7 +190,7 @@ def references(cfg: Config) -> dict:
     trained agents: on the held-out scenarios."""
     drivers = (
         # uniformly among the 9 actions of the table, as an untrained policy starts
-        ("random", cfg.actions, lambda env: RandomPolicy(env.action_spec)),
+        ("random", _table(cfg), lambda env: RandomPolicy(env.action_spec)),
         # MetaDrive's own [steering, throttle] = [0, 1], whatever the table
         ("full throttle", None, lambda env: _constant([0.0, 1.0])),
     )
