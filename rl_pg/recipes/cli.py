@@ -143,7 +143,7 @@ def _tune(name: str, args: list[str]) -> None:
 
 
 def _lab_variance(name: str, args: list[str]) -> None:
-    from rl_pg.training.variance_lab import LabArgs, variance_lab
+    from rl_pg.recipes.lab import LabArgs, variance_lab
 
     try:
         recipe = load(name)

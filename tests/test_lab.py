@@ -1,4 +1,4 @@
-"""rl_pg.training.variance_lab and ``rl-pg lab variance``: seeds trained with the
+"""rl_pg.recipes.lab and ``rl-pg lab variance``: seeds trained with the
 gradient statistics, then a figure and a table drawn from their logs alone."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_cli import in_process
 
-from rl_pg.training.variance_lab import noise_scale_curve
+from rl_pg.recipes.lab import noise_scale_curve
 
 QUICK = ["--total-updates", "4", "--episodes-per-batch", "6"]
 
@@ -45,11 +45,23 @@ class TestLabCommand:
         assert "reward_to_go_minus_value" in table["estimators"]
         assert all(row["measurements"] == 8 for row in table["estimators"].values())
         assert (root / "variance.png").read_bytes()[:4] == b"\x89PNG"
+        assert (root / "variance_by_seed.png").read_bytes()[:4] == b"\x89PNG"
+        assert table["held"] == {"0": None, "1": None}  # no rl-pg evaluate yet
         # A second call keeps the finished seeds (no new training) and redraws.
         before = (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns
         status, out, err = in_process(*args, "--run-dir", str(root), *QUICK, capsys=capsys)
         assert status == 0, err
         assert (root / "seed0" / "checkpoint.pt").stat().st_mtime_ns == before
+        # Once evaluated both ways, a seed is labelled by whether its best checkpoint holds.
+        for mode in ("greedy", "sampled"):
+            status, _, err = in_process(
+                "evaluate", str(root / "seed0"), "--episodes", "2",
+                *(["--sample"] if mode == "sampled" else []), capsys=capsys,
+            )  # fmt: skip
+            assert status == 0, err
+        status, _, err = in_process(*args, "--run-dir", str(root), *QUICK, capsys=capsys)
+        held = json.loads((root / "variance.json").read_text())["held"]
+        assert set(held["0"]) == {"holds", "greedy", "sampled"} and held["1"] is None
 
     @pytest.mark.parametrize(
         ("flags", "match"),

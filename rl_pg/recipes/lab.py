@@ -1,12 +1,15 @@
 """The variance lesson on a real task: train a recipe's seeds while measuring the policy
 gradient's noise for every return estimator, then draw and tabulate it.
 
-``rl-pg lab variance RECIPE`` runs [`variance_lab`][rl_pg.training.variance_lab.variance_lab]:
+``rl-pg lab variance RECIPE`` runs [`variance_lab`][rl_pg.recipes.lab.variance_lab]:
 each seed trains with ``grad_stats`` set (the same batches, the same parameters, every
 estimator), in ``ROOT/seed<S>`` (a stopped seed resumes, a finished one is kept), and
-[`summarise`][rl_pg.training.variance_lab.summarise] reads their logs into
-``ROOT/variance.png`` (noise scale and SNR by frame, seeds aggregated) and
-``ROOT/variance.md`` / ``ROOT/variance.json`` (a table).
+[`summarise`][rl_pg.recipes.lab.summarise] reads their logs into
+``ROOT/variance.png`` (noise scale and SNR by frame, seeds aggregated),
+``ROOT/variance_by_seed.png`` (the loss's own noise beside each seed's evaluations,
+seeds whose best checkpoint holds the threshold on fresh episodes, greedily and by
+sampling, drawn solid and the others dashed: run ``rl-pg evaluate`` on each seed first)
+and ``ROOT/variance.md`` / ``ROOT/variance.json`` (a table).
 
 A noise scale is a ratio of means, `B = mean(tr Σ) / mean(|∇J|²)` over the measurements
 of a window, as McCandlish et al. (2018) average it: each batch's `|∇J|²` estimate is
@@ -28,6 +31,7 @@ import numpy as np
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
 from rl_pg.plots import png_figure
+from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.curves import read_curve
@@ -108,7 +112,7 @@ def noise_scale_curve(
 
     Examples:
         >>> import numpy as np
-        >>> from rl_pg.training.variance_lab import noise_scale_curve
+        >>> from rl_pg.recipes.lab import noise_scale_curve
         >>> run = {"frames": np.array([64.0, 128.0]), "trace_covariance": np.array([4.0, 8.0]),
         ...        "grad_norm_sq": np.array([1.0, -1.0]), "units": np.array([8.0, 8.0])}
         >>> noise_scale_curve([run], np.array([0.0, 100.0, 200.0]))
@@ -168,10 +172,52 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
                 for seed, m in measured.items()
             },
         }
-    write_atomically(root / "variance.json", json.dumps(table, indent=2))
     write_atomically(root / "variance.md", _markdown(table))
     _figure(runs, estimators, root / "variance.png", title=title)
+    table["held"] = {seed: _held(run_dir) for seed, run_dir in runs.items()}
+    _seed_figure(runs, table["held"], root / "variance_by_seed.png", title=title)
+    write_atomically(root / "variance.json", json.dumps(table, indent=2))
     return table
+
+
+def _held(run_dir: Path) -> dict[str, Any] | None:
+    """Whether the run's best checkpoint held the run's threshold on fresh episodes
+    greedily and by sampling (its latest ``rl-pg evaluate`` results), with both means;
+    None where either was not measured or the run has no threshold."""
+    report = read_report(run_dir)
+    threshold = report["threshold"]
+    greedy, sampled = report["greedy"], report["sampled"]
+    if threshold is None or greedy is None or sampled is None:
+        return None
+    means = greedy["mean_return"], sampled["mean_return"]
+    return {"holds": min(means) >= threshold, "greedy": means[0], "sampled": means[1]}
+
+
+def _seed_figure(runs, held, path: Path, *, title: str) -> None:
+    """Each seed's evaluations (top) beside the noise scale and the SNR of the loss's
+    own estimator (pooled in windows), solid where its best checkpoint held."""
+    with png_figure(path, size=(8, 9)) as ax, warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        figure = ax.figure
+        ax.remove()
+        top, middle, bottom = figure.subplots(3, 1, sharex=True)
+        for seed, run_dir in runs.items():
+            verdict = held[seed]
+            label = f"seed {seed}"
+            if verdict is not None:
+                word = "holds" if verdict["holds"] else "drops"
+                label += f" ({word}: {verdict['greedy']:.0f} / {verdict['sampled']:.0f})"
+            style = "-" if verdict is None or verdict["holds"] else "--"
+            (line,) = top.plot(*read_curve(run_dir, "eval/mean_return"), style, label=label)
+            measured = measurements(run_dir, "loss")
+            edges = np.linspace(0.0, measured["frames"].max() + 1, WINDOWS + 1)
+            frames, scale, snr = noise_scale_curve([measured], edges)
+            middle.plot(frames, scale, style, marker=".", color=line.get_color())
+            bottom.plot(frames, snr, style, marker=".", color=line.get_color())
+        top.set(ylabel="evaluation mean return", title=f"{title}, seed by seed")
+        top.legend(loc="best", fontsize="small", title="best checkpoint, greedy / sampled")
+        middle.set(yscale="log", ylabel="noise scale B, the loss's Ψ")
+        bottom.set(yscale="log", ylabel="SNR at the batch size", xlabel="frames")
 
 
 def _markdown(table: dict[str, Any]) -> str:
