@@ -39,7 +39,7 @@ class TestLabCommand:
         args = ["lab", "variance", "gridworld", "--seeds", "0", "1", "--every", "1"]
         status, out, err = in_process(*args, "--run-dir", str(root), *QUICK, capsys=capsys)
         assert status == 0, err
-        assert out.startswith("| estimator | noise scale B |")
+        assert out.startswith("| estimator | tr Σ / tr Σ of R(τ) | noise scale B |")
         table = json.loads((root / "variance.json").read_text())
         assert table["seeds"] == [0, 1]
         assert "reward_to_go_minus_value" in table["estimators"]

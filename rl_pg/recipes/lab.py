@@ -167,6 +167,15 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
             "snr": float(whole[2][0]),
             "units": float(np.concatenate([m["units"] for m in measured.values()]).mean()),
             "measurements": int(sum(len(m["frames"]) for m in measured.values())),
+            "variance_relative_to_episode_return": float(
+                relative_variance(
+                    list(measured.values()),
+                    [measurements(r, "episode_return") for r in runs.values()],
+                    np.array([0.0, end]),
+                )[0]
+            )
+            if "episode_return" in estimators
+            else None,
             "noise_scale_by_seed": {
                 seed: float(noise_scale_curve([m], np.array([0.0, end]))[1][0])
                 for seed, m in measured.items()
@@ -225,14 +234,16 @@ def _markdown(table: dict[str, Any]) -> str:
     in the first and the second half of training, the SNR at the batch size used, and
     each seed alone (— where the mean signal was not positive: noise dominates)."""
     lines = [
-        "| estimator | noise scale B | first half | second half | SNR at the batch size "
-        "(units) | B by seed |",
-        "|---|---:|---:|---:|---:|---|",
+        "| estimator | tr Σ / tr Σ of R(τ) | noise scale B | first half | second half "
+        "| SNR at the batch size (units) | B by seed |",
+        "|---|---:|---:|---:|---:|---:|---|",
     ]
     for estimator, row in table["estimators"].items():
         by_seed = " / ".join(_number(b) for b in row["noise_scale_by_seed"].values())
+        relative = row["variance_relative_to_episode_return"]
         lines.append(
-            f"| {estimator} | {_number(row['noise_scale'])} | "
+            f"| {estimator} | {_number(np.nan if relative is None else relative)} | "
+            f"{_number(row['noise_scale'])} | "
             f"{_number(row['noise_scale_first_half'])} | "
             f"{_number(row['noise_scale_second_half'])} | "
             f"{_number(row['snr'])} ({row['units']:.3g}) | {by_seed} |"
@@ -244,27 +255,75 @@ def _number(value: float) -> str:
     return "—" if not np.isfinite(value) else f"{value:,.3g}"
 
 
+def relative_variance(
+    runs: Sequence[dict[str, np.ndarray]],
+    reference: Sequence[dict[str, np.ndarray]],
+    edges: np.ndarray,
+) -> np.ndarray:
+    """In each window, the summed ``trace_covariance`` of ``runs`` over that of
+    ``reference`` (another estimator measured on the very same batches): how much
+    noisier or quieter one estimator is than the other on identical data. Unbiased
+    estimators share `∇J`, so this is also the ratio of their noise scales.
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.recipes.lab import relative_variance
+        >>> a = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([1.0, 3.0])}
+        >>> b = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([8.0, 8.0])}
+        >>> relative_variance([a], [b], np.array([0.0, 3.0]))
+        array([0.25])
+    """
+    out = []
+    for low, high in itertools.pairwise(edges):
+        sums = []
+        for measured in (runs, reference):
+            inside = [
+                m["trace_covariance"][(m["frames"] >= low) & (m["frames"] < high)] for m in measured
+            ]
+            sums.append(np.concatenate(inside).sum() if inside else 0.0)
+        out.append(sums[0] / sums[1] if sums[1] > 0 else np.nan)
+    return np.array(out)
+
+
 def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: str) -> None:
-    """Noise scale (top) and SNR at the batch size used (bottom) by frame, log scale:
-    every seed's measurements pooled in each window (the line), shaded between the
-    lowest and the highest seed alone."""
-    with png_figure(path, size=(8, 7)) as ax, warnings.catch_warnings():
+    """Three panels by frame: each estimator's variance relative to the whole-episode
+    return's on the same batches (every seed pooled; shaded from seed to seed), the
+    noise scale B, and each seed's evaluations."""
+    reference = "episode_return" if "episode_return" in estimators else estimators[0]
+    measured = {e: [measurements(r, e) for r in runs.values()] for e in estimators}
+    end = max(m["frames"].max() for m in measured[reference]) + 1
+    edges = np.linspace(0.0, end, WINDOWS + 1)
+    with png_figure(path, size=(8, 9)) as ax, warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # windows where no seed has a B
         figure = ax.figure
         ax.remove()
-        top, bottom = figure.subplots(2, 1, sharex=True)
+        top, middle, bottom = figure.subplots(3, 1, sharex=True)
+        centres = (edges[:-1] + edges[1:]) / 2
         for estimator in estimators:
-            measured = [measurements(run_dir, estimator) for run_dir in runs.values()]
-            end = max(m["frames"].max() for m in measured) + 1
-            edges = np.linspace(0.0, end, WINDOWS + 1)
-            frames, scale, snr = noise_scale_curve(measured, edges)
-            alone = [noise_scale_curve([m], edges) for m in measured]
-            for axis, column, pooled in ((top, 1, scale), (bottom, 2, snr)):
-                (line,) = axis.plot(frames, pooled, marker=".", label=estimator)
-                if len(alone) > 1:
-                    seeds = np.stack([curve[column] for curve in alone])
-                    low, high = np.nanmin(seeds, 0), np.nanmax(seeds, 0)
-                    axis.fill_between(frames, low, high, color=line.get_color(), alpha=0.15)
-        top.set(yscale="log", ylabel="noise scale B (units)", title=title)
-        bottom.set(yscale="log", ylabel="SNR at the batch size used", xlabel="frames")
+            ratio = relative_variance(measured[estimator], measured[reference], edges)
+            (line,) = top.plot(centres, ratio, marker=".", label=estimator)
+            frames, scale, _ = noise_scale_curve(measured[estimator], edges[::2])
+            middle.plot(frames, scale, marker=".", color=line.get_color())
+            if len(runs) > 1:
+                seeds = np.stack(
+                    [
+                        relative_variance([m], [r], edges)
+                        for m, r in zip(measured[estimator], measured[reference], strict=True)
+                    ]
+                )
+                top.fill_between(
+                    centres,
+                    np.nanmin(seeds, 0),
+                    np.nanmax(seeds, 0),
+                    color=line.get_color(),
+                    alpha=0.15,
+                )
+        for seed, run_dir in runs.items():
+            bottom.plot(*read_curve(run_dir, "eval/mean_return"), label=f"seed {seed}")
+        returns = np.concatenate([read_curve(r, "eval/mean_return")[1] for r in runs.values()])
+        bottom.set_ylim(bottom=np.percentile(returns, 5))  # early collapses off the scale
+        top.set(yscale="log", ylabel=f"tr Σ relative to {reference}", title=title)
         top.legend(loc="best", fontsize="small")
+        middle.set(yscale="log", ylabel="noise scale B (units)")
+        bottom.set(ylabel="evaluation mean return", xlabel="frames")
+        bottom.legend(loc="best", fontsize="small")
