@@ -4,14 +4,16 @@ gradient statistics, then a figure and a table drawn from their logs alone."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from test_cli import in_process
 
-from rl_pg.recipes.lab import noise_scale_curve
+from rl_pg.recipes.lab import _markdown, noise_scale_curve
 
 QUICK = ["--total-updates", "4", "--episodes-per-batch", "6"]
+RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
 
 
 class TestNoiseScaleCurve:
@@ -84,3 +86,10 @@ class TestLabCommand:
             capsys=capsys,
         )  # fmt: skip
         assert status != 0 and "--grad-stats" in err
+
+
+@pytest.mark.parametrize("stored", sorted(RESULTS.glob("variance_*.json")), ids=lambda p: p.stem)
+def test_the_documented_tables_are_the_stored_results(stored):
+    # The docs include docs/results/variance_<recipe>.md; it must be what the lab
+    # writes from the stored variance_<recipe>.json, never a table edited by hand.
+    assert stored.with_suffix(".md").read_text() == _markdown(json.loads(stored.read_text()))

@@ -174,7 +174,7 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
                     np.array([0.0, end]),
                 )[0]
             )
-            if "episode_return" in estimators
+            if "episode_return" in estimators and _comparable(estimator, runs)
             else None,
             "noise_scale_by_seed": {
                 seed: float(noise_scale_curve([m], np.array([0.0, end]))[1][0])
@@ -285,6 +285,15 @@ def relative_variance(
     return np.array(out)
 
 
+def _comparable(estimator: str, runs: dict[int, Path]) -> bool:
+    """Whether ``estimator``'s variance is at the scale of the returns': the loss's own
+    `Ψ` is not when the runs standardise it (``normalize_advantage``)."""
+    if estimator != "loss":
+        return True
+    configs = [json.loads((r / "config.json").read_text()) for r in runs.values()]
+    return not any(c.get("normalize_advantage", False) for c in configs)
+
+
 def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: str) -> None:
     """Three panels by frame: each estimator's variance relative to the whole-episode
     return's on the same batches (every seed pooled; shaded from seed to seed), the
@@ -300,11 +309,14 @@ def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: 
         top, middle, bottom = figure.subplots(3, 1, sharex=True)
         centres = (edges[:-1] + edges[1:]) / 2
         for estimator in estimators:
-            ratio = relative_variance(measured[estimator], measured[reference], edges)
+            if _comparable(estimator, runs):
+                ratio = relative_variance(measured[estimator], measured[reference], edges)
+            else:  # keeps its colour in the other panels
+                ratio = np.full_like(centres, np.nan)
             (line,) = top.plot(centres, ratio, marker=".", label=estimator)
             frames, scale, _ = noise_scale_curve(measured[estimator], edges[::2])
             middle.plot(frames, scale, marker=".", color=line.get_color())
-            if len(runs) > 1:
+            if len(runs) > 1 and _comparable(estimator, runs):
                 seeds = np.stack(
                     [
                         relative_variance([m], [r], edges)
