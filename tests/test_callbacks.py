@@ -8,40 +8,15 @@ from dataclasses import replace
 import pytest
 import torch
 from conftest import run_weights
-from torch import nn
+from test_trainer import _cfg as trainer_cfg
+from test_trainer import _train
 
-from rl_pg.envs import GridWorldEnv
-from rl_pg.models import mlp_actor, mlp_critic
-from rl_pg.training import Callback, TrainConfig, scalar_log_rows, train
+from rl_pg.training import Callback, TrainConfig, scalar_log_rows
 from rl_pg.training.callbacks import Callbacks, GradientNoise, from_config
 
 
-def make_grid():
-    return GridWorldEnv(batch_size=8, max_steps=30)
-
-
-def make_grid_models(env):
-    kwargs = {"hidden": (32,), "activation": nn.ReLU}
-    return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
-
-
 def _cfg(tmp_path, name="run", **overrides) -> TrainConfig:
-    defaults = {
-        "run_dir": tmp_path / name,
-        "total_updates": 6,
-        "episodes_per_batch": 8,
-        "gamma": 1.0,
-        "lr": 0.02,
-        "eval_interval": 500,
-        "eval_episodes": 1,
-        "checkpoint_interval": 2,
-        "progress": False,
-    }
-    return TrainConfig(**{**defaults, **overrides})
-
-
-def _train(cfg, **kwargs):
-    return train(cfg, recipe="grid", make_env=make_grid, make_models=make_grid_models, **kwargs)
+    return trainer_cfg(tmp_path, **{"run_dir": tmp_path / name, **overrides})
 
 
 class Recorder(Callback):

@@ -116,14 +116,7 @@ def _train(name: str, args: list[str]) -> None:
 def _tune(name: str, args: list[str]) -> None:
     from rl_pg.training.tuning import TuneArgs, tune
 
-    try:
-        recipe = load(name)
-    except ValueError as err:
-        sys.exit(f"rl-pg tune: {err}")
-    prog = f"rl-pg tune {name}"
-    tuning, rest = tyro.cli(TuneArgs, args=args, prog=prog, return_unknown_args=True)
-    base = parse_config(recipe.config, rest, prog=prog)
-    study_dir = Path(base.run_dir if base.run_dir is not None else f"runs/tune-{name}")
+    recipe, tuning, base, study_dir = _command_over_runs("tune", name, args, TuneArgs, "tune")
     try:
         result = tune(
             recipe, base, params=tuning.params, trials=tuning.trials, seeds=tuning.tune_seeds,
@@ -145,20 +138,30 @@ def _tune(name: str, args: list[str]) -> None:
 def _lab_variance(name: str, args: list[str]) -> None:
     from rl_pg.recipes.lab import LabArgs, variance_lab
 
-    try:
-        recipe = load(name)
-    except ValueError as err:
-        sys.exit(f"rl-pg lab variance: {err}")
-    prog = f"rl-pg lab variance {name}"
-    lab, rest = tyro.cli(LabArgs, args=args, prog=prog, return_unknown_args=True)
-    base = parse_config(recipe.config, rest, prog=prog)
-    root = Path(base.run_dir if base.run_dir is not None else f"runs/lab-variance-{name}")
+    recipe, lab, base, root = _command_over_runs(
+        "lab variance", name, args, LabArgs, "lab-variance"
+    )
     try:
         variance_lab(recipe, base, seeds=lab.seeds, every=lab.every, root=root)
     except (ValueError, FileNotFoundError) as err:  # bad flags, or runs measured nothing
         sys.exit(f"rl-pg lab variance: {err}")
     print((root / "variance.md").read_text(), end="")
     print(f"Figure: {root / 'variance.png'}; every seed's run in {root}/seed<S>.")
+
+
+def _command_over_runs(command: str, name: str, args: list[str], own_args, folder: str):
+    """What a command that trains a recipe's runs reads: the recipe, the command's own
+    flags (``own_args``), the recipe's config from every other flag, and the directory
+    its runs go to (``--run-dir``, default ``runs/<folder>-<recipe>``)."""
+    try:
+        recipe = load(name)
+    except ValueError as err:
+        sys.exit(f"rl-pg {command}: {err}")
+    prog = f"rl-pg {command} {name}"
+    own, rest = tyro.cli(own_args, args=args, prog=prog, return_unknown_args=True)
+    base = parse_config(recipe.config, rest, prog=prog)
+    root = Path(base.run_dir if base.run_dir is not None else f"runs/{folder}-{name}")
+    return recipe, own, base, root
 
 
 def _flag(name: str, value) -> str:
