@@ -162,7 +162,9 @@ class GradientNoise(Callback):
 
     Measured on the batch the update learns from (rewards scaled as the loss sees
     them), at the parameters that collected it. It draws no random number and changes
-    no state: a run measured this way trains exactly as one that is not.
+    no state: a run measured this way trains exactly as one that is not. A batch of
+    fewer than two units (one episode, or one environment's unfinished segment) has
+    no spread to measure and is skipped.
 
     Args:
         every (int): updates between measurements.
