@@ -172,3 +172,4 @@ def test_grad_stats(tmp_path):
         "LunarLander --grad-stats 1",
     }
     assert all(v > 0 for v in out["time_over_time_without"].values())
+    assert all(0 < v < 1 for v in out["measurement_share_of_training"].values())
