@@ -202,31 +202,70 @@ def _held(run_dir: Path) -> dict[str, Any] | None:
     return {"holds": min(means) >= threshold, "greedy": means[0], "sampled": means[1]}
 
 
+_GROUPS = {"holds": "tab:green", "drops": "tab:red", "not evaluated": "tab:grey"}
+
+
+def _group(verdict: dict[str, Any] | None) -> str:
+    if verdict is None:
+        return "not evaluated"
+    return "holds" if verdict["holds"] else "drops"
+
+
 def _seed_figure(runs, held, path: Path, *, title: str) -> None:
-    """Each seed's evaluations (top) beside the noise scale and the SNR of the loss's
-    own estimator (pooled in windows), solid where its best checkpoint held."""
-    with png_figure(path, size=(8, 9)) as ax, warnings.catch_warnings():
+    """The seeds whose best checkpoint held beside those that dropped: each seed's
+    evaluations (thin), and for each group the noise scale and SNR of the loss's own
+    estimator (its seeds' measurements pooled in windows) and the policy's mean
+    entropy during training (where it is logged)."""
+    groups: dict[str, list[Path]] = {}
+    for seed, run_dir in runs.items():
+        groups.setdefault(_group(held[seed]), []).append(run_dir)
+    end = max(measurements(r, "loss")["frames"].max() for r in runs.values()) + 1
+    edges = np.linspace(0.0, end, WINDOWS + 1)
+    with png_figure(path, size=(8, 11)) as ax, warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         figure = ax.figure
         ax.remove()
-        top, middle, bottom = figure.subplots(3, 1, sharex=True)
-        for seed, run_dir in runs.items():
-            verdict = held[seed]
-            label = f"seed {seed}"
-            if verdict is not None:
-                word = "holds" if verdict["holds"] else "drops"
-                label += f" ({word}: {verdict['greedy']:.0f} / {verdict['sampled']:.0f})"
-            style = "-" if verdict is None or verdict["holds"] else "--"
-            (line,) = top.plot(*read_curve(run_dir, "eval/mean_return"), style, label=label)
-            measured = measurements(run_dir, "loss")
-            edges = np.linspace(0.0, measured["frames"].max() + 1, WINDOWS + 1)
-            frames, scale, snr = noise_scale_curve([measured], edges)
-            middle.plot(frames, scale, style, marker=".", color=line.get_color())
-            bottom.plot(frames, snr, style, marker=".", color=line.get_color())
-        top.set(ylabel="evaluation mean return", title=f"{title}, seed by seed")
-        top.legend(loc="best", fontsize="small", title="best checkpoint, greedy / sampled")
-        middle.set(yscale="log", ylabel="noise scale B, the loss's Ψ")
-        bottom.set(yscale="log", ylabel="SNR at the batch size", xlabel="frames")
+        top, scale_ax, snr_ax, entropy_ax = figure.subplots(4, 1, sharex=True)
+        for name, members in groups.items():
+            colour = _GROUPS[name]
+            for i, run_dir in enumerate(members):
+                label = f"{name} ({len(members)} seeds)" if i == 0 else None
+                top.plot(*read_curve(run_dir, "eval/mean_return"), color=colour, lw=0.8,
+                         label=label)  # fmt: skip
+            frames, scale, snr = noise_scale_curve(
+                [measurements(r, "loss") for r in members], edges
+            )
+            scale_ax.plot(frames, scale, marker=".", color=colour)
+            snr_ax.plot(frames, snr, marker=".", color=colour)
+            entropy = [_windowed(r, "train/entropy", edges) for r in members]
+            if all(e is not None for e in entropy):
+                entropy_ax.plot(frames, np.nanmean(np.stack(entropy), 0), marker=".", color=colour)
+        returns = np.concatenate([read_curve(r, "eval/mean_return")[1] for r in runs.values()])
+        top.set_ylim(bottom=np.percentile(returns, 5))
+        recipe = title.split(":")[0]
+        top.set(
+            ylabel="evaluation mean return", title=f"{recipe}: seeds that hold, seeds that drop"
+        )
+        top.legend(loc="best", fontsize="small", title="best checkpoint on fresh episodes")
+        scale_ax.set(yscale="log", ylabel="noise scale B, the loss's Ψ")
+        snr_ax.set(yscale="log", ylabel="SNR at the batch size")
+        entropy_ax.set(ylabel="policy entropy (training)", xlabel="frames")
+
+
+def _windowed(run_dir: Path, metric: str, edges: np.ndarray) -> np.ndarray | None:
+    """The mean of a logged ``metric`` in each window (None if the run did not log it)."""
+    try:
+        frames, values = read_curve(run_dir, metric)
+    except FileNotFoundError:
+        return None
+    return np.array(
+        [
+            values[(frames >= low) & (frames < high)].mean()
+            if ((frames >= low) & (frames < high)).any()
+            else np.nan
+            for low, high in itertools.pairwise(edges)
+        ]
+    )
 
 
 def _markdown(table: dict[str, Any]) -> str:
