@@ -184,7 +184,11 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
     write_atomically(root / "variance.md", _markdown(table))
     _figure(runs, estimators, root / "variance.png", title=title)
     table["held"] = {seed: _held(run_dir) for seed, run_dir in runs.items()}
-    _seed_figure(runs, table["held"], root / "variance_by_seed.png", title=title)
+    # The quietest estimator resolves the signal |∇J|² best (they share it, GAE nearly).
+    quietest = next(e for e in ("gae", "reward_to_go_minus_value", *estimators) if e in estimators)
+    _seed_figure(
+        runs, table["held"], root / "variance_by_seed.png", title=title, estimator=quietest
+    )
     write_atomically(root / "variance.json", json.dumps(table, indent=2))
     return table
 
@@ -211,15 +215,15 @@ def _group(verdict: dict[str, Any] | None) -> str:
     return "holds" if verdict["holds"] else "drops"
 
 
-def _seed_figure(runs, held, path: Path, *, title: str) -> None:
+def _seed_figure(runs, held, path: Path, *, title: str, estimator: str) -> None:
     """The seeds whose best checkpoint held beside those that dropped: each seed's
-    evaluations (thin), and for each group the noise scale and SNR of the loss's own
-    estimator (its seeds' measurements pooled in windows) and the policy's mean
-    entropy during training (where it is logged)."""
+    evaluations (thin), and for each group the noise scale and SNR of ``estimator``
+    (its seeds' measurements pooled in windows) and the policy's mean entropy during
+    training (where it is logged)."""
     groups: dict[str, list[Path]] = {}
     for seed, run_dir in runs.items():
         groups.setdefault(_group(held[seed]), []).append(run_dir)
-    end = max(measurements(r, "loss")["frames"].max() for r in runs.values()) + 1
+    end = max(measurements(r, estimator)["frames"].max() for r in runs.values()) + 1
     edges = np.linspace(0.0, end, WINDOWS + 1)
     with png_figure(path, size=(8, 11)) as ax, warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -233,7 +237,7 @@ def _seed_figure(runs, held, path: Path, *, title: str) -> None:
                 top.plot(*read_curve(run_dir, "eval/mean_return"), color=colour, lw=0.8,
                          label=label)  # fmt: skip
             frames, scale, snr = noise_scale_curve(
-                [measurements(r, "loss") for r in members], edges
+                [measurements(r, estimator) for r in members], edges
             )
             scale_ax.plot(frames, scale, marker=".", color=colour)
             snr_ax.plot(frames, snr, marker=".", color=colour)
@@ -247,7 +251,7 @@ def _seed_figure(runs, held, path: Path, *, title: str) -> None:
             ylabel="evaluation mean return", title=f"{recipe}: seeds that hold, seeds that drop"
         )
         top.legend(loc="best", fontsize="small", title="best checkpoint on fresh episodes")
-        scale_ax.set(yscale="log", ylabel="noise scale B, the loss's Ψ")
+        scale_ax.set(yscale="log", ylabel=f"noise scale B, {estimator}")
         snr_ax.set(yscale="log", ylabel="SNR at the batch size")
         entropy_ax.set(ylabel="policy entropy (training)", xlabel="frames")
 
