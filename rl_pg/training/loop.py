@@ -232,7 +232,6 @@ class Run:
             if "episodes" in saved:
                 self.episode_returns.load_state_dict(saved["episodes"])
             restore_rng(saved)
-        if saved is not None:
             hooks.load_state_dict(saved.get("callbacks", {}))
         self.next_eval = self._next_evaluation()
         self.spent = 0
