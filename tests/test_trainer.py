@@ -188,6 +188,31 @@ class TestTrain:
             torch.testing.assert_close(weights["gae1"][key], weights["rtg"][key])
         assert any(not torch.allclose(weights["gae05"][k], weights["rtg"][k]) for k in actor)
 
+    def test_adam_beta1_sets_the_average_of_the_gradients(self, tmp_path):
+        # Adam's first step is the sign of the gradient whatever beta1 (bias correction);
+        # from the second on, beta1 weighs the earlier gradients: the runs part there.
+        weights, betas = {}, {}
+        for beta1 in (0.9, 0.99):
+            run = tmp_path / f"beta{beta1}"
+            for updates in (1, 3):
+                _train(
+                    _cfg(
+                        tmp_path,
+                        run_dir=run / str(updates),
+                        total_updates=updates,
+                        adam_beta1=beta1,
+                    )
+                )
+                weights[beta1, updates] = run_weights(run / str(updates))
+            saved = load_checkpoint(run / "3" / "checkpoint.pt")
+            betas[beta1] = {tuple(g["betas"]) for g in saved["optimizer"]["param_groups"]}
+        assert betas == {0.9: {(0.9, 0.999)}, 0.99: {(0.99, 0.999)}}
+        for key in weights[0.9, 1]:
+            torch.testing.assert_close(weights[0.99, 1][key], weights[0.9, 1][key])
+        assert any(
+            not torch.allclose(weights[0.99, 3][k], weights[0.9, 3][k]) for k in weights[0.9, 3]
+        )
+
     def test_linear_learning_rate_schedule(self, tmp_path):
         # 6 updates x 80 frames = total_frames: update k (0-based) starts at 80k frames.
         cfg = _cfg(
@@ -200,6 +225,12 @@ class TestTrain:
         )
         constant = _train(replace(cfg, run_dir=tmp_path / "constant"))
         assert _logged(tmp_path / "constant", "train/lr") == [0.02] * 6
+        # Held at lr for the first half of total_frames (3 updates), then decayed over
+        # the other 3 towards 0 at total_frames.
+        _train(replace(cfg, run_dir=tmp_path / "held", lr_schedule="linear", lr_schedule_start=0.5))
+        assert _logged(tmp_path / "held", "train/lr") == pytest.approx(
+            [0.02] * 3 + [0.02 * (1 - k / 3) for k in range(3)]
+        )
         assert constant["eval_mean_return"] is not None
 
     @pytest.mark.parametrize(
@@ -365,6 +396,7 @@ class TestTrain:
         [
             {},
             {"lr_schedule": "linear", "total_frames": 1500},
+            {"lr_schedule": "linear", "lr_schedule_start": 0.4, "total_frames": 1500},
             {"entropy_schedule": "linear", "entropy_coeff": 0.05, "total_frames": 1500},
             {
                 "entropy_schedule": "linear",
@@ -386,6 +418,7 @@ class TestTrain:
         ids=[
             "constant",
             "linear",
+            "late_linear",
             "linear_entropy",
             "entropy_penalty",
             "late_entropy_penalty",
@@ -523,6 +556,10 @@ class TestTrain:
             ),
             ({"entropy_coeff_end": float("nan")}, "entropy_coeff_end .* finite number"),
             ({"entropy_schedule_start": 0.5}, "starts moving: add --entropy-schedule linear"),
+            ({"lr_schedule_start": 0.5}, "starts decaying: add --lr-schedule linear"),
+            ({"optimizer": "sgd", "adam_beta1": 0.99}, "use --optimizer adam"),
+            ({"adam_beta1": 1.0}, "adam_beta1 .* must be"),
+            ({"lr_schedule": "linear", "lr_schedule_start": 1.0}, "lr_schedule_start .* must be"),
             (
                 {"entropy_schedule": "linear", "entropy_schedule_start": 1.0},
                 "entropy_schedule_start .* must be",

@@ -147,12 +147,22 @@ class TrainConfig:
     """Standardise the policy weights over each batch."""
     optimizer: Literal["adam", "sgd"] = "adam"
     """Optimiser of actor and critic."""
+    adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
+    """Adam's first-moment decay: each step follows an average of about
+    1 / (1 - adam_beta1) batches' gradients. Where one batch's gradient is mostly noise
+    (gradient noise scale far above the batch: rl-pg lab variance), a longer average
+    keeps the signal and takes out more of the noise."""
     lr: Positive = 1e-3
     """Learning rate."""
     lr_schedule: Literal["constant", "linear"] = "constant"
     """'linear': decay the learning rate from lr at frame 0 to 0 at total_frames
     (set before each update from the frames seen so far, so a resumed run continues the
     same schedule; raising total_frames on resume stretches what is left of it)."""
+    lr_schedule_start: Annotated[float, Range(0, 1, high_open=True)] = 0.0
+    """Fraction of total_frames during which the 'linear' learning rate holds at lr
+    before it starts decaying to 0 at total_frames (0: it decays from frame 0). A late
+    decay keeps the constant rate's progress and then takes the noise of the last
+    updates out of the weights that are deployed."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -318,6 +328,18 @@ class TrainConfig:
                 f"--entropy-schedule-start {self.entropy_schedule_start} is where the linear "
                 "entropy schedule starts moving: add --entropy-schedule linear, or pass "
                 "--entropy-schedule-start 0."
+            )
+        if self.adam_beta1 != 0.9 and self.optimizer != "adam":
+            raise ValueError(
+                f"--adam-beta1 {self.adam_beta1} sets Adam's gradient average, but "
+                f"--optimizer is {self.optimizer!r}: use --optimizer adam, or leave "
+                "--adam-beta1 at 0.9."
+            )
+        if self.lr_schedule_start != 0 and self.lr_schedule != "linear":
+            raise ValueError(
+                f"--lr-schedule-start {self.lr_schedule_start} is where the linear learning "
+                "rate schedule starts decaying: add --lr-schedule linear, or pass "
+                "--lr-schedule-start 0."
             )
         if self.ray and self.batch_mode != "segments":
             raise ValueError(

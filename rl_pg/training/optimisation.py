@@ -77,12 +77,20 @@ def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimiz
     fused = {"fused": True} if _fused_kernels(params) else {}
     if cfg.optimizer == "sgd":
         return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
-    return torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
+    return torch.optim.Adam(
+        params,
+        lr=cfg.lr,
+        betas=(cfg.adam_beta1, 0.999),
+        weight_decay=cfg.weight_decay,
+        **fused,
+    )
 
 
 def learning_rate(cfg: TrainConfig, frames: int) -> float:
     """The learning rate of the update that follows ``frames`` environment steps."""
-    return _scheduled(cfg.lr, cfg.lr_schedule, frames, cfg.total_frames)
+    return _scheduled(
+        cfg.lr, cfg.lr_schedule, frames, cfg.total_frames, start=cfg.lr_schedule_start
+    )
 
 
 def entropy_coeff(cfg: TrainConfig, frames: int) -> float:
