@@ -32,7 +32,8 @@ from common import REPO, table, write_json
 from torchrl.envs import ParallelEnv
 
 from rl_pg.envs import metadrive as md
-from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.episode_workers import EpisodeWorkers
+from rl_pg.evaluation import evaluate
 from rl_pg.recipes import load
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import load_models

@@ -2,33 +2,28 @@
 
 from __future__ import annotations
 
-import contextlib
-import copy
-import importlib.util
 import math
-import multiprocessing
-import signal
-import traceback
-from collections.abc import Callable, Sequence
-from pathlib import Path
-from typing import Any, NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from rl_pg._checks import check_bool, check_int, check_names, check_real
+from rl_pg._checks import check_bool, check_int, check_names
 
 __all__ = [
-    "EpisodeWorkers",
-    "check_recording",
+    "EpisodePlayer",
+    "EpisodeRequest",
+    "EvaluationEnv",
+    "check_playing",
     "episode_shares",
     "evaluate",
     "first_episodes",
-    "play",
+    "play_episodes",
+    "policy_device",
 ]
 
 
@@ -86,7 +81,7 @@ def first_episodes(
 
 def evaluate(
     policy: TensorDictModuleBase,
-    env: EnvBase | EpisodeWorkers,
+    env: EvaluationEnv,
     *,
     episodes: int,
     deterministic: bool = True,
@@ -102,7 +97,7 @@ def evaluate(
     a fixed number of episodes each, so the result does not favour short episodes.
     Environments are reset only when their episode ends, so one that walks through a
     fixed list of start states (an in-order scenario set) skips none. An
-    [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers] shares the episodes the same
+    [`EpisodeWorkers`][rl_pg.episode_workers.EpisodeWorkers] shares the episodes the same
     way among its processes.
 
     Keyword Args:
@@ -147,14 +142,19 @@ def evaluate(
         >>> evaluate(actor, BanditEnv(num_arms=4, batch_size=8), episodes=8)["mean_return"]
         0.0
     """
-    episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
+    episodes, max_steps, deterministic = check_playing(episodes, max_steps, deterministic)
     flags, values = check_names("flags", flags), check_names("values", values)
     action_stats = check_bool("action_stats", action_stats)
-    wanted = _Wanted(episodes, deterministic, max_steps, flags, values, action_stats)
-    if isinstance(env, EpisodeWorkers):
-        stats = env.play(policy, wanted)
+    request = EpisodeRequest(episodes, deterministic, max_steps, flags, values, action_stats)
+    if isinstance(env, EnvBase):
+        stats = play_episodes(policy, env, request)
+    elif isinstance(env, EpisodePlayer):
+        stats = env.play(policy, request)
     else:
-        stats = _episodes(policy, env, wanted)
+        raise TypeError(
+            f"evaluate plays its episodes on a TorchRL EnvBase or an EpisodePlayer "
+            f"(e.g. rl_pg.episode_workers.EpisodeWorkers), got {type(env).__name__}."
+        )
     stats = {key: value.float() for key, value in stats.items()}
     out = {
         "mean_return": stats["return"].mean().item(),
@@ -230,8 +230,9 @@ def episode_shares(episodes: int, n: int) -> list[int]:
     return [episodes // n + (i < episodes % n) for i in range(n)]
 
 
-class _Wanted(NamedTuple):
-    """Which episodes to play, how, and what to report of them (see ``evaluate``)."""
+class EpisodeRequest(NamedTuple):
+    """Which episodes to play, how, and what to report of them (the arguments of
+    [`evaluate`][rl_pg.evaluation.evaluate], checked)."""
 
     episodes: int
     deterministic: bool
@@ -241,13 +242,41 @@ class _Wanted(NamedTuple):
     action_stats: bool = False
 
 
-def _episodes(
-    policy: TensorDictModuleBase, env: EnvBase, wanted: _Wanted
+@runtime_checkable
+class EpisodePlayer(Protocol):
+    """Plays a policy's episodes where its environments are, for
+    [`evaluate`][rl_pg.evaluation.evaluate]: what an evaluation environment that is not
+    a TorchRL ``EnvBase`` implements
+    ([`EpisodeWorkers`][rl_pg.episode_workers.EpisodeWorkers], one process per
+    environment). ``set_seed`` seeds the next ``play``; ``play`` returns what
+    [`play_episodes`][rl_pg.evaluation.play_episodes] does."""
+
+    batch_size: torch.Size
+
+    def set_seed(self, seed: int | None) -> int | None: ...
+
+    def play(
+        self, policy: TensorDictModuleBase, request: EpisodeRequest
+    ) -> dict[str, torch.Tensor]: ...
+
+    def close(self) -> None: ...
+
+
+EvaluationEnv = EnvBase | EpisodePlayer
+"""What plays an evaluation's episodes: a TorchRL environment (batched: side by side),
+or an [`EpisodePlayer`][rl_pg.evaluation.EpisodePlayer]."""
+
+
+def play_episodes(
+    policy: TensorDictModuleBase, env: EnvBase, request: EpisodeRequest
 ) -> dict[str, torch.Tensor]:
-    """One entry per episode: ``return``, ``length``, ``finished``, flags and values."""
-    episodes, deterministic, max_steps, flags, values, action_stats = wanted
+    """Plays ``request`` on ``env`` in this process: one entry per episode, ``return``,
+    ``length``, ``finished``, the flags and values asked for (and the action tallies
+    that ``action_stats`` asks for). What [`evaluate`][rl_pg.evaluation.evaluate]
+    summarises, and what an [`EpisodePlayer`][rl_pg.evaluation.EpisodePlayer] returns."""
+    episodes, deterministic, max_steps, flags, values, action_stats = request
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    cast = _device_of(policy) not in (None, env.device)  # a policy on a GPU, say
+    cast = policy_device(policy) not in (None, env.device)  # a policy on a GPU, say
     with set_exploration_type(exploration), torch.no_grad():
         if math.prod(env.batch_size) > 1:
             return _side_by_side(
@@ -271,169 +300,8 @@ def _episodes(
         return {key: torch.cat(value) for key, value in results.items()}
 
 
-class EpisodeWorkers:
-    """Evaluation environments that each play whole episodes in a process of their own.
-
-    Pass it to [`evaluate`][rl_pg.evaluation.evaluate] as the environment: each
-    process receives a CPU copy of the policy and plays its share of the episodes
-    ([`episode_shares`][rl_pg.evaluation.episode_shares], as the environments of a
-    batched env do) back to back on its own environment, then sends back one result
-    per episode. Nothing crosses processes at each step, unlike a ``ParallelEnv``
-    (MetaDrive with random actions: 503 steps/s inside a process, 155 driven step by
-    step through a one-worker ``ParallelEnv``). The environments are
-    built at the first use and stay alive until ``close()``. Worker processes ignore
-    Ctrl-C: the main process handles it and closes them.
-
-    Args:
-        make_envs (sequence of callables): one environment factory per process,
-            picklable. Processes start with the method set by
-            ``multiprocessing.set_start_method`` (as TorchRL's workers do), spawned
-            when none is set.
-
-    Examples:
-        >>> from functools import partial
-        >>> from rl_pg.envs import GridWorldEnv
-        >>> from rl_pg.evaluation import EpisodeWorkers
-        >>> env = EpisodeWorkers([partial(GridWorldEnv, max_steps=5)] * 2)
-        >>> env.num_workers, env.is_closed  # processes start at the first use
-        (2, True)
-    """
-
-    def __init__(self, make_envs: Sequence[Callable[[], EnvBase]]) -> None:
-        make_envs = list(make_envs)
-        if not make_envs or not all(callable(make) for make in make_envs):
-            raise TypeError("make_envs must be a non-empty sequence of environment factories.")
-        self.make_envs = make_envs
-        self._workers: list[tuple[Any, Any]] = []  # (process, pipe)
-        self._specs: dict[str, Any] = {}
-        self._seed: int | None = None
-
-    @property
-    def num_workers(self) -> int:
-        return len(self.make_envs)
-
-    @property
-    def is_closed(self) -> bool:
-        return not self._workers
-
-    # What building a policy for these environments needs (e.g. `mlp_actor(env)`), as
-    # the first one has it: each process plays one environment of this batch size.
-    @property
-    def batch_size(self) -> torch.Size:
-        return self._spec("batch_size")
-
-    @property
-    def observation_spec(self):
-        return self._spec("observation_spec")
-
-    @property
-    def action_spec(self):
-        return self._spec("action_spec")
-
-    def _spec(self, name: str) -> Any:
-        self._start()
-        return self._specs[name]
-
-    def set_seed(self, seed: int | None) -> int | None:
-        """Seeds every environment, and the actions sampled beside it, before each
-        evaluation: process ``i`` with ``seed + i``."""
-        self._seed = seed
-        return seed
-
-    def play(self, policy: TensorDictModuleBase, wanted: _Wanted) -> dict[str, torch.Tensor]:
-        """One entry per episode, as the processes played them; see ``evaluate``."""
-        self._start()
-        policy = _cpu_copy(policy)
-        shares = episode_shares(wanted.episodes, self.num_workers)
-        for i, ((_, pipe), share) in enumerate(zip(self._workers, shares, strict=True)):
-            if share:
-                seed = None if self._seed is None else self._seed + i
-                pipe.send((policy, seed, wanted._replace(episodes=share)))
-        results = [self._receive(i) for i, share in enumerate(shares) if share]
-        keys = set.intersection(*(set(result) for result in results))
-        return {key: torch.cat([result[key] for result in results]) for key in keys}
-
-    def close(self) -> None:
-        for _, pipe in self._workers:
-            with contextlib.suppress(BrokenPipeError, OSError):
-                pipe.send(None)
-        for process, pipe in self._workers:
-            process.join(timeout=30)
-            if process.is_alive():
-                process.kill()
-            pipe.close()
-        self._workers = []
-
-    def _start(self) -> None:
-        if self._workers:
-            return
-        # Spawn unless the user set a start method: fork is unsafe once torch runs threads.
-        method = multiprocessing.get_start_method(allow_none=True) or "spawn"
-        context = multiprocessing.get_context(method)
-        for make_env in self.make_envs:
-            pipe, child = context.Pipe()
-            process = context.Process(target=_episode_worker, args=(make_env, child), daemon=True)
-            process.start()
-            child.close()
-            self._workers.append((process, pipe))
-        ready = [self._receive(i) for i in range(len(self._workers))]  # each built its env
-        self._specs = ready[0]
-
-    def _receive(self, i: int) -> Any:
-        process, pipe = self._workers[i]
-        try:
-            status, payload = pipe.recv()
-        except EOFError:
-            process.join(timeout=5)
-            self.close()
-            raise RuntimeError(
-                f"Evaluation worker {i} died (exit code {process.exitcode})."
-            ) from None
-        if status == "error":
-            self.close()
-            raise RuntimeError(f"Evaluation worker {i} failed:\n{payload}")
-        return payload
-
-    def __del__(self) -> None:
-        if getattr(self, "_workers", None):
-            self.close()
-
-
-def _cpu_copy(policy: TensorDictModuleBase) -> TensorDictModuleBase:
-    if _device_of(policy) in (None, torch.device("cpu")):
-        return policy  # pickled on its way to each process: a copy already
-    return copy.deepcopy(policy).to("cpu")
-
-
-def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
-    """Builds one environment, then plays the episodes it is sent until told to stop."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process handles Ctrl-C
-    torch.set_num_threads(1)
-    try:
-        env = make_env()
-        specs = {"batch_size": env.batch_size, "observation_spec": env.observation_spec,
-                 "action_spec": env.action_spec}  # fmt: skip
-        pipe.send(("ready", specs))
-    except Exception:
-        pipe.send(("error", traceback.format_exc()))
-        return
-    try:
-        while (message := pipe.recv()) is not None:
-            policy, seed, wanted = message
-            try:
-                if seed is not None:  # the environment, and the sampled actions
-                    env.set_seed(seed)
-                    torch.manual_seed(seed)
-                pipe.send(("done", _episodes(policy, env, wanted)))
-            except Exception:
-                pipe.send(("error", traceback.format_exc()))
-    except EOFError:  # the main process is gone
-        pass
-    finally:
-        env.close()
-
-
-def _device_of(policy: TensorDictModuleBase) -> torch.device | None:
+def policy_device(policy: TensorDictModuleBase) -> torch.device | None:
+    """The device of ``policy``'s first parameter (None: it has none)."""
     parameters = getattr(policy, "parameters", None)  # TorchRL's RandomPolicy has none
     return None if parameters is None else next((p.device for p in parameters()), None)
 
@@ -536,142 +404,10 @@ def _one_per_step(key: str, value: torch.Tensor) -> torch.Tensor:
     return value[..., 0]
 
 
-def play(
-    policy: TensorDictModuleBase,
-    env: EnvBase,
-    *,
-    episodes: int,
-    deterministic: bool = True,
-    max_steps: int = 100_000,
-    record: str | Path | None = None,
-    fps: int = 30,
-) -> list[float]:
-    """Plays ``episodes`` episodes one after the other; optionally records them.
-
-    Keyword Args:
-        episodes (int): number of episodes.
-        deterministic (bool): act greedily rather than by sampling. Defaults to ``True``.
-        max_steps (int): cap on an episode's length. Defaults to ``100_000``.
-        record (str or Path, optional): a ``.gif`` or ``.mp4`` path; the environment must
-            put its frames under ``"pixels"`` (e.g. ``GymEnv(..., from_pixels=True,
-            pixels_only=False)``). Defaults to ``None``.
-        fps (int): frames per second of the recording. Defaults to ``30``.
-
-    Returns:
-        The return of every episode.
-
-    Raises:
-        ValueError: for ``episodes < 1``, ``fps <= 0``, or a recording that cannot be
-            made (an extension other than ``.gif`` / ``.mp4``, a folder that cannot be
-            created, an environment that gives no ``"pixels"``), checked before any
-            episode is played.
-        ModuleNotFoundError: an ``.mp4`` recording without ``imageio-ffmpeg``
-            (``pip install "rl_pg[video]"``).
-
-    Examples:
-        >>> import torch
-        >>> from rl_pg.envs import GridWorldEnv
-        >>> from rl_pg.evaluation import play
-        >>> from rl_pg.models import mlp_actor
-        >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
-        <torch._C.Generator object at ...>
-        >>> env = GridWorldEnv(max_steps=5)
-        >>> len(play(mlp_actor(env), env, episodes=2, deterministic=False))
-        2
-    """
-    episodes, max_steps, deterministic = _check_playing(episodes, max_steps, deterministic)
-    if record is not None:
-        # Everything that could make the recording fail is checked before playing.
-        fps = check_real("fps", fps, low=0, low_open=True)
-        record = check_recording(record)
-        if "pixels" not in env.observation_spec.keys():
-            raise ValueError(
-                "Recording needs frames under 'pixels': build the environment with "
-                "from_pixels=True, pixels_only=False (this one does not render)."
-            )
-    returns, frames = [], []
-    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    with set_exploration_type(exploration), torch.no_grad():
-        for _ in range(episodes):
-            rollout = env.rollout(max_steps, policy, break_when_any_done=True)
-            returns.append(rollout["next", "reward"].sum().item())
-            if record is not None:
-                frames.extend(rollout["pixels"].numpy())
-    if record is not None:
-        _write_video(record, frames, fps)
-    return returns
-
-
-def _check_playing(episodes, max_steps, deterministic) -> tuple[int, int, bool]:
-    """The arguments ``evaluate`` and ``play`` share."""
+def check_playing(episodes, max_steps, deterministic) -> tuple[int, int, bool]:
+    """The arguments ``evaluate`` and ``rl_pg.recording.play`` share, checked."""
     return (
         check_int("episodes", episodes, low=1),
         check_int("max_steps", max_steps, low=1),
         check_bool("deterministic", deterministic),
     )
-
-
-_VIDEO_FORMATS = (".gif", ".mp4")
-
-
-def check_recording(path: str | Path) -> Path:
-    """Checks that a recording can be written to ``path``; creates its folder.
-
-    Raises:
-        ValueError: an extension other than ``.gif`` and ``.mp4``, or a folder that
-            cannot be created.
-        ModuleNotFoundError: ``.mp4`` without ``imageio-ffmpeg`` installed.
-
-    Examples:
-        >>> from rl_pg.evaluation import check_recording
-        >>> check_recording("episodes.avi")
-        Traceback (most recent call last):
-        ...
-        ValueError: Cannot record to episodes.avi: the file name must end in .gif or .mp4.
-    """
-    path = Path(path)
-    if path.suffix.lower() not in _VIDEO_FORMATS:
-        raise ValueError(
-            f"Cannot record to {path}: the file name must end in {' or '.join(_VIDEO_FORMATS)}."
-        )
-    if path.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
-        raise ModuleNotFoundError(
-            f"Recording {path} needs an MP4 encoder: pip install -c constraints.txt "
-            f'"rl_pg[video]" (imageio-ffmpeg, which ships ffmpeg), or record a .gif.'
-        )
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"Cannot record to {path}: its folder cannot be created ({err}).") from err
-    if path.is_dir():
-        raise ValueError(f"Cannot record to {path}: it is a folder; give a file name.")
-    return path
-
-
-def _write_video(path: Path, frames: list, fps: float) -> None:
-    if path.suffix.lower() == ".gif":
-        _write_gif(path, frames, fps)
-    else:
-        import imageio.v2 as imageio
-
-        imageio.mimsave(path, frames, fps=fps)
-
-
-def _write_gif(path: Path, frames: list, fps: float) -> None:
-    """One 256-colour palette for the whole recording, taken from frames spread over it.
-
-    A palette per frame (what imageio does) costs ~18 ms a frame at 600x400; one shared
-    palette makes recording cost about as much as rendering.
-    """
-    from PIL import Image
-
-    images = [Image.fromarray(np.ascontiguousarray(frame)) for frame in frames]
-    sample = images[:: max(1, len(images) // 16)][:16]
-    montage = Image.new("RGB", (sample[0].width, sample[0].height * len(sample)))
-    for i, image in enumerate(sample):
-        montage.paste(image.convert("RGB"), (0, i * sample[0].height))
-    palette = montage.quantize(colors=256)
-    gif = [
-        image.convert("RGB").quantize(palette=palette, dither=Image.Dither.NONE) for image in images
-    ]
-    gif[0].save(path, save_all=True, append_images=gif[1:], duration=1000 / fps, loop=0)

@@ -31,7 +31,7 @@ from torchrl.objectives.value import ValueEstimatorBase
 from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import _MonteCarloReturn
-from rl_pg.models import LeanCategoricalPolicy
+from rl_pg.lean import LeanCategoricalPolicy
 
 __all__ = ["ReinforceLoss"]
 
@@ -59,7 +59,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
       schedule does; a negative value there penalises entropy.
     * ``normalize_advantage`` standardises `Ψ` over the batch.
     * ``value_norm`` (a TorchRL ``ValueNorm``, as ``MAPPOLoss`` takes) makes the
-      critic regress on standardised targets; a [`PopArt`][rl_pg.models.PopArt]
+      critic regress on standardised targets; a [`PopArt`][rl_pg.normalization.PopArt]
       output layer also lets the critic learn at that scale.
     * Detached diagnostics: ``advantage_mean``, ``advantage_std``, ``baseline`` (scalar
       baselines) and ``explained_variance`` (with a critic whose values are in the data).
@@ -109,7 +109,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             (``torchrl.modules.ValueNorm``). Each ``forward`` updates them once with
             the batch's targets (padding excluded), then ``loss_value`` compares
             ``normalize(target)`` with ``normalize(V)``, and ``clip_value`` is in those
-            units. Give the critic's [`PopArt`][rl_pg.models.PopArt] output layer to
+            units. Give the critic's [`PopArt`][rl_pg.normalization.PopArt] output layer to
             have the critic predict standardised values (its outputs are preserved
             when the statistics move); any other ``ValueNorm`` only rescales the loss.
             Advantages and returns stay at the rewards' scale. Defaults to ``None``.
@@ -226,7 +226,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             if not isinstance(value_norm, ValueNorm):
                 raise TypeError(
                     f"value_norm must be a torchrl.modules.ValueNorm (e.g. the critic's "
-                    f"rl_pg.models.PopArt layer), got {type(value_norm).__name__}."
+                    f"rl_pg.normalization.PopArt layer), got {type(value_norm).__name__}."
                 )
             if critic_network is None:
                 raise ValueError(
@@ -567,7 +567,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if done is None or done.shape != returns.shape:
             return returns if valid is None else returns[valid]
         time_dim = tensordict.ndim - 1
-        if tensordict._has_names() and "time" in tensordict.names:
+        if "time" in tensordict.names:
             time_dim = tensordict.names.index("time")
         starts = torch.zeros_like(done)
         length = done.shape[time_dim]

@@ -11,7 +11,8 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
 from rl_pg.envs import BanditEnv, GridWorldEnv
-from rl_pg.evaluation import EpisodeWorkers, evaluate, first_episodes
+from rl_pg.episode_workers import EpisodeWorkers
+from rl_pg.evaluation import evaluate, first_episodes
 
 
 def _fixed_actor(n_obs, logits):

@@ -310,7 +310,7 @@ REL_TRACE = 0.10
 def _trace_check(measured_g: torch.Tensor, reference_trace: float, reference_se: float):
     """z of the measured trace of the covariance against the reference, and the
     relative error. The measured trace's SE is that of the mean of squared deviations."""
-    from rl_pg.gradient_statistics import noise_statistics
+    from rl_pg.gradient_noise import noise_statistics
 
     stats = noise_statistics(measured_g)
     squared = (measured_g - stats["mean_gradient"]).pow(2).sum(-1)

@@ -13,7 +13,8 @@ from tensordict import TensorDict
 from torch.distributions import Normal
 
 from rl_pg import ReinforceLoss
-from rl_pg.gradient_statistics import ESTIMATORS, GradientStatistics, noise_statistics, unit_index
+from rl_pg.gradient_noise import noise_statistics, unit_index
+from rl_pg.gradient_statistics import ESTIMATORS, GradientStatistics
 
 Z_MAX = 5.0
 

@@ -16,15 +16,9 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
 from rl_pg import ReinforceLoss
 from rl_pg.distributions import BoundedBeta
 from rl_pg.envs import GridWorldEnv, gym_env
-from rl_pg.models import (
-    LeanCategoricalPolicy,
-    RunningNorm,
-    lean_policy,
-    mlp_actor,
-    mlp_actor_critic,
-    mlp_critic,
-    update_running_norms,
-)
+from rl_pg.lean import LeanCategoricalPolicy, lean_policy
+from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
+from rl_pg.normalization import RunningNorm, update_running_norms
 
 
 class _BoxEnv(gym.Env):

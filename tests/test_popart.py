@@ -1,4 +1,4 @@
-"""rl_pg.models.PopArt and ReinforceLoss(value_norm=...): a critic that learns returns of
+"""rl_pg.normalization.PopArt and ReinforceLoss(value_norm=...): a critic that learns returns of
 any scale at the speed of returns near one, with its outputs preserved."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.modules import PopArtValueNorm, RunningValueNorm, ValueOperator
 
 from rl_pg import ReinforceLoss
-from rl_pg.models import PopArt, popart_output
+from rl_pg.normalization import PopArt, popart_output
 
 
 def _critic(hidden: int = 16) -> ValueOperator:

@@ -30,7 +30,8 @@ from torchrl.modules import ValueOperator
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.evaluation import evaluate
-from rl_pg.models import PopArt, RunningNorm, mlp_actor, mlp_critic, update_running_norms
+from rl_pg.models import mlp_actor, mlp_critic
+from rl_pg.normalization import PopArt, RunningNorm, update_running_norms
 from rl_pg.recipes import load
 from rl_pg.training import (
     RunDirBusy,

@@ -27,7 +27,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import RandomPolicy
 
 from rl_pg.envs import metadrive as md
-from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.episode_workers import EpisodeWorkers
+from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, NonNegative, TrainConfig
 from rl_pg.training.loop import evaluation_seed

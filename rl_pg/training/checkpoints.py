@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from rl_pg.models import popart_output
+from rl_pg.normalization import popart_output
 from rl_pg.training.config import config_dict
 
 __all__ = [
@@ -199,7 +199,7 @@ def load_models(
 
     The actor gets the averaged weights of a run trained with ``policy_ema`` (those its
     evaluations played), otherwise the trained ones. A critic trained with
-    ``value_norm='popart'`` gets its [`PopArt`][rl_pg.models.PopArt] output layer
+    ``value_norm='popart'`` gets its [`PopArt`][rl_pg.normalization.PopArt] output layer
     first, as in training.
 
     The checkpoint comes from [`read_run`][rl_pg.training.checkpoints.read_run].

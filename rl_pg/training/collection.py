@@ -27,7 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
-from rl_pg.models import lean_policy
+from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
 

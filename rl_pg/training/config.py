@@ -135,7 +135,7 @@ class TrainConfig:
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
     """'popart': the critic's output layer learns standardised values and answers at the
-    rewards' scale (rl_pg.models.PopArt; statistics from each batch's value targets),
+    rewards' scale (rl_pg.normalization.PopArt; statistics from each batch's value targets),
     and its loss is taken in those units. A critic then fits returns in the hundreds as
     quickly as returns near one, while the policy's weights stay at the rewards' scale
     (unlike reward_scale, which scales both)."""

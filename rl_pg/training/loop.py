@@ -35,7 +35,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.evaluation import EvaluationEnv, evaluate
 from rl_pg.training.callbacks import Callback, Callbacks, from_config
 from rl_pg.training.checkpoints import RunState, restore, restore_rng, seed_everything
 from rl_pg.training.collection import Collection
@@ -62,7 +62,7 @@ def train(
     recipe: str,
     make_env: Callable[[], EnvBase],
     make_models: Callable[[EnvBase], tuple[TensorDictModuleBase, TensorDictModuleBase | None]],
-    make_eval_env: Callable[[], EnvBase | EpisodeWorkers] | None = None,
+    make_eval_env: Callable[[], EvaluationEnv] | None = None,
     eval_flags: Sequence[str] = (),
     eval_values: Sequence[str] = (),
     recipe_module: str | None = None,
@@ -81,7 +81,7 @@ def train(
         make_models (callable): ``env -> (actor, critic or None)``; sizes come from the
             environment's specs.
         make_eval_env (callable, optional): builds the evaluation environment (an
-            ``EnvBase`` or an [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers]).
+            ``EnvBase`` or an [`EpisodeWorkers`][rl_pg.episode_workers.EpisodeWorkers]).
             Defaults to ``make_env``.
         eval_flags (sequence of str): boolean entries reported as rates by evaluations,
             e.g. ``("crashed",)``. Defaults to ``()``.
@@ -359,7 +359,7 @@ def _models(make_models, env: EnvBase):
 def _policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
     """An exponential moving average of ``actor``'s weights (``cfg.policy_ema`` > 0).
 
-    Its buffers (a [`RunningNorm`][rl_pg.models.RunningNorm]'s statistics) are copied,
+    Its buffers (a [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied,
     not averaged: the averaged weights read observations standardised as the trained
     ones do. It starts as a copy of the initial weights.
     """

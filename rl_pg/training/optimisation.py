@@ -8,7 +8,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rl_pg.loss import ReinforceLoss
-from rl_pg.models import popart_output, update_running_norms
+from rl_pg.normalization import popart_output, update_running_norms
 from rl_pg.training.config import TrainConfig
 
 __all__ = [
@@ -29,7 +29,7 @@ class TrainingDiverged(RuntimeError):
 
 def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
     """The run's loss; with ``value_norm='popart'`` the critic's output layer becomes a
-    [`PopArt`][rl_pg.models.PopArt] one first (so build the critic, make the loss,
+    [`PopArt`][rl_pg.normalization.PopArt] one first (so build the critic, make the loss,
     then load weights)."""
     value_norm = None
     if cfg.value_norm == "popart":

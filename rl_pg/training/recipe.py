@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EpisodeWorkers, evaluate
+from rl_pg.evaluation import EvaluationEnv, evaluate
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import check_average, load_models
 from rl_pg.training.config import TrainConfig
@@ -54,7 +54,7 @@ class Recipe:
             possible (they are pickled).
         make_models (callable): ``(env, cfg) -> (actor, critic or None)``.
         make_eval_env (callable, optional): ``cfg -> EnvBase`` (or an
-            [`EpisodeWorkers`][rl_pg.evaluation.EpisodeWorkers], whose processes play
+            [`EpisodeWorkers`][rl_pg.episode_workers.EpisodeWorkers], whose processes play
             whole episodes each) for the evaluations during training, which pick the
             best checkpoint. Defaults to ``make_env``.
         make_test_env (callable, optional): ``cfg -> EnvBase`` (or ``EpisodeWorkers``)
@@ -83,9 +83,9 @@ class Recipe:
     config: type[TrainConfig]
     make_env: Callable[..., EnvBase]
     make_models: Callable[[EnvBase, Any], Models]
-    make_eval_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
-    make_test_env: Callable[[Any], EnvBase | EpisodeWorkers] | None = None
-    test_sets: dict[str, Callable[[Any], EnvBase | EpisodeWorkers]] = field(default_factory=dict)
+    make_eval_env: Callable[[Any], EvaluationEnv] | None = None
+    make_test_env: Callable[[Any], EvaluationEnv] | None = None
+    test_sets: dict[str, Callable[[Any], EvaluationEnv]] = field(default_factory=dict)
     eval_flags: Sequence[str] = ()
     eval_values: Sequence[str] = ()
     prepare: Callable[[Any], Any] | None = None
@@ -112,7 +112,7 @@ class Recipe:
         """The module that defines the recipe's functions (recorded in its runs)."""
         return self.make_env.__module__
 
-    def test_env(self, cfg: TrainConfig, on: str | None = None) -> EnvBase | EpisodeWorkers:
+    def test_env(self, cfg: TrainConfig, on: str | None = None) -> EvaluationEnv:
         """The environment that scores a trained agent (see ``make_test_env``), or with
         ``on``, the one of ``test_sets`` of that name."""
         if on is None:

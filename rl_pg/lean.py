@@ -1,0 +1,145 @@
+"""A faster stand-in for a categorical actor while collecting: the same actions from
+the same random stream, with less Python around each call."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import (
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+__all__ = ["LeanCategoricalPolicy", "lean_policy"]
+
+
+def lean_policy(actor: TensorDictModuleBase) -> TensorDictModuleBase:
+    """``actor`` for collection: the same actions, with less Python around each call.
+
+    A collector calls its policy at every step, and for a small network most of that
+    call is TensorDict-module and distribution bookkeeping rather than arithmetic. When
+    ``actor`` is a categorical policy made of plain ``TensorDictModule`` s (what
+    [`mlp_actor`][rl_pg.models.mlp_actor] builds for discrete actions, or a shared
+    trunk followed by a head), this returns a
+    [`LeanCategoricalPolicy`][rl_pg.lean.LeanCategoricalPolicy] over the same
+    modules (and so the same parameters); any other actor is returned unchanged.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.lean import lean_policy
+        >>> from rl_pg.models import mlp_actor
+        >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
+        >>> env = GridWorldEnv(batch_size=8)
+        >>> actor = mlp_actor(env)
+        >>> lean = lean_policy(actor)
+        >>> type(lean).__name__
+        'LeanCategoricalPolicy'
+        >>> td = env.reset()
+        >>> with set_exploration_type(ExplorationType.RANDOM):  # what collectors do
+        ...     _ = torch.manual_seed(0); a = actor(td.clone())["action"]
+        ...     _ = torch.manual_seed(0); b = lean(td.clone())["action"]
+        >>> torch.equal(a, b)
+        True
+    """
+    if LeanCategoricalPolicy.supports(actor):
+        return LeanCategoricalPolicy(actor)
+    return actor
+
+
+class LeanCategoricalPolicy(TensorDictModuleBase):
+    """Samples a categorical ``ProbabilisticTensorDictSequential`` as it would, faster.
+
+    Runs each ``TensorDictModule`` 's network directly on its inputs, then draws the
+    action exactly as ``torch.distributions.Categorical(logits=...).sample()`` does (the
+    same operations on the same random stream, hence the same actions), writing the
+    same entries as the actor. Outside random interaction (e.g. greedy evaluation
+    under ``set_exploration_type(DETERMINISTIC)``) it defers to the actor itself.
+
+    Args:
+        actor (ProbabilisticTensorDictSequential): a policy for which
+            ``LeanCategoricalPolicy.supports(actor)`` is true (see
+            [`lean_policy`][rl_pg.lean.lean_policy], which checks).
+    """
+
+    def __init__(self, actor: ProbabilisticTensorDictSequential) -> None:
+        if not self.supports(actor):
+            raise TypeError(
+                f"LeanCategoricalPolicy needs a categorical ProbabilisticTensorDictSequential "
+                f"of plain TensorDictModules, got {type(actor).__name__}: use "
+                f"rl_pg.lean.lean_policy(actor), which keeps other actors as they are."
+            )
+        super().__init__()
+        self.actor = actor
+        self.in_keys, self.out_keys = actor.in_keys, actor.out_keys
+        *modules, head = actor.module
+        self._layers = [(m.module, list(m.in_keys), m.out_keys[0]) for m in _plain(modules)]
+        self._logits_key = head.in_keys[0]
+        self._action_key = head.out_keys[0]
+        self._default = head.default_interaction_type
+
+    @staticmethod
+    def supports(actor) -> bool:
+        """Whether ``actor`` has the structure this policy reproduces exactly."""
+        if not isinstance(actor, ProbabilisticTensorDictSequential) or len(actor.module) < 2:
+            return False
+        *modules, head = actor.module
+        return (
+            _plain(modules) is not None
+            and isinstance(head, ProbabilisticTensorDictModule)
+            and head.distribution_class is torch.distributions.Categorical
+            and not head.distribution_kwargs
+            and not head.return_log_prob
+            and list(head.in_keys) == ["logits"]
+            and len(head.out_keys) == 1
+            and not getattr(head, "safe", False)
+        )
+
+    def get_dist(self, tensordict: TensorDictBase) -> torch.distributions.Categorical:
+        """The actor's action distribution at ``tensordict`` (what ``actor.get_dist``
+        returns, gradients included), writing the networks' outputs into it."""
+        return torch.distributions.Categorical(logits=self._logits(tensordict))
+
+    def _logits(self, tensordict: TensorDictBase) -> torch.Tensor:
+        for module, in_keys, out_key in self._layers:
+            tensordict.set(out_key, module(*(tensordict.get(key) for key in in_keys)))
+        return tensordict.get(self._logits_key)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        kind = exploration_type() or self._default
+        if kind != ExplorationType.RANDOM:
+            return self.actor(tensordict)
+        logits = self._logits(tensordict)
+        # Categorical(logits=logits).sample(), operation for operation.
+        logits = logits - logits.logsumexp(dim=-1, keepdim=True)
+        probs = torch.softmax(logits, dim=-1)
+        action = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1, True).T
+        tensordict.set(self._action_key, action.reshape(probs.shape[:-1]))
+        return tensordict
+
+
+def _plain(modules) -> list[TensorDictModule] | None:
+    """The ``TensorDictModule`` s that ``modules`` runs in order (nested sequences
+    flattened), or None if one of them does more than call its network on its inputs."""
+    layers = []
+    for m in modules:
+        if type(m) is TensorDictSequential:
+            inner = _plain(m.module)
+            if inner is None or set(m.out_keys) != {k for i in inner for k in i.out_keys}:
+                return None  # e.g. selected_out_keys: not every output is written
+            layers += inner
+        elif (
+            type(m) is TensorDictModule
+            and m.method is None
+            and not m.method_kwargs
+            and m._kwargs is None
+            and len(m.out_keys) == 1
+        ):
+            layers.append(m)
+        else:
+            return None
+    return layers
