@@ -20,7 +20,7 @@ from PIL import Image
 from rl_pg.envs import metadrive as md
 from rl_pg.recipes import cli, evaluate, load, play
 from rl_pg.training import read_run
-from rl_pg.training.loop import evaluation_seed
+from rl_pg.training.seeds import evaluation_seed
 
 needs_metadrive = pytest.mark.skipif(
     importlib.util.find_spec("metadrive") is None,

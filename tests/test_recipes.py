@@ -12,7 +12,7 @@ from PIL import Image
 
 from rl_pg.recipes import evaluate, load, play
 from rl_pg.training import load_models, read_run
-from rl_pg.training.loop import evaluation_seed, fresh_seed
+from rl_pg.training.seeds import evaluation_seed, fresh_seed
 
 bandit, cartpole, gridworld, highway, lunarlander, pendulum, pong = (
     load(name)
@@ -225,8 +225,8 @@ def test_training_evaluate_and_play_run_on_the_runs_threads_then_restore_them(
     other work: training, rl-pg evaluate and rl-pg play all run on cfg.threads, and
     leave the caller's thread count as they found it."""
     import rl_pg.recipes.play as play_module
-    import rl_pg.training.loop as loop_module
     import rl_pg.training.recipe as recipe_module
+    import rl_pg.training.selection as selection_module
 
     seen = []
 
@@ -237,7 +237,7 @@ def test_training_evaluate_and_play_run_on_the_runs_threads_then_restore_them(
 
         return wrapped
 
-    for module, name in ((loop_module, "evaluate"), (recipe_module, "evaluate"),
+    for module, name in ((selection_module, "evaluate"), (recipe_module, "evaluate"),
                          (play_module, "play")):  # fmt: skip
         monkeypatch.setattr(module, name, spy(getattr(module, name)))
     previous = torch.get_num_threads()

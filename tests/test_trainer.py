@@ -43,9 +43,9 @@ from rl_pg.training import (
 )
 from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
-from rl_pg.training.loop import confirmation_seed, evaluation_seed
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
+from rl_pg.training.seeds import confirmation_seed, evaluation_seed
 
 
 def make_grid():

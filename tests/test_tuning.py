@@ -14,9 +14,9 @@ from conftest import hide_module
 
 from rl_pg.recipes import evaluate, load
 from rl_pg.recipes.cli import _flag, main
-from rl_pg.training.loop import evaluation_seed, fresh_seed
 from rl_pg.training.run_dir import locked
-from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, replay_seed, tune
+from rl_pg.training.seeds import evaluation_seed, fresh_seed, replay_seed
+from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, tune
 
 optuna = pytest.importorskip("optuna")
 gridworld = load("gridworld")

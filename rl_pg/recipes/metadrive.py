@@ -31,8 +31,8 @@ from rl_pg.episode_workers import EpisodeWorkers
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, NonNegative, TrainConfig
-from rl_pg.training.loop import evaluation_seed
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.seeds import evaluation_seed
 
 
 @dataclass

@@ -17,7 +17,7 @@ import tyro
 from rl_pg.recipes import recipe_of
 from rl_pg.recording import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
-from rl_pg.training.loop import torch_threads
+from rl_pg.training.threads import torch_threads
 
 __all__ = ["Args", "main"]
 

@@ -25,7 +25,6 @@ __all__ = [
     "restore",
     "restore_rng",
     "save",
-    "seed_everything",
 ]
 
 CHECKPOINT = "checkpoint.pt"
@@ -120,13 +119,6 @@ def restore(saved: dict, loss, optimizer, path: Path, *, average=None) -> RunSta
     # Checkpoints of earlier versions also carried the curve, now read from the logs.
     fields = {f.name for f in dataclasses.fields(RunState)}
     return RunState(**{k: v for k, v in saved["state"].items() if k in fields})
-
-
-def seed_everything(seed: int) -> None:
-    """Seeds torch's, numpy's and Python's generators (a fresh run)."""
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 def restore_rng(saved: dict) -> None:

@@ -30,6 +30,7 @@ from torchrl.envs import EnvBase
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
+from rl_pg.training.seeds import training_seed
 
 __all__ = ["Collection"]
 
@@ -120,7 +121,7 @@ class Collection:
             **kwargs,
         )
         if not cfg.ray:
-            self.collector.set_seed(_derived_seed(cfg.seed, updates))
+            self.collector.set_seed(training_seed(cfg.seed, updates))
         # TorchRL's weight-sync scheme of each backend (shared memory for processes, a
         # torch.distributed gloo group for Ray actors).
         self._sync_weights = self.collector.update_policy_weights_
@@ -198,18 +199,13 @@ class Collection:
 
     def _restart(self, updates: int) -> None:
         """Reseeds and resets the environments: the next batch depends only on (seed, updates)."""
-        self.collector.set_seed(_derived_seed(self.cfg.seed, updates))
+        self.collector.set_seed(training_seed(self.cfg.seed, updates))
         self.collector.reset()
         self._restarted_at, self._actions = updates, []
 
     def shutdown(self) -> None:
         """Stops the collector and its workers."""
         self.collector.shutdown()
-
-
-def _derived_seed(seed: int, updates: int) -> int:
-    # Spread runs apart so that run s at update u never replays run s + 1 at update u - 1.
-    return (seed * 1_000_003 + updates) % 2**31
 
 
 class _ReplayingPolicy(TensorDictModuleBase):

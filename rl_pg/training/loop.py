@@ -23,21 +23,18 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EvaluationEnv, evaluate
+from rl_pg.evaluation import EvaluationEnv
 from rl_pg.training.callbacks import Callback, Callbacks, from_config
-from rl_pg.training.checkpoints import RunState, restore, restore_rng, seed_everything
+from rl_pg.training.checkpoints import RunState, restore, restore_rng
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
@@ -52,8 +49,11 @@ from rl_pg.training.optimisation import (
     warm_up,
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
+from rl_pg.training.seeds import seed_everything
+from rl_pg.training.selection import confirm, evaluate_run, policy_average
+from rl_pg.training.threads import torch_threads
 
-__all__ = ["Run", "evaluation_seed", "fresh_seed", "train"]
+__all__ = ["Run", "train"]
 
 
 def train(
@@ -208,7 +208,7 @@ class Run:
         warm_up(self.loss, env, device)
         self.optimizer = make_optimizer(cfg, self.loss)
         # The weights evaluated, kept and deployed: the trained ones, or their average.
-        self.average = _policy_average(cfg, self.actor)
+        self.average = policy_average(cfg, self.actor)
         self.state = RunState()
         if saved is not None:
             self.state = restore(
@@ -294,9 +294,9 @@ class Run:
         self._pause()
         self.next_eval = self._next_evaluation()
         actor = self.actor if self.average is None else self.average.module
-        _evaluate(cfg, actor, self.eval_env, self.eval_entries, state, self.logger)
+        evaluate_run(cfg, actor, self.eval_env, self.eval_entries, state, self.logger)
         if cfg.confirm_episodes is not None and state.worth_confirming(cfg.threshold):
-            best = state.is_best_confirmed(_confirm(cfg, actor, self.eval_env, state, self.logger))
+            best = state.is_best_confirmed(confirm(cfg, actor, self.eval_env, state, self.logger))
         else:
             best = state.is_best()
         if best:
@@ -354,104 +354,3 @@ def _models(make_models, env: EnvBase):
             f"Return (actor, None) to train without a critic."
         )
     return models
-
-
-def _policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
-    """An exponential moving average of ``actor``'s weights (``cfg.policy_ema`` > 0).
-
-    Its buffers (a [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied,
-    not averaged: the averaged weights read observations standardised as the trained
-    ones do. It starts as a copy of the initial weights.
-    """
-    if cfg.policy_ema == 0:
-        return None
-    average = AveragedModel(actor, multi_avg_fn=get_ema_multi_avg_fn(cfg.policy_ema))
-    average.update_parameters(actor)
-    return average
-
-
-def evaluation_seed(seed: int) -> int:
-    """The seed of a run's evaluation environment (apart from its training seeds)."""
-    return seed + 1_000_003
-
-
-@contextmanager
-def torch_threads(threads: int | None) -> Iterator[None]:
-    """Runs the block on ``threads`` torch threads (a run's ``cfg.threads``; None: as
-    they are), then restores the number it found.
-
-    Training, ``rl-pg evaluate`` and ``rl-pg play`` run a checkpoint's small models this
-    way: on a machine busy with other work (another run, its environments), torch's
-    default of one thread per core makes them wait on each other (an evaluation of a
-    LunarLander checkpoint beside a two-process training took 15 s on two threads, 3.6 s
-    on one).
-
-    Examples:
-        >>> import torch
-        >>> from rl_pg.training.loop import torch_threads
-        >>> before = torch.get_num_threads()
-        >>> with torch_threads(1):
-        ...     torch.get_num_threads()
-        1
-        >>> torch.get_num_threads() == before
-        True
-    """
-    previous = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
-def confirmation_seed(seed: int) -> int:
-    """The seed of the episodes that confirm a run's candidates for ``best.pt`` (apart
-    from its training, its evaluations and ``rl-pg evaluate``'s fresh episodes)."""
-    return (evaluation_seed(seed) + 2 * 1_000_003) % 2**32
-
-
-def _confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
-    """Replays ``actor`` on ``cfg.confirm_episodes`` episodes greedily, then by sampling,
-    both from the confirmation seed; logs both means and returns the lower one. Training's
-    random stream is left as it was: confirming changes which checkpoint is kept, not
-    the run."""
-    device = cfg.torch_device()
-    cuda = (
-        [torch.cuda.current_device() if device.index is None else device.index]
-        if device.type == "cuda"
-        else []
-    )
-    start = time.perf_counter()
-    means = {}
-    with torch.random.fork_rng(devices=cuda):
-        for mode, greedy in (("greedy", True), ("sampled", False)):
-            torch.manual_seed(confirmation_seed(cfg.seed))
-            eval_env.set_seed(confirmation_seed(cfg.seed))
-            result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
-            means[f"confirm/{mode}_mean_return"] = result["mean_return"]
-    score = min(means.values())
-    logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
-    for name, value in logged.items():
-        logger.log_scalar(name, value, step=state.frames)
-    return score
-
-
-def fresh_seed(seed: int) -> int:
-    """The seed that scores a run's checkpoints after training (``rl-pg evaluate``):
-    apart from its training and its evaluations during training."""
-    return (evaluation_seed(seed) + 1_000_003) % 2**32
-
-
-def _evaluate(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
-    eval_env.set_seed(evaluation_seed(cfg.seed))  # the same start states at every evaluation
-    start = time.perf_counter()
-    result = evaluate(
-        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
-    )
-    result = {f"eval/{key}": value for key, value in result.items()}
-    result["time/eval_s"] = time.perf_counter() - start
-    result["time/train_s"] = state.train_time
-    state.last_eval = result
-    for name, value in result.items():
-        logger.log_scalar(name, value, step=state.frames)

@@ -34,7 +34,9 @@ from rl_pg.evaluation import EvaluationEnv, evaluate
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import check_average, load_models
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.loop import fresh_seed, torch_threads, train
+from rl_pg.training.loop import train
+from rl_pg.training.seeds import fresh_seed
+from rl_pg.training.threads import torch_threads
 
 __all__ = ["Recipe"]
 
@@ -146,7 +148,7 @@ class Recipe:
             sample (bool): sample actions instead of acting greedily. Defaults to ``False``.
             seed (int, optional): seed of the environment and of sampled actions.
                 Defaults to one no evaluation during training used
-                ([`fresh_seed`][rl_pg.training.loop.fresh_seed]), so the episodes are fresh.
+                ([`fresh_seed`][rl_pg.training.seeds.fresh_seed]), so the episodes are fresh.
             action_stats (bool): also report how a discrete policy acted (see
                 [`evaluate`][rl_pg.evaluation.evaluate]). Defaults to ``False``.
             on (str, optional): play on this one of the recipe's ``test_sets`` instead.

@@ -27,11 +27,11 @@ from typing import Any, Literal
 from rl_pg.checkpoint import write_atomically
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig
-from rl_pg.training.loop import fresh_seed
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import locked
+from rl_pg.training.seeds import replay_seed
 
-__all__ = ["SEARCH_SPACE", "STUDY_LOCK", "TRIAL_LOCK", "TuneArgs", "replay_seed", "tune"]
+__all__ = ["SEARCH_SPACE", "STUDY_LOCK", "TRIAL_LOCK", "TuneArgs", "tune"]
 
 STUDY_LOCK = ".study.lock"
 """Held in the study directory while a search opens the study."""
@@ -64,13 +64,6 @@ SEARCH_SPACE: dict[str, Callable[[Any], Any]] = {
 _SEARCHED_AS: dict[str, tuple[str, Callable[[Any], Any]]] = {
     "gamma": ("one_minus_gamma", lambda gamma: 1 - gamma),
 }
-
-
-def replay_seed(seed: int) -> int:
-    """The seed of the held_out objective's replays of a run with ``seed``: apart from
-    its evaluations during training and from ``rl-pg evaluate``'s default episodes, so
-    that the tuned settings can be confirmed on episodes the search never saw."""
-    return (fresh_seed(seed) + 1_000_003) % 2**32
 
 
 @dataclasses.dataclass

@@ -1,0 +1,74 @@
+"""What a run does at each evaluation: play the evaluation episodes, confirm a
+candidate for ``best.pt`` on more of them, and keep the average of the policy's weights
+that is evaluated instead of the weights themselves."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from rl_pg.evaluation import evaluate
+from rl_pg.training.checkpoints import RunState
+from rl_pg.training.config import TrainConfig
+from rl_pg.training.seeds import confirmation_seed, evaluation_seed
+
+__all__ = ["confirm", "evaluate_run", "policy_average"]
+
+
+def policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
+    """An exponential moving average of ``actor``'s weights (``cfg.policy_ema`` > 0).
+
+    Its buffers (a [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied,
+    not averaged: the averaged weights read observations standardised as the trained
+    ones do. It starts as a copy of the initial weights.
+    """
+    if cfg.policy_ema == 0:
+        return None
+    average = AveragedModel(actor, multi_avg_fn=get_ema_multi_avg_fn(cfg.policy_ema))
+    average.update_parameters(actor)
+    return average
+
+
+def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
+    """Replays ``actor`` on ``cfg.confirm_episodes`` episodes greedily, then by sampling,
+    both from the confirmation seed; logs both means and returns the lower one. Training's
+    random stream is left as it was: confirming changes which checkpoint is kept, not
+    the run."""
+    device = cfg.torch_device()
+    cuda = (
+        [torch.cuda.current_device() if device.index is None else device.index]
+        if device.type == "cuda"
+        else []
+    )
+    start = time.perf_counter()
+    means = {}
+    with torch.random.fork_rng(devices=cuda):
+        for mode, greedy in (("greedy", True), ("sampled", False)):
+            torch.manual_seed(confirmation_seed(cfg.seed))
+            eval_env.set_seed(confirmation_seed(cfg.seed))
+            result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
+            means[f"confirm/{mode}_mean_return"] = result["mean_return"]
+    score = min(means.values())
+    logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
+    for name, value in logged.items():
+        logger.log_scalar(name, value, step=state.frames)
+    return score
+
+
+def evaluate_run(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
+    """Plays the run's evaluation (``cfg.eval_episodes`` from the evaluation seed, the
+    same start states every time), logs it under ``eval/`` and keeps it as
+    ``state.last_eval``."""
+    eval_env.set_seed(evaluation_seed(cfg.seed))  # the same start states at every evaluation
+    start = time.perf_counter()
+    result = evaluate(
+        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
+    )
+    result = {f"eval/{key}": value for key, value in result.items()}
+    result["time/eval_s"] = time.perf_counter() - start
+    result["time/train_s"] = state.train_time
+    state.last_eval = result
+    for name, value in result.items():
+        logger.log_scalar(name, value, step=state.frames)
