@@ -13,6 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from rl_pg._checks import check_bool, check_int, check_names
+from rl_pg.action_stats import action_steps, describe_actions
 
 __all__ = [
     "EpisodePlayer",
@@ -168,54 +169,8 @@ def evaluate(
         if key in stats:
             out[f"mean_{key}"] = stats[key].mean().item()
     if action_stats and "action_counts" in stats:
-        out.update(_describe_actions(stats))
+        out.update(describe_actions(stats))
     return out
-
-
-def _describe_actions(stats: dict[str, torch.Tensor]) -> dict[str, Any]:
-    """The action statistics of ``evaluate`` from its per-episode tallies."""
-    counts = stats["action_counts"].sum(0)
-    steps = counts.sum().clamp(min=1)
-    after_first = (stats["length"].sum() - (stats["length"] > 0).sum()).clamp(min=1)
-    return {
-        "action_shares": (counts / steps).tolist(),
-        "action_switch_rate": (stats["action_switches"].sum() / after_first).item(),
-        "greedy_action_rate": (stats["action_greedy"].sum() / steps).item(),
-        "mean_entropy": (stats["action_entropy"].sum() / steps).item(),
-    }
-
-
-def _action_steps(
-    tensordict: TensorDictBase, n: int, steps: int, previous: torch.Tensor
-) -> tuple[dict[str, torch.Tensor], torch.Tensor] | None:
-    """What each step of an ``[n, steps]`` rollout adds to ``evaluate``'s action
-    statistics (a one-hot of the discrete action; whether it differs from the one before
-    in its episode; whether it is the policy's most probable; the policy's entropy), and
-    each environment's last action. ``previous`` holds each environment's action before
-    the rollout (-1: its episode starts with it). None for a policy without logits."""
-    logits, action = tensordict.get("logits", None), tensordict.get("action", None)
-    if logits is None or action is None or logits.numel() != n * steps * logits.shape[-1]:
-        return None
-    logits = logits.reshape(n, steps, logits.shape[-1]).float()
-    num_actions = logits.shape[-1]
-    action = action.reshape(n, steps, -1)
-    if action.shape[-1] == num_actions and num_actions > 1:  # one-hot
-        index = action.argmax(-1)
-    elif action.shape[-1] == 1:
-        index = action[..., 0].long()
-    else:
-        return None
-    done = tensordict.get(("next", "done")).reshape(n, steps, -1).any(-1)
-    starts = torch.cat([torch.zeros_like(done[:, :1]), done[:, :-1]], dim=1)
-    before = torch.cat([previous.to(index.device)[:, None], index[:, :-1]], dim=1)
-    before = before.masked_fill(starts, -1)
-    per_step = {
-        "action_counts": torch.nn.functional.one_hot(index, num_actions).float(),
-        "action_switches": ((before >= 0) & (before != index)).float(),
-        "action_greedy": (index == logits.argmax(-1)).float(),
-        "action_entropy": torch.distributions.Categorical(logits=logits).entropy(),
-    }
-    return per_step, index[:, -1]
 
 
 def episode_shares(episodes: int, n: int) -> list[int]:
@@ -292,7 +247,7 @@ def play_episodes(
             if action_stats:  # the first episode's steps, tallied
                 length = int(episode["length"][0])
                 steps = rollout.reshape(-1)[:length]
-                acts = _action_steps(steps, 1, length, torch.tensor([-1])) if length else None
+                acts = action_steps(steps, 1, length, torch.tensor([-1])) if length else None
                 if acts is not None:
                     episode.update({key: value.sum(1) for key, value in acts[0].items()})
             for key, value in episode.items():
@@ -360,7 +315,7 @@ def _side_by_side(
                 running.setdefault(key, torch.zeros(n))
         seen_flags = [flag for flag in flags if flag in per_step]
         seen_values = [key for key in values if key in per_step]
-        acts = _action_steps(part, n, steps, previous) if action_stats else None
+        acts = action_steps(part, n, steps, previous) if action_stats else None
         if acts is not None:
             for key, value in acts[0].items():
                 running.setdefault(key, torch.zeros(n, *value.shape[2:]))

@@ -1,13 +1,5 @@
-"""Per-unit policy gradients of every return estimator, on the same batch.
-
-[`GradientStatistics`][rl_pg.gradient_statistics.GradientStatistics] takes, for each
-independent unit of a batch (an episode, or one environment's segment), the gradient
-`Σ_{t∈u} Ψ_t ∇ log π(a_t|s_t)` of the actor's parameters for the loss's own `Ψ` and, at
-the same parameters, for every other return estimator, and summarises their spread with
-[`noise_statistics`][rl_pg.gradient_noise.noise_statistics] (tr Σ, |∇J|², the noise
-scale, the SNR at the batch size, the half-batch cosine): estimators compared on
-identical data.
-"""
+"""Per-unit policy gradients of every return estimator on the same batch, and their
+noise ([`noise_statistics`][rl_pg.gradient_noise.noise_statistics])."""
 
 from __future__ import annotations
 

@@ -18,6 +18,7 @@ from conftest import hide_module
 from PIL import Image
 
 from rl_pg.envs import metadrive as md
+from rl_pg.envs.metadrive_assets import assets_pull_skipped
 from rl_pg.recipes import cli, evaluate, load, play
 from rl_pg.training import read_run
 from rl_pg.training.seeds import evaluation_seed
@@ -111,7 +112,7 @@ def test_asset_pull_is_skipped_only_headless_and_without_assets(
     (tmp_path / "assets").mkdir()
     env = MetaDriveEnv(config)  # no engine until the first reset
     pull = BaseEngine.try_pull_asset
-    with md._assets_pull_skipped(env):
+    with assets_pull_skipped(env):
         assert (BaseEngine.try_pull_asset is not pull) == skipped
     assert BaseEngine.try_pull_asset is pull
 

@@ -28,12 +28,10 @@ agent is scored on scenarios it was neither trained nor chosen on.
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import itertools
-import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import gymnasium as gym
@@ -44,6 +42,7 @@ from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
 from rl_pg.envs.gym import DRIVING_ACTIONS
 from rl_pg.envs.info import InfoFlags, InfoValues
+from rl_pg.envs.metadrive_assets import assets_pull_skipped
 from rl_pg.evaluation import episode_shares
 
 __all__ = [
@@ -220,7 +219,7 @@ class MetaDriveScenarios(gym.Wrapper):
             self._next = seed % len(self.scenarios)
         scenario = self._pick(options or {})
         self._check_one_engine()
-        with _assets_pull_skipped(self.env):
+        with assets_pull_skipped(self.env):
             observation, info = self.env.reset(seed=scenario)
         info["scenario"] = scenario
         self._speed_sum, self._steps = 0.0, 0
@@ -269,33 +268,6 @@ class MetaDriveScenarios(gym.Wrapper):
                 "in a process of its own (torchrl.envs.ParallelEnv(1, make_env, "
                 "mp_start_method='spawn'), or collect with --workers 2 or more)."
             )
-
-
-@contextlib.contextmanager
-def _assets_pull_skipped(env: gym.Env) -> Iterator[None]:
-    """Skips MetaDrive's asset download while ``env`` starts its engine, if it may.
-
-    Only when the assets are absent and the environment renders nothing in 3-D
-    (MetaDrive's own render-mode decision); otherwise MetaDrive behaves as it does.
-    """
-    from metadrive.constants import RENDER_MODE_NONE
-    from metadrive.engine.asset_loader import AssetLoader
-    from metadrive.engine.base_engine import BaseEngine
-
-    headless = env.config["_render_mode"] == RENDER_MODE_NONE
-    if BaseEngine.singleton is not None or not headless or os.path.exists(AssetLoader.asset_path):
-        yield
-        return
-    pull = BaseEngine.__dict__["try_pull_asset"]
-    BaseEngine.try_pull_asset = staticmethod(_no_asset_pull)
-    try:
-        yield
-    finally:
-        BaseEngine.try_pull_asset = pull
-
-
-def _no_asset_pull() -> None:
-    """Headless MetaDrive reads no asset: nothing to download."""
 
 
 def metadrive_env(
