@@ -101,8 +101,13 @@ def test_evaluate_averages_values_and_takes_policies_without_parameters():
     from torchrl.envs.utils import RandomPolicy
 
     env = GridWorldEnv(batch_size=4)
-    result = evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=["reward"])
-    assert -1.0 <= result["mean_reward"] <= 1.0  # each episode's last reward: goal, pit or step
+    torch.manual_seed(0)
+    result = evaluate(RandomPolicy(env.action_spec), env, episodes=8, values=["reward"])
+    # Every step but an episode's last earns step_reward (-0.1), so the last rewards the
+    # value reads average to the mean return less (mean length - 1) steps of it.
+    last = result["mean_return"] - (result["mean_length"] - 1) * -0.1
+    assert result["mean_reward"] == pytest.approx(last, abs=1e-5)
+    assert result["mean_reward"] != pytest.approx(-0.1)  # some episodes ended in goal or pit
     with pytest.raises(ValueError, match="one number per step; 'observation' has 16"):
         evaluate(RandomPolicy(env.action_spec), env, episodes=4, values=["observation"])
     with pytest.raises(TypeError, match="values"):

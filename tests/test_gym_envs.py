@@ -61,9 +61,32 @@ def test_collector_and_greedy_evaluation_on_a_batched_env():
     batches = list(collector)
     collector.shutdown()
     assert [b.shape for b in batches] == [torch.Size([3, 40])] * 2
-    # Evaluation resets finished members itself (stepping past the end is refused).
-    result = evaluate(actor, gym_env("CartPole-v1", num_envs=5), episodes=7)
-    assert result["mean_length"] >= 8 and np.isfinite(result["mean_return"])
+    # Evaluation resets finished members itself (stepping past the end is refused), and
+    # each member plays its share of the episodes back to back: 7 over 5 members is
+    # 2, 2, 1, 1, 1. The same greedy episodes, played one by one on gymnasium's own
+    # CartPoles seeded as the members are, give the same returns.
+    with torch.no_grad():  # a policy that does not balance: episodes of varied lengths
+        for p in actor.parameters():
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    batched = gym_env("CartPole-v1", num_envs=5)
+    batched.set_seed(123)
+    result = evaluate(actor, batched, episodes=7)
+    returns = []
+    for member, share in enumerate([2, 2, 1, 1, 1]):
+        reference = gym.make("CartPole-v1")
+        reference.reset(seed=123 + member)  # set_seed resets the members, seeded,
+        obs, _ = reference.reset()  # and the evaluation's rollout resets them again
+        for _ in range(share):
+            total, done = 0.0, False
+            while not done:
+                logits = actor.module[0].module(torch.as_tensor(obs, dtype=torch.float32))
+                obs, reward, terminated, truncated, _ = reference.step(int(logits.argmax()))
+                total, done = total + reward, terminated or truncated
+            returns.append(total)
+            obs, _ = reference.reset()
+    assert len(set(returns)) > 1  # not one length for all: the shares are told apart
+    assert result["mean_return"] == pytest.approx(np.mean(returns))
+    assert result["std_return"] == pytest.approx(np.std(returns))
 
 
 def test_render_needs_a_single_environment():
