@@ -280,6 +280,19 @@ class TestGridworldGradient:
         estimates = gridworld_estimates[value_type.__name__, baseline]
         assert _z_scores(estimates, gridworld[1]).abs().max() <= Z_MAX
 
+    @pytest.mark.parametrize(("value_type", "baseline"), GRIDWORLD_VARIANTS)
+    def test_the_check_rejects_a_biased_gradient(
+        self, gridworld, gridworld_estimates, value_type, baseline
+    ):
+        # Negative control, and the power of test_unbiased: the same check refuses a
+        # target 25 % above or below the exact gradient for every reward-to-go variant,
+        # but the whole-episode return's estimates (four times noisier) only resolve a
+        # bias of a half: 375 estimates of 16 episodes each are too few to see less there.
+        estimates = gridworld_estimates[value_type.__name__, baseline]
+        bias = 0.5 if value_type is DiscountedReturn else 0.25
+        for scale in (1 + bias, 1 - bias):
+            assert _z_scores(estimates, scale * gridworld[1]).abs().max() > Z_MAX
+
     def test_any_state_only_critic_is_unbiased(self, gridworld):
         arbitrary = torch.linspace(-3, 3, SIDE * SIDE, dtype=torch.float64)
         estimates = _gridworld_estimates(gridworld, RewardToGo, "critic", arbitrary)
