@@ -8,8 +8,8 @@ from dataclasses import replace
 import pytest
 import torch
 from conftest import run_weights
-from test_trainer import _cfg as trainer_cfg
-from test_trainer import _train
+from test_loop import _cfg as trainer_cfg
+from test_loop import _train
 
 from rl_pg.training import Callback, TrainConfig, scalar_log_rows
 from rl_pg.training.callbacks import Callbacks, GradientNoise, from_config

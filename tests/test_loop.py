@@ -609,7 +609,7 @@ _KILLABLE_RUN = textwrap.dedent(
     """
     import sys
     sys.path.insert(0, {tests!r})
-    from test_trainer import _cfg, _train
+    from test_loop import _cfg, _train
     from pathlib import Path
     _train(_cfg(Path({tmp!r}), run_dir=Path({run!r}), total_updates=12, checkpoint_interval=1,
                 **{extra!r}))
