@@ -3,9 +3,11 @@
 A run with seed ``s`` plays several random streams: its training environments
 (reseeded at each restart), its evaluations during training, the episodes that confirm
 a candidate for ``best.pt``, the fresh episodes of ``rl-pg evaluate`` and the replays of
-``rl-pg tune --objective held_out``. Each stream's seed is a function of ``s`` here, so
-that no two of them play the same episodes; a batched environment seeds its members
-``seed, seed + 1, …``.
+``rl-pg tune --objective held_out``. Each stream's seed is a function of ``s`` here; a
+batched environment seeds its members ``seed, seed + 1, …``. Known overlaps, kept so
+that stored runs reproduce until they are re-run: ``replay_seed(s) ==
+confirmation_seed(s)``, and for ``s`` = 1, 2, 3 the training members' seeds overlap the
+evaluation's, the fresh episodes' and the confirmation's members' seeds respectively.
 """
 
 from __future__ import annotations
