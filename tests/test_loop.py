@@ -324,6 +324,42 @@ class TestTrain:
             _train(_cfg(tmp_path, resume=True, total_updates=3, critic_steps=3))
         assert _train(_cfg(tmp_path, resume=True, total_updates=3))["updates"] == 3
 
+    def test_a_run_resumes_on_the_evaluation_seeds_it_started_with(self, tmp_path, monkeypatch):
+        from rl_pg.checkpoint import save_checkpoint
+        from rl_pg.training import selection
+
+        evaluating, seeds_set = [], []
+
+        def evaluate_run(*args, **kwargs):  # records the seeds set while it runs
+            evaluating.append(True)
+            try:
+                return real_evaluate_run(*args, **kwargs)
+            finally:
+                evaluating.pop()
+
+        real_evaluate_run, real_set_seed = selection.evaluate_run, GridWorldEnv.set_seed
+
+        def set_seed(self, seed=None, *args, **kwargs):
+            if evaluating:
+                seeds_set.append(seed)
+            return real_set_seed(self, seed, *args, **kwargs)
+
+        monkeypatch.setattr("rl_pg.training.loop.evaluate_run", evaluate_run)
+        monkeypatch.setattr(GridWorldEnv, "set_seed", set_seed)
+        _train(_cfg(tmp_path, seed=1, total_updates=2, eval_interval=1))
+        assert set(seeds_set) == {evaluation_seed(1)} != {1 + 1_000_003}
+        path = tmp_path / "run" / "checkpoint.pt"
+        saved = load_checkpoint(path)
+        assert saved["state"]["streams"]["evaluation"] == evaluation_seed(1)
+        del saved["state"]["streams"]  # as a version before the streams were kept wrote it
+        save_checkpoint(saved, path)
+        seeds_set.clear()
+        _train(_cfg(tmp_path, seed=1, resume=True, total_updates=4, eval_interval=1))
+        # the run's first evaluations chose its best.pt on these start states: it goes on
+        assert set(seeds_set) == {1 + 1_000_003}
+        resumed = load_checkpoint(path)["state"]["streams"]
+        assert resumed == {"evaluation": 1 + 1_000_003, "confirmation": 1 + 3 * 1_000_003}
+
     def test_a_run_from_before_a_default_changed_resumes_as_it_ran(self, tmp_path):
         # A field whose default changed after it was added: a stored config without the
         # field ran at the old default, which `absent_means` records.

@@ -15,6 +15,7 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.normalization import popart_output
 from rl_pg.training.config import config_dict
+from rl_pg.training.seeds import run_streams
 
 __all__ = [
     "BEST",
@@ -45,6 +46,9 @@ class RunState:
     best_mean_return: float | None = None
     best_at_frames: int | None = None
     best_confirmed: float | None = None
+    streams: dict[str, int] = field(default_factory=dict)
+    """The seeds of the run's evaluations and confirmations
+    ([`run_streams`][rl_pg.training.seeds.run_streams]), fixed when the run starts."""
 
     def is_best(self) -> bool:
         """Takes in the last evaluation; True if it beat every earlier one (and no
@@ -118,7 +122,10 @@ def restore(saved: dict, loss, optimizer, path: Path, *, average=None) -> RunSta
         ) from err
     # Checkpoints of earlier versions also carried the curve, now read from the logs.
     fields = {f.name for f in dataclasses.fields(RunState)}
-    return RunState(**{k: v for k, v in saved["state"].items() if k in fields})
+    state = RunState(**{k: v for k, v in saved["state"].items() if k in fields})
+    if not state.streams:  # checkpointed before the run kept them: the ones it played
+        state.streams = run_streams(saved["config"]["seed"], stored_before_layout=True)
+    return state
 
 
 def restore_rng(saved: dict) -> None:

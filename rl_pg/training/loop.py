@@ -49,7 +49,7 @@ from rl_pg.training.optimisation import (
     warm_up,
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
-from rl_pg.training.seeds import seed_everything
+from rl_pg.training.seeds import run_streams, seed_everything
 from rl_pg.training.selection import confirm, evaluate_run, policy_average
 from rl_pg.training.threads import torch_threads
 
@@ -209,7 +209,7 @@ class Run:
         self.optimizer = make_optimizer(cfg, self.loss)
         # The weights evaluated, kept and deployed: the trained ones, or their average.
         self.average = policy_average(cfg, self.actor)
-        self.state = RunState()
+        self.state = RunState(streams=run_streams(cfg.seed))
         if saved is not None:
             self.state = restore(
                 saved, self.loss, self.optimizer, directory.checkpoint_path, average=self.average

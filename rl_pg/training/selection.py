@@ -12,7 +12,6 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from rl_pg.evaluation import evaluate
 from rl_pg.training.checkpoints import RunState
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.seeds import confirmation_seed, evaluation_seed
 
 __all__ = ["confirm", "evaluate_run", "policy_average"]
 
@@ -46,8 +45,8 @@ def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
     means = {}
     with torch.random.fork_rng(devices=cuda):
         for mode, greedy in (("greedy", True), ("sampled", False)):
-            torch.manual_seed(confirmation_seed(cfg.seed))
-            eval_env.set_seed(confirmation_seed(cfg.seed))
+            torch.manual_seed(state.streams["confirmation"])
+            eval_env.set_seed(state.streams["confirmation"])
             result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
             means[f"confirm/{mode}_mean_return"] = result["mean_return"]
     score = min(means.values())
@@ -61,7 +60,7 @@ def evaluate_run(cfg, actor, eval_env, eval_entries, state: RunState, logger) ->
     """Plays the run's evaluation (``cfg.eval_episodes`` from the evaluation seed, the
     same start states every time), logs it under ``eval/`` and keeps it as
     ``state.last_eval``."""
-    eval_env.set_seed(evaluation_seed(cfg.seed))  # the same start states at every evaluation
+    eval_env.set_seed(state.streams["evaluation"])  # the same start states every time
     start = time.perf_counter()
     result = evaluate(
         actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
