@@ -18,7 +18,6 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;
-* [`cli`][rl_pg.training.cli]: flags to a config, resuming without retyping them;
 * [`comparison`][rl_pg.training.comparison]: several variants and seeds;
 * [`curves`][rl_pg.training.curves]: every plot, drawn from the CSV logs.
 
