@@ -38,7 +38,11 @@ Config = TypeVar("Config", bound=TrainConfig)
 
 
 def parse_config(
-    config_class: type[Config], args: Sequence[str] | None = None, *, prog: str | None = None
+    config_class: type[Config],
+    args: Sequence[str] | None = None,
+    *,
+    prog: str | None = None,
+    stored: dict | None = None,
 ) -> Config:
     """``tyro.cli(config_class)``, except that ``--resume --run-dir DIR`` starts from the
     configuration stored in DIR's checkpoint: only the flags given on the command line
@@ -50,6 +54,8 @@ def parse_config(
 
     Keyword Args:
         prog (str, optional): the program's name in ``--help``.
+        stored (dict, optional): the resumed run's stored configuration, where the
+            caller has read its checkpoint already (default: read from DIR).
 
     Examples:
         >>> import tempfile
@@ -71,10 +77,11 @@ def parse_config(
     run_dir = _resumed_run_dir(args)
     if run_dir is None:
         return tyro.cli(config_class, args=args, prog=prog)
-    try:
-        stored = read_run(run_dir)["config"]
-    except CheckpointError:  # train() reports the missing or corrupted checkpoint
-        return tyro.cli(config_class, args=args, prog=prog)
+    if stored is None:
+        try:
+            stored = read_run(run_dir)["config"]
+        except CheckpointError:  # train() reports the missing or corrupted checkpoint
+            return tyro.cli(config_class, args=args, prog=prog)
     default = config_class.from_stored(stored, resume=True, run_dir=Path(run_dir))
     return tyro.cli(config_class, args=args, default=default, prog=prog)
 
@@ -230,12 +237,15 @@ def _flag(name: str, value) -> str:
 
 
 def _resume(run_dir: Path, args: list[str]) -> None:
+    # Read here to rebuild the run; train() reads it again once it holds the directory,
+    # in case another process wrote it in between.
+    saved = read_run(run_dir)
     try:
-        recipe = recipe_of(read_run(run_dir), run_dir)
+        recipe = recipe_of(saved, run_dir)
     except ValueError as err:
         sys.exit(f"rl-pg resume: {err}")
     args = ["--resume", "--run-dir", str(run_dir), *args]
-    cfg = parse_config(recipe.config, args, prog=f"rl-pg resume {run_dir}")
+    cfg = parse_config(recipe.config, args, prog=f"rl-pg resume {run_dir}", stored=saved["config"])
     _report(recipe.run(cfg))
 
 
