@@ -11,8 +11,15 @@ from conftest import run_weights
 from test_loop import _cfg as trainer_cfg
 from test_loop import _train
 
-from rl_pg.training import Callback, TrainConfig, scalar_log_rows
-from rl_pg.training.callbacks import Callbacks, GradientNoise, from_config
+from rl_pg.envs import GridWorldEnv
+from rl_pg.training import Callback, TrainConfig, read_run, scalar_log_rows
+from rl_pg.training.callbacks import (
+    Callbacks,
+    GradientNoise,
+    KeepCheckpoints,
+    StopWhenSolved,
+    from_config,
+)
 
 
 def _cfg(tmp_path, name="run", **overrides) -> TrainConfig:
@@ -104,6 +111,47 @@ class TestCallbacks:
         with pytest.raises(ValueError, match=r"key\(s\) \['Recorder'\]"):
             Callbacks([Recorder(), Recorder()])
         Callbacks([Recorder(), Recorder(key="second")])  # distinct keys are fine
+
+
+class TestBuiltIn:
+    """The loop's optional behaviours are callbacks: passed in, they act as their flags."""
+
+    def test_from_config(self, tmp_path):
+        cfg = _cfg(tmp_path, keep_every=2, threshold=0.5, stop_when_solved=True)
+        kinds = [type(c) for c in from_config(cfg)]
+        assert kinds == [StopWhenSolved, KeepCheckpoints]
+        assert from_config(replace(cfg, stop_when_solved=False, keep_every=None)) == []
+
+    def test_keep_checkpoints_as_the_flag_does(self, tmp_path):
+        _train(_cfg(tmp_path, "flag", total_updates=5, keep_every=2))
+        _train(_cfg(tmp_path, "own", total_updates=5), callbacks=[KeepCheckpoints(2)])
+        for name in ("update_2.pt", "update_4.pt"):
+            flag, own = (read_run(tmp_path / r / "checkpoints" / name) for r in ("flag", "own"))
+            assert flag["state"]["updates"] == own["state"]["updates"]
+            for key, value in flag["loss"].items():
+                assert torch.equal(value, own["loss"][key]), key
+        assert sorted(p.name for p in (tmp_path / "own" / "checkpoints").iterdir()) == [
+            "update_2.pt",
+            "update_4.pt",
+        ]
+        with pytest.raises(ValueError, match="positive number of updates"):
+            KeepCheckpoints(0)
+
+    def test_stop_when_solved_stops_at_the_first_solved_evaluation(self, tmp_path):
+        threshold = GridWorldEnv().optimal_return - 1e-6
+        base = {"total_updates": 60, "eval_interval": 1, "threshold": threshold}
+        flag = _train(_cfg(tmp_path, "flag", stop_when_solved=True, **base))
+        own = _train(
+            _cfg(tmp_path, "callback", stop_when_solved=False, **base),
+            callbacks=[StopWhenSolved(threshold)],
+        )
+        never = _train(_cfg(tmp_path, "never", stop_when_solved=False, **base))
+        assert flag["updates"] == own["updates"]
+        assert flag["updates"] < never["updates"] == 60
+        assert flag["frames"] == flag["solved_at_frames"] == own["solved_at_frames"]
+        with pytest.raises(ValueError, match="Several callbacks have the key"):
+            _train(_cfg(tmp_path, "both", stop_when_solved=True, **base),
+                   callbacks=[StopWhenSolved(threshold)])  # fmt: skip
 
 
 class TestGradientNoise:

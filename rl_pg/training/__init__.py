@@ -13,8 +13,8 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config and the
   summary;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
-* [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours,
-  and the gradient-noise measurement);
+* [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours;
+  early stop, kept checkpoints and the gradient-noise measurement);
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;

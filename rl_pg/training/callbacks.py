@@ -23,7 +23,14 @@ from rl_pg.training.optimisation import scale_rewards
 if TYPE_CHECKING:
     from rl_pg.training.loop import Run
 
-__all__ = ["Callback", "Callbacks", "GradientNoise", "from_config"]
+__all__ = [
+    "Callback",
+    "Callbacks",
+    "GradientNoise",
+    "KeepCheckpoints",
+    "StopWhenSolved",
+    "from_config",
+]
 
 
 class Callback:
@@ -31,12 +38,14 @@ class Callback:
 
     Every hook gets the [`Run`][rl_pg.training.loop.Run]: ``run.cfg``, ``run.state``
     (``frames``, ``updates``, ``last_eval``, …), ``run.loss``, ``run.actor``,
-    ``run.optimizer``, ``run.path`` (the run directory) and ``run.log(name, value)``,
-    which sends a scalar to every logger of the run at the current frame count.
+    ``run.optimizer``, ``run.path`` (the run directory), ``run.log(name, value)``,
+    which sends a scalar to every logger of the run at the current frame count, and
+    ``run.save(to=...)``, which writes the run's checkpoint.
 
     Order within one update: ``on_batch`` (the parameters that collected the batch,
     before the optimiser step), ``on_update`` (after it, frames and updates counted),
-    ``on_evaluation`` when an evaluation ran, then ``stop_training``.
+    ``on_evaluation`` when an evaluation ran, ``stop_training``, ``checkpoint_due``,
+    and ``on_checkpoint`` when a checkpoint was written.
 
     Examples:
         >>> import tempfile
@@ -79,6 +88,14 @@ class Callback:
     def stop_training(self, run: Run) -> bool:
         """True ends the run after this update, as a spent budget does."""
         return False
+
+    def checkpoint_due(self, run: Run) -> bool:
+        """True asks for a checkpoint after this update (as ``checkpoint_interval`` does)."""
+        return False
+
+    def on_checkpoint(self, run: Run) -> None:
+        """The run's last checkpoint was just written (``run.save(to="kept")`` keeps a
+        copy; every callback's state is in it)."""
 
     def on_end(self, run: Run) -> None:
         """The run is ending (its last checkpoint written), however it ends."""
@@ -135,6 +152,13 @@ class Callbacks:
     def stop_training(self, run: Run) -> bool:
         # Every callback is asked (none is skipped because an earlier one said stop).
         return any([callback.stop_training(run) for callback in self.callbacks])
+
+    def checkpoint_due(self, run: Run) -> bool:
+        return any([callback.checkpoint_due(run) for callback in self.callbacks])
+
+    def on_checkpoint(self, run: Run) -> None:
+        for callback in self.callbacks:
+            callback.on_checkpoint(run)
 
     def on_end(self, run: Run) -> None:
         for callback in self.callbacks:
@@ -227,9 +251,55 @@ class GradientNoise(Callback):
         self._pending = None
 
 
+class KeepCheckpoints(Callback):
+    """Keeps a copy of the run's checkpoint every ``every`` updates, as
+    ``run_dir/checkpoints/update_<updates>.pt`` (``--keep-every``).
+
+    Args:
+        every (int): updates between kept checkpoints.
+    """
+
+    def __init__(self, every: int) -> None:
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ValueError(f"every must be a positive number of updates, got {every!r}.")
+        self.every = every
+
+    def checkpoint_due(self, run: Run) -> bool:
+        return run.state.updates % self.every == 0
+
+    def on_checkpoint(self, run: Run) -> None:
+        if self.checkpoint_due(run):
+            run.save(to="kept")
+
+
+class StopWhenSolved(Callback):
+    """Ends the run after an evaluation whose mean return reaches ``threshold``
+    (``--stop-when-solved`` with a recipe's ``threshold``).
+
+    Args:
+        threshold (float): the evaluation mean return that counts as solved.
+    """
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = threshold
+        self._solved = False
+
+    def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
+        self._solved = result["eval/mean_return"] >= self.threshold
+
+    def stop_training(self, run: Run) -> bool:
+        solved, self._solved = self._solved, False
+        return solved
+
+
 def from_config(cfg: TrainConfig) -> list[Callback]:
-    """The callbacks the config's optional behaviours ask for (``grad_stats``)."""
+    """The callbacks the config's optional behaviours ask for (``stop_when_solved``
+    with a ``threshold``, ``keep_every``, ``grad_stats``)."""
     callbacks: list[Callback] = []
+    if cfg.stop_when_solved and cfg.threshold is not None:
+        callbacks.append(StopWhenSolved(cfg.threshold))
+    if cfg.keep_every is not None:
+        callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:
         callbacks.append(GradientNoise(cfg.grad_stats))
     return callbacks

@@ -152,7 +152,7 @@ def train(
                 done = run.budget_spent()
                 evaluated = done or run.evaluation_due()
                 if evaluated:
-                    done = run.evaluate() or done
+                    run.evaluate()
                     hooks.on_evaluation(run, run.state.last_eval)
                 done = hooks.stop_training(run) or done
                 run.console.update(
@@ -162,7 +162,7 @@ def train(
                     run.state.last_eval,
                     evaluated=evaluated,
                 )
-                if done or interrupt.requested or run.checkpoint_due():
+                if done or interrupt.requested or run.checkpoint_due() or hooks.checkpoint_due(run):
                     run.checkpoint()
                 if done or interrupt.requested:
                     break
@@ -187,7 +187,8 @@ class Run:
     """The pieces of one run and the steps the loop calls them through.
 
     Callbacks read it: ``cfg``, ``state`` (a ``RunState``: ``frames``, ``updates``,
-    ``last_eval``, …), ``loss``, ``actor``, ``optimizer``, ``path`` and ``log``.
+    ``last_eval``, …), ``loss``, ``actor``, ``optimizer``, ``path``, ``log`` and
+    ``save``.
     """
 
     def __init__(
@@ -288,8 +289,8 @@ class Run:
     def evaluation_due(self) -> bool:
         return self.state.frames >= self.next_eval
 
-    def evaluate(self) -> bool:
-        """Evaluates (keeping the best checkpoint); True when the run is solved and stops."""
+    def evaluate(self) -> None:
+        """Evaluates, keeping the best checkpoint and noting when the run first solved."""
         cfg, state = self.cfg, self.state
         self._pause()
         self.next_eval = self._next_evaluation()
@@ -300,28 +301,25 @@ class Run:
         else:
             best = state.is_best()
         if best:
-            self._save(to="best")
+            self.save(to="best")
         solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
         if solved and state.solved_at_frames is None:
             state.solved_at_frames = state.frames
         self._resume_clock()
-        return solved and cfg.stop_when_solved
 
     def checkpoint_due(self) -> bool:
-        return self.state.updates % self.cfg.checkpoint_interval == 0 or self._keep_due()
+        return self.state.updates % self.cfg.checkpoint_interval == 0
 
     def checkpoint(self) -> None:
+        """Writes the last checkpoint, then lets the callbacks write theirs."""
         self._pause()
-        self._save()
-        if self._keep_due():
-            self._save(to="kept")
+        self.save()
+        self.hooks.on_checkpoint(self)
         self._resume_clock()
 
-    def _keep_due(self) -> bool:
-        every = self.cfg.keep_every
-        return every is not None and self.state.updates % every == 0
-
-    def _save(self, *, to: str = "last") -> None:
+    def save(self, *, to: str = "last") -> None:
+        """Writes the run's checkpoint ``to`` ``"last"`` (``checkpoint.pt``), ``"best"``
+        (``best.pt``) or ``"kept"`` (``checkpoints/update_<updates>.pt``)."""
         average = {} if self.average is None else {"policy_average": self.average.state_dict()}
         self.directory.save(
             self.loss, self.optimizer, self.state, to=to,
