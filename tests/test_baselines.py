@@ -32,6 +32,22 @@ class TestRunningMean:
         baseline(torch.ones(3))
         assert baseline.count == 0
 
+    def test_answers_in_the_returns_dtype(self):
+        baseline = RunningMean()
+        baseline(torch.tensor([1.0, 2.0]))
+        answer = baseline(torch.tensor([5.0], dtype=torch.float64))
+        assert answer.dtype == torch.float64 and answer.item() == 1.5
+
+    def test_accumulates_beyond_float32(self):
+        """One large return then small ones: a float32 total would drop every 1 added
+        to 2**24 (its spacing there is 2), and the mean would stay at 2**24 / n."""
+        baseline = RunningMean()
+        baseline(torch.tensor([2.0**24]))
+        for _ in range(2):
+            baseline(torch.ones(1))
+        assert baseline.value.item() == (2**24 + 2) / 3
+        assert baseline.count.dtype == torch.int64 and baseline.count.item() == 3
+
 
 class TestExponentialMovingAverage:
     def test_matches_sequential_updates(self):
@@ -42,7 +58,21 @@ class TestExponentialMovingAverage:
         expected = 0.0
         for value in returns.tolist():
             expected = 0.9 * expected + 0.1 * value
+        # float64 throughout: the closed form agrees with the loop to rounding
         assert baseline.value.item() == pytest.approx(expected, rel=1e-6)
+        assert baseline._value.item() == pytest.approx(expected, rel=1e-12, abs=1e-15)
+
+    def test_answers_before_taking_the_batch_in(self):
+        baseline = ExponentialMovingAverage(rate=0.5)
+        first = baseline(torch.tensor([4.0, 8.0], dtype=torch.float64))
+        second = baseline(torch.tensor([1.0]))
+        assert (first.item(), first.dtype) == (0.0, torch.float64)
+        assert (second.item(), second.dtype) == (5.0, torch.float32)  # 0 -> 2 -> 5
+        assert baseline.value.item() == 3.0
+
+    def test_default_rate_and_make_baseline_passes_its_rate(self):
+        assert ExponentialMovingAverage().rate == make_baseline("ema").rate == 0.01
+        assert make_baseline("ema", rate=0.3).rate == 0.3
 
     @pytest.mark.parametrize("rate", [0.0, 1.5, -0.1, float("nan")])
     def test_rate_outside_unit_interval(self, rate):
@@ -61,7 +91,7 @@ class TestMakeBaseline:
             make_baseline("median")
 
     def test_empty_returns(self):
-        with pytest.raises(ValueError, match="at least one episode return"):
+        with pytest.raises(ValueError, match=r"^A baseline needs at least one episode return"):
             make_baseline("running_mean")(torch.zeros(0))
 
     @pytest.mark.parametrize("name", ["batch_mean", "running_mean", "ema"])
@@ -71,14 +101,14 @@ class TestMakeBaseline:
         baseline(torch.tensor([1.0, 3.0]))
         state = {k: v.clone() for k, v in baseline.state_dict().items()}
         with pytest.raises(ValueError, match="returns holds 1 non-finite value"):
-            baseline(torch.tensor([2.0, bad]))
+            baseline(torch.tensor([2.0, bad, 4.0, 5.0]))
         for key, value in baseline.state_dict().items():
             torch.testing.assert_close(value, state[key])
 
     @pytest.mark.parametrize(
         ("returns", "error", "match"),
         [
-            ([1.0, 2.0], TypeError, "returns must be a torch.Tensor"),
+            ([1.0, 2.0], TypeError, "returns must be a torch.Tensor.*Pass the episode returns"),
             (torch.tensor([1, 2]), TypeError, "returns must be a floating-point tensor"),
         ],
     )
