@@ -1105,6 +1105,34 @@ class TestBestCheckpoint:
         assert_same_run(confirmed, tmp_path / "confirmed", tmp_path / "plain")
         assert plain["best_confirmed"] is None
 
+    def test_sampled_evaluations_change_no_training_and_repeat_their_draws(self, tmp_path):
+        from rl_pg.training.checkpoints import RunState
+        from rl_pg.training.seeds import run_streams
+        from rl_pg.training.selection import evaluate_run
+
+        common = {"total_updates": 8, "eval_interval": 100, "eval_episodes": 4}
+        _train(_cfg(tmp_path, run_dir=tmp_path / "greedy", **common))
+        _train(_cfg(tmp_path, run_dir=tmp_path / "sampled", eval_greedy=False, **common))
+        # the run learns what it learns however (and how often) it is evaluated
+        greedy, sampled = run_weights(tmp_path / "greedy"), run_weights(tmp_path / "sampled")
+        for key, value in greedy.items():
+            assert torch.equal(value, sampled[key]), key
+        # every evaluation draws the same random numbers: one policy, one score
+        actor, _ = make_grid_models(make_grid())
+        load_models(read_run(tmp_path / "sampled"), actor)
+        cfg = _cfg(tmp_path, eval_greedy=False, **common)
+        state = RunState(streams=run_streams(cfg.seed))
+        logger = type("Silent", (), {"log_scalar": lambda self, *a, **k: None})()
+        scores = []
+        for stream in (1, 2):
+            torch.manual_seed(stream)  # wherever training's stream is
+            evaluate_run(cfg, actor, make_grid(), {}, state, logger)
+            scores.append(state.last_eval["eval/mean_return"])
+            after = torch.rand(1)
+            torch.manual_seed(stream)
+            assert torch.equal(after, torch.rand(1))  # and it is left there
+        assert scores[0] == scores[1]
+
     def test_only_evaluations_at_the_threshold_are_confirmed(self, tmp_path):
         summary = _train(
             _cfg(tmp_path, total_updates=6, eval_interval=200, confirm_episodes=4,

@@ -172,7 +172,9 @@ class TrainConfig:
     eval_episodes: Count = 20
     """Episodes per evaluation."""
     eval_greedy: bool = True
-    """Evaluate greedily (argmax / mean action) rather than by sampling."""
+    """Evaluate greedily (argmax / mean action) rather than by sampling. Sampled
+    evaluations draw their own random numbers (the same ones each time, from the run's
+    evaluation seed), so they change nothing in the training."""
     policy_ema: Annotated[float, Range(0, 1, high_open=True)] = 0.0
     """Evaluate, keep as best.pt and deploy an exponential moving average of the
     actor's weights (torch's AveragedModel), moved towards the trained weights by

@@ -4,6 +4,7 @@ that is evaluated instead of the weights themselves."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import torch
@@ -35,20 +36,13 @@ def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
     both from the confirmation seed; logs both means and returns the lower one. Training's
     random stream is left as it was: confirming changes which checkpoint is kept, not
     the run."""
-    device = cfg.torch_device()
-    cuda = (
-        [torch.cuda.current_device() if device.index is None else device.index]
-        if device.type == "cuda"
-        else []
-    )
     start = time.perf_counter()
     means = {}
-    with torch.random.fork_rng(devices=cuda):
-        for mode, greedy in (("greedy", True), ("sampled", False)):
-            torch.manual_seed(state.streams["confirmation"])
+    for mode, greedy in (("greedy", True), ("sampled", False)):
+        with _random_stream(cfg, state.streams["confirmation"]):
             eval_env.set_seed(state.streams["confirmation"])
             result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
-            means[f"confirm/{mode}_mean_return"] = result["mean_return"]
+        means[f"confirm/{mode}_mean_return"] = result["mean_return"]
     score = min(means.values())
     logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
     for name, value in logged.items():
@@ -58,16 +52,33 @@ def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
 
 def evaluate_run(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
     """Plays the run's evaluation (``cfg.eval_episodes`` from the evaluation seed, the
-    same start states every time), logs it under ``eval/`` and keeps it as
-    ``state.last_eval``."""
-    eval_env.set_seed(state.streams["evaluation"])  # the same start states every time
+    same start states every time and, sampled, the same random numbers), logs it under
+    ``eval/`` and keeps it as ``state.last_eval``. Training's random stream is left as
+    it was: how often a run evaluates does not change what it learns."""
     start = time.perf_counter()
-    result = evaluate(
-        actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy, **eval_entries
-    )
+    with _random_stream(cfg, state.streams["evaluation"]):
+        eval_env.set_seed(state.streams["evaluation"])
+        result = evaluate(
+            actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy,
+            **eval_entries,
+        )  # fmt: skip
     result = {f"eval/{key}": value for key, value in result.items()}
     result["time/eval_s"] = time.perf_counter() - start
     result["time/train_s"] = state.train_time
     state.last_eval = result
     for name, value in result.items():
         logger.log_scalar(name, value, step=state.frames)
+
+
+@contextlib.contextmanager
+def _random_stream(cfg: TrainConfig, seed: int):
+    """torch's generators seeded with ``seed`` inside, restored to training's after."""
+    device = cfg.torch_device()
+    cuda = (
+        [torch.cuda.current_device() if device.index is None else device.index]
+        if device.type == "cuda"
+        else []
+    )
+    with torch.random.fork_rng(devices=cuda):
+        torch.manual_seed(seed)
+        yield
