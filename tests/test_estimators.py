@@ -63,6 +63,33 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(batch["advantage"], expected - value)
         assert not batch["value_target"].requires_grad
 
+    @pytest.mark.parametrize("differentiable", [True, False])
+    def test_differentiable_as_torchrl_gradients_reach_inputs_never_the_critic(
+        self, cls, fn, batch, differentiable
+    ):
+        """TorchRL's ``differentiable``: the estimate is a function of the inputs (their
+        gradients flow), never of the value network's parameters (held out); without it,
+        no graph at all. TorchRL's TD(1) on the same batch behaves alike."""
+        from torchrl.objectives.value import TD1Estimator
+
+        torch.manual_seed(0)
+        critic = make_critic()
+        batch = _truncate(batch)
+        for estimator in (
+            cls(gamma=0.9, value_network=critic, differentiable=differentiable),
+            TD1Estimator(gamma=0.9, value_network=critic, differentiable=differentiable),
+        ):
+            data = batch.clone()
+            observation = data["observation"].detach().requires_grad_(True)
+            data["observation"] = observation
+            estimator(data)
+            advantage = data["advantage"]
+            assert advantage.requires_grad == differentiable, type(estimator).__name__
+            if differentiable:
+                advantage.sum().backward()
+                assert observation.grad is not None and observation.grad.abs().sum() > 0
+                assert all(p.grad is None for p in critic.parameters())
+
     @pytest.mark.parametrize("shape", ["batched", "flat"])
     def test_one_call_of_the_value_network_matches_torchrl_vmapped_pair(
         self, cls, fn, batch, shape
