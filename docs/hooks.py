@@ -11,39 +11,17 @@ browsers render MathML themselves, so the maths needs no script and no network.
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import importlib
-import inspect
-import itertools
 import re
 from pathlib import Path
 
 from rl_pg.recipes import load
+from rl_pg.recipes.cli import field_docs
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
 DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """Docstrings written under dataclass fields (subclasses override their bases)."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        tree = ast.parse(inspect.getsource(klass))
-        body = tree.body[0].body
-        for node, after in itertools.pairwise(body):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and isinstance(after, ast.Expr)
-                and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)
-            ):
-                docs[node.target.id] = " ".join(after.value.value.split())
-    return docs
 
 
 def config_table(recipe: str, name: str | None = None) -> str:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import subprocess
 import sys
 import sysconfig
@@ -13,7 +15,8 @@ import pytest
 from conftest import hide_module
 
 from rl_pg.recipes import NAMES
-from rl_pg.recipes.cli import main
+from rl_pg.recipes.cli import field_docs, main
+from rl_pg.training import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = ["--total-updates", "2", "--eval-interval", "100", "--eval-episodes", "1"]
@@ -156,6 +159,27 @@ def test_train_help_shows_the_recipes_defaults(capsys):
     assert status == 0
     assert "usage: rl-pg train cartpole" in out
     assert "(default: 0.005)" in out  # the recipe's lr, not TrainConfig's 1e-3
+
+
+def test_help_shows_the_flags_in_groups_by_concern(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "100")
+    status, out, _ = in_process("train", "lunarlander", "--help", capsys=capsys)
+    assert status == 0
+    titles = re.findall(r"^\W*(\w+) options", out, flags=re.MULTILINE)
+    assert titles == ["recipe", *TrainConfig.groups]  # the recipe's own settings first
+    optimiser = out[out.index("optimiser options") : out.index("evaluation options")]
+    assert "--lr FLOAT" in optimiser and "(default: 0.001)" in optimiser
+    assert "--continuous, --no-continuous" in out.split("run options")[0]
+    # a docstring is one paragraph that the help wraps, not lines cut where the source
+    # wrapped them ("available)." used to end a line of its own)
+    assert "available). Environments step on the CPU." in out
+    assert "\n" not in field_docs(TrainConfig)["device"]
+
+
+def test_every_config_field_is_in_one_group():
+    grouped = [name for _, names in TrainConfig.groups.values() for name in names]
+    assert sorted(grouped) == sorted(f.name for f in dataclasses.fields(TrainConfig))
+    assert len(grouped) == len(set(grouped))
 
 
 def test_a_recipe_of_your_own_trains_resumes_and_plays(tmp_path, capsys, monkeypatch):

@@ -16,11 +16,18 @@ runs ``rl-pg play``.
 
 from __future__ import annotations
 
+import ast
+import copy
+import dataclasses
+import inspect
+import itertools
 import sys
+import textwrap
+import typing
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TypeVar
+from typing import Annotated, Any, TypeVar
 
 import tyro
 
@@ -32,7 +39,7 @@ from rl_pg.training.console import format_comparison, format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 from rl_pg.training.run_dir import RunDirBusy
 
-__all__ = ["main", "parse_config", "run_checkout_script"]
+__all__ = ["field_docs", "main", "parse_config", "run_checkout_script"]
 
 Config = TypeVar("Config", bound=TrainConfig)
 
@@ -75,15 +82,91 @@ def parse_config(
     """
     args = list(sys.argv[1:] if args is None else args)
     run_dir = _resumed_run_dir(args)
-    if run_dir is None:
-        return tyro.cli(config_class, args=args, prog=prog)
-    if stored is None:
+    defaults = None
+    if run_dir is not None:
+        if stored is None:
+            try:
+                stored = read_run(run_dir)["config"]
+            except CheckpointError:  # train() reports the missing or corrupted checkpoint
+                stored = None
+        if stored is not None:
+            resumed = config_class.from_stored(stored, resume=True, run_dir=Path(run_dir))
+            defaults = {f.name: getattr(resumed, f.name) for f in dataclasses.fields(resumed)}
+    return tyro.cli(_grouped(config_class, defaults), args=args, prog=prog).config
+
+
+def _grouped(config_class: type[Config], defaults: dict[str, Any] | None) -> type:
+    """``config_class`` as tyro should show it: one dataclass per group of
+    ``TrainConfig.groups`` (the recipe's own fields first, as a group of their own),
+    with the flags unprefixed and each field's docstring on one line, so that the help
+    wraps it whole. Parsing builds the config itself (``.config``), inside tyro, which
+    reports a value the config refuses as it reports a malformed flag."""
+    docs = field_docs(config_class)
+    hints = typing.get_type_hints(config_class, include_extras=True)
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
+    grouped = {name: names for name, (_, names) in config_class.groups.items()}
+    placed = {name for names in grouped.values() for name in names}
+    own = tuple(name for name in fields if name not in placed)
+    groups = {"recipe": ("The recipe's own settings.", own)} if own else {}
+    groups.update(config_class.groups)
+
+    def spec(name: str) -> tuple[str, Any, dataclasses.Field]:
+        kind = Annotated[hints[name], tyro.conf.arg(help=docs.get(name, ""))]
+        if defaults is not None:
+            value = defaults[name]
+        elif fields[name].default is not dataclasses.MISSING:
+            value = fields[name].default
+        elif fields[name].default_factory is not dataclasses.MISSING:
+            return name, kind, dataclasses.field(default_factory=fields[name].default_factory)
+        else:
+            return name, kind, dataclasses.field()
+        return name, kind, dataclasses.field(default_factory=lambda v=value: copy.deepcopy(v))
+
+    members = []
+    for group, (about, names) in groups.items():
+        names = [name for name in names if name in fields]
+        if not names:
+            continue
+        section = dataclasses.make_dataclass(group, [spec(name) for name in names])
+        kind = Annotated[section, tyro.conf.OmitArgPrefixes, tyro.conf.arg(help=about)]
+        members.append((group, kind, dataclasses.field(default_factory=section)))
+
+    def build(self) -> None:
+        values = {
+            name: getattr(getattr(self, group), name)
+            for group, *_ in members
+            for name in (f.name for f in dataclasses.fields(getattr(self, group)))
+        }
+        self.config = config_class(**values)
+
+    cli = dataclasses.make_dataclass(
+        config_class.__name__, members, namespace={"__post_init__": build}
+    )
+    cli.__doc__ = config_class.__doc__
+    return cli
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstrings written under a dataclass's fields, each on one line
+    (subclasses' override their bases')."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
         try:
-            stored = read_run(run_dir)["config"]
-        except CheckpointError:  # train() reports the missing or corrupted checkpoint
-            return tyro.cli(config_class, args=args, prog=prog)
-    default = config_class.from_stored(stored, resume=True, run_dir=Path(run_dir))
-    return tyro.cli(config_class, args=args, default=default, prog=prog)
+            body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        except (OSError, TypeError, IndentationError):  # no source: defined interactively
+            continue
+        for node, after in itertools.pairwise(body):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
 
 
 def _resumed_run_dir(args: list[str]) -> str | None:

@@ -61,6 +61,39 @@ RESUMABLE_FIELDS = frozenset(
 class TrainConfig:
     """Settings of the training loop shared by every recipe."""
 
+    groups: ClassVar[dict[str, tuple[str, tuple[str, ...]]]] = {
+        "run": ("What to train for how long, where, on what.", (
+            "seed", "total_frames", "total_updates", "run_dir", "resume", "device",
+            "threads", "progress",
+        )),
+        "collection": ("How the batches are collected.", (
+            "workers", "ray", "batch_mode", "episodes_per_batch", "segment_length",
+            "env_restart_interval",
+        )),
+        "returns": ("What weights log pi: the return, its discount, the baseline.", (
+            "returns", "gae_lambda", "gamma", "reward_scale", "baseline", "baseline_rate",
+            "normalize_advantage",
+        )),
+        "loss": ("The entropy bonus and the critic's part of the loss.", (
+            "entropy_coeff", "entropy_schedule", "entropy_coeff_end",
+            "entropy_schedule_start", "critic_coeff", "value_norm", "critic_steps",
+        )),
+        "optimiser": ("The optimiser and its step size.", (
+            "optimizer", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
+            "weight_decay", "max_grad_norm",
+        )),
+        "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
+            "eval_interval", "eval_episodes", "eval_greedy", "policy_ema", "confirm_episodes",
+            "threshold", "stop_when_solved",
+        )),
+        "checkpoints": ("When the run is saved.", ("checkpoint_interval", "keep_every")),
+        "logging": ("What is logged, and where.", (
+            "log_interval", "grad_stats", "tensorboard", "wandb", "wandb_project",
+            "wandb_mode", "mlflow", "mlflow_uri",
+        )),
+    }  # fmt: skip
+    """The fields by concern, as ``--help`` shows them: group -> (what it holds, fields).
+    A recipe's own fields form a group of their own."""
     absent_means: ClassVar[dict[str, Any]] = {}
     """Fields whose default changed after they were added, each with the value a stored
     config that lacks the field ran with (it was written before the field existed). A
