@@ -71,6 +71,10 @@ class BoundedBeta(D.TransformedDistribution):
         return self.low + (self.high - self.low) * self._beta.mean
 
     @property
+    def variance(self) -> torch.Tensor:
+        return (self.high - self.low) ** 2 * self._beta.variance
+
+    @property
     def deterministic_sample(self) -> torch.Tensor:
         """The mean: what greedy evaluation plays."""
         return self.mean
