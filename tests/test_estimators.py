@@ -7,11 +7,34 @@ import pytest
 import torch
 from conftest import N_ACT, make_batch, make_critic
 from tensordict.nn import TensorDictModule
+from test_functional import reference_returns
 
 from rl_pg import DiscountedReturn, RewardToGo
-from rl_pg.functional import discounted_return, reward_to_go
 
-PAIRS = [(RewardToGo, reward_to_go), (DiscountedReturn, discounted_return)]
+
+def _reference(whole_episode: bool):
+    """The plain loop of test_functional (forward sums over each episode), in the
+    kernels' signature: the expected values owe nothing to the code under test."""
+
+    def returns(reward, done, gamma, *, terminated=None, next_value=None):
+        terminated = done if terminated is None else terminated
+
+        def rows(x):  # [..., T, 1] -> list of [T] float64 lists, time last
+            x = x.squeeze(-1).double()
+            return x.reshape(-1, x.shape[-1]).tolist()
+
+        steps = reward.shape[-2]
+        out = reference_returns(
+            rows(reward), rows(done), rows(terminated),
+            rows(next_value) if next_value is not None else [None] * len(rows(reward)),
+            [[gamma] * steps] * len(rows(reward)), whole_episode,
+        )  # fmt: skip
+        return torch.tensor(out, dtype=reward.dtype).reshape(reward.shape)
+
+    return returns
+
+
+PAIRS = [(RewardToGo, _reference(False)), (DiscountedReturn, _reference(True))]
 
 
 @pytest.fixture
