@@ -89,14 +89,15 @@ def training_seed(seed: int, updates: int) -> int:
 
 def stream_span(name: str, seed: int) -> list[tuple[int, int]]:
     """The seeds stream ``name`` of run ``seed`` may use, as ``(first, count)`` pairs
-    (the training stream wraps round 2³¹). The ``actions`` stream seeds other
-    generators than the environments' and spans none of their seeds.
+    (the training stream's restarts wrap round 2³¹, its members past it). The
+    ``actions`` stream seeds other generators than the environments' and spans none of
+    their seeds.
 
     Examples:
         >>> stream_span("evaluation", 0)
         [(1000003, 16384)]
         >>> stream_span("training", 2147)  # doctest: +NORMALIZE_WHITESPACE
-        [(2147006441, 477207), (0, 522796)]
+        [(2147006441, 493591), (0, 522796)]
     """
     if name == "actions":
         return []
@@ -104,7 +105,9 @@ def stream_span(name: str, seed: int) -> list[tuple[int, int]]:
         first = training_seed(seed, 0)
         if first + _SPREAD <= 2**31:
             return [(first, _SPREAD)]
-        return [(first, 2**31 - first), (0, first + _SPREAD - 2**31)]
+        # The restart seed wraps round 2**31; the members of the last one before it
+        # (seed + 1, ...) do not.
+        return [(first, 2**31 - first + MEMBERS), (0, first + _SPREAD - 2**31)]
     return [(stream_seed(name, seed), MEMBERS)]
 
 
