@@ -30,11 +30,10 @@ import numpy as np
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
-from rl_pg.plots import png_figure
 from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.curves import read_curve
+from rl_pg.training.curves import png_figure, read_curve
 from rl_pg.training.run_dir import SUMMARY
 
 __all__ = ["LabArgs", "measurements", "noise_scale_curve", "summarise", "variance_lab"]

@@ -1,16 +1,28 @@
-"""Every plot of the harness, drawn from the runs' CSV logs (the one copy of a curve)."""
+"""Every plot of the harness, drawn from the runs' CSV logs (the one copy of a curve),
+and the PNG figure they are drawn on.
+
+Figures use matplotlib's object API, which needs no backend: plotting here never
+switches the backend of the user's process (a notebook keeps its inline figures) and
+opens no window.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import io
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rl_pg.plots import png_figure
+from rl_pg.checkpoint import write_atomically
 from rl_pg.training.metrics import scalar_log_rows
 
-__all__ = ["plot_curves", "plot_run", "plot_runs", "read_curve"]
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+__all__ = ["plot_curves", "plot_run", "plot_runs", "png_figure", "read_curve"]
 
 CURVE = "learning_curve.png"
 
@@ -102,3 +114,29 @@ def plot_curves(
         ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
         ax.legend(loc="best")
     return path
+
+
+@contextmanager
+def png_figure(path: str | Path, *, size: tuple[float, float] = (7, 4)) -> Iterator[Axes]:
+    """Yields the axes of a new figure; on exit, lays it out and writes it to ``path``
+    atomically.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.training.curves import png_figure
+        >>> path = Path(tempfile.mkdtemp()) / "line.png"
+        >>> with png_figure(path) as ax:
+        ...     _ = ax.plot([0, 1], [0, 1])
+        >>> path.read_bytes()[:4]
+        b'\\x89PNG'
+    """
+    # Imported here: a process that never plots (a collector's worker) never loads it.
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=size)
+    yield figure.subplots()
+    figure.tight_layout()
+    image = io.BytesIO()
+    figure.savefig(image, format="png", dpi=100)
+    write_atomically(path, image.getvalue())
