@@ -339,15 +339,18 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
     )  # fmt: skip
     summary = recipe.train(cfg)
     assert summary["updates"] == 1
-    for key in ("arrive_dest_rate", "crash_rate", "out_of_road_rate", "max_step_rate"):
-        assert 0.0 <= summary[key] <= 1.0
-    assert 0.0 <= summary["eval_mean_route_completion"] <= 1.0
+    rates = {k: summary[k] for k in ("arrive_dest_rate", "crash_rate", "out_of_road_rate",
+                                     "max_step_rate")}  # fmt: skip
+    # shares of 2 episodes, each of which ended some way; 40 steps (4 s) arrive nowhere
+    assert all(rate * 2 == round(rate * 2) for rate in rates.values()), rates
+    assert sum(rates.values()) >= 1.0 and rates["arrive_dest_rate"] == 0.0
+    assert 0.0 < summary["eval_mean_route_completion"] < 0.5
     assert BaseEngine.singleton is None  # training closed its engine
     # The deployed agent standardises what it sees as it did in training.
     counts = [v for k, v in read_run(run)["loss"].items() if k.endswith("stats.count")]
     assert counts and all(count == summary["frames"] for count in counts)
     result = evaluate.main(evaluate.Args(run=run, episodes=1))
-    assert 0.0 <= result["mean_route_completion"] <= 1.0 and "crash_rate" in result
+    assert 0.0 < result["mean_route_completion"] < 0.5 and result["arrive_dest_rate"] == 0.0
     assert result["mean_episode_speed"] >= 0.0
     assert "on" not in result
     on_training = evaluate.main(evaluate.Args(run=run, episodes=1, on="training"))
