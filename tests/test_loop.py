@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import importlib.util
 import io
-import itertools
 import json
 import math
 import os
@@ -29,7 +28,6 @@ from torchrl.modules import ValueOperator
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
-from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor, mlp_critic
 from rl_pg.normalization import PopArt, RunningNorm, update_running_norms
 from rl_pg.recipes import load
@@ -45,7 +43,7 @@ from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
-from rl_pg.training.seeds import confirmation_seed, evaluation_seed
+from rl_pg.training.seeds import evaluation_seed
 
 
 def make_grid():
@@ -1013,146 +1011,6 @@ class TestInterruptedRun:
             with pytest.raises(KeyboardInterrupt):
                 os.kill(os.getpid(), signal.SIGINT)  # the second: stops at once
         assert signal.getsignal(signal.SIGINT) is not interrupt._handle  # restored
-
-
-class TestBestCheckpoint:
-    def test_best_holds_the_best_evaluation_and_plays_it_back(self, tmp_path):
-        summary = _train(_cfg(tmp_path, total_updates=12, eval_interval=200))
-        frames, evaluations = read_curve(tmp_path / "run", "eval/mean_return")
-        evaluations = evaluations.tolist()
-        assert len(evaluations) >= 3
-        best = read_run(tmp_path / "run", which="best")
-        first_best = evaluations.index(max(evaluations))
-        assert best["state"]["best_mean_return"] == max(evaluations)
-        assert summary["best_eval_mean_return"] == max(evaluations)
-        assert summary["best_at_frames"] == best["state"]["frames"]
-        assert best["state"]["frames"] == frames[first_best]
-        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
-        load_models(best, actor)
-        env = make_grid()
-        env.set_seed(evaluation_seed(0))  # the evaluation's start states
-        result = evaluate(actor, env, episodes=1)
-        assert result["mean_return"] == pytest.approx(max(evaluations))
-
-    def test_a_policy_average_is_what_is_evaluated_kept_and_deployed(self, tmp_path):
-        decay = 0.8
-        cfg = _cfg(tmp_path, total_updates=6, eval_interval=200, policy_ema=decay, keep_every=1)
-        _train(cfg)
-        kept = [read_run(tmp_path / "run" / "checkpoints" / f"update_{n}.pt") for n in range(1, 7)]
-        # After every update: average <- decay * average + (1 - decay) * trained weights.
-        for before, after in itertools.pairwise(kept):
-            for key, value in after["policy_average"].items():
-                if not key.startswith("module.") or not value.is_floating_point():
-                    continue
-                trained = after["loss"]["actor_network." + key.removeprefix("module.")]
-                expected = decay * before["policy_average"][key] + (1 - decay) * trained
-                torch.testing.assert_close(value, expected)
-        last = kept[-1]
-        assert int(last["policy_average"]["n_averaged"]) == 7  # the initial copy + 6 updates
-        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
-        load_models(last, actor)
-        for key, value in actor.state_dict().items():
-            assert torch.equal(value, last["policy_average"]["module." + key]), key
-        assert not all(
-            torch.equal(value, last["loss"]["actor_network." + key])
-            for key, value in actor.state_dict().items()
-        )  # the average is not the trained weights
-        load_models(last, actor, average=False)  # ... which are one argument away
-        for key, value in actor.state_dict().items():
-            assert torch.equal(value, last["loss"]["actor_network." + key]), key
-        plain = {k: v for k, v in last.items() if k != "policy_average"}
-        with pytest.raises(CheckpointError, match=r"keeps no average.*leave average=False"):
-            load_models(plain, actor, average=False)
-        # Evaluations played the average: best.pt's plays back its evaluation's return.
-        best = read_run(tmp_path / "run", which="best")
-        load_models(best, actor)
-        env = make_grid()
-        env.set_seed(evaluation_seed(0))
-        result = evaluate(actor, env, episodes=1)
-        assert result["mean_return"] == pytest.approx(best["state"]["best_mean_return"])
-
-    def test_confirmation_keeps_the_checkpoint_whose_replays_score_best(self, tmp_path):
-        cfg = _cfg(tmp_path, total_updates=30, eval_interval=200, confirm_episodes=6)
-        summary = _train(cfg)
-        run = tmp_path / "run"
-        frames, scores = read_curve(run, "confirm/score")
-        assert len(scores) >= 2  # without a threshold, every new high is replayed
-        _, greedy = read_curve(run, "confirm/greedy_mean_return")
-        _, sampled = read_curve(run, "confirm/sampled_mean_return")
-        torch.testing.assert_close(scores, np.minimum(greedy, sampled))
-        best = read_run(run, which="best")
-        winner = int(np.argmax(scores))
-        assert summary["best_confirmed"] == best["state"]["best_confirmed"] == scores[winner]
-        assert summary["best_at_frames"] == best["state"]["frames"] == frames[winner]
-        # best.pt replays its confirmation: the lower of its greedy and sampled means
-        actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
-        load_models(best, actor)
-        replays = []
-        for greedy_mode in (True, False):
-            torch.manual_seed(confirmation_seed(0))
-            env = make_grid()
-            env.set_seed(confirmation_seed(0))
-            replays.append(evaluate(actor, env, episodes=6, deterministic=greedy_mode))
-        assert min(r["mean_return"] for r in replays) == pytest.approx(scores[winner])
-
-    def test_confirmation_changes_the_checkpoint_kept_not_the_run(self, tmp_path):
-        common = {"total_updates": 8, "eval_interval": 200}
-        plain = _train(_cfg(tmp_path, run_dir=tmp_path / "plain", **common))
-        confirmed = _train(
-            _cfg(tmp_path, run_dir=tmp_path / "confirmed", confirm_episodes=4, **common)
-        )
-        assert read_curve(tmp_path / "confirmed", "confirm/score")[1].size >= 1
-        assert_same_run(confirmed, tmp_path / "confirmed", tmp_path / "plain")
-        assert plain["best_confirmed"] is None
-
-    def test_sampled_evaluations_change_no_training_and_repeat_their_draws(self, tmp_path):
-        from rl_pg.training.checkpoints import RunState
-        from rl_pg.training.seeds import run_streams
-        from rl_pg.training.selection import evaluate_run
-
-        common = {"total_updates": 8, "eval_interval": 100, "eval_episodes": 4}
-        _train(_cfg(tmp_path, run_dir=tmp_path / "greedy", **common))
-        _train(_cfg(tmp_path, run_dir=tmp_path / "sampled", eval_greedy=False, **common))
-        # the run learns what it learns however (and how often) it is evaluated
-        greedy, sampled = run_weights(tmp_path / "greedy"), run_weights(tmp_path / "sampled")
-        for key, value in greedy.items():
-            assert torch.equal(value, sampled[key]), key
-        # every evaluation draws the same random numbers: one policy, one score
-        actor, _ = make_grid_models(make_grid())
-        load_models(read_run(tmp_path / "sampled"), actor)
-        cfg = _cfg(tmp_path, eval_greedy=False, **common)
-        state = RunState(streams=run_streams(cfg.seed))
-        logger = type("Silent", (), {"log_scalar": lambda self, *a, **k: None})()
-        scores = []
-        for stream in (1, 2):
-            torch.manual_seed(stream)  # wherever training's stream is
-            evaluate_run(cfg, actor, make_grid(), {}, state, logger)
-            scores.append(state.last_eval["eval/mean_return"])
-            after = torch.rand(1)
-            torch.manual_seed(stream)
-            assert torch.equal(after, torch.rand(1))  # and it is left there
-        assert scores[0] == scores[1]
-
-    def test_only_evaluations_at_the_threshold_are_confirmed(self, tmp_path):
-        summary = _train(
-            _cfg(tmp_path, total_updates=6, eval_interval=200, confirm_episodes=4,
-                 threshold=1e9, stop_when_solved=False)
-        )  # fmt: skip
-        assert not (tmp_path / "run" / "logs" / "csv" / "scalars" / "confirm").exists()
-        assert summary["best_confirmed"] is None
-        _, evaluations = read_curve(tmp_path / "run", "eval/mean_return")
-        assert summary["best_eval_mean_return"] == max(evaluations.tolist())
-
-    def test_which_must_be_last_or_best(self, tmp_path):
-        _train(_cfg(tmp_path, total_updates=1))
-        with pytest.raises(ValueError, match="which must be 'last' or 'best'"):
-            read_run(tmp_path / "run", which="first")
-
-    def test_a_run_without_a_best_checkpoint_says_so(self, tmp_path):
-        _train(_cfg(tmp_path, total_updates=1))
-        (tmp_path / "run" / "best.pt").unlink()
-        with pytest.raises(CheckpointError, match=r"has no best\.pt .* which='last'"):
-            read_run(tmp_path / "run", which="best")
 
 
 class TestConsole:
