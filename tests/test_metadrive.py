@@ -69,6 +69,40 @@ def test_resets_offline_without_assets_and_writes_nothing_into_metadrive(scenari
 
 
 @needs_metadrive
+def test_ctrl_c_inside_a_simulator_step_reaches_the_training_loops_handler(scenarios):
+    """Panda3D defers a SIGINT that falls inside its frame and raises KeyboardInterrupt
+    after it, past the caller's handler; the environment leaves SIGINT to the caller."""
+    import os
+    import signal
+
+    import direct.task.Task as panda_tasks
+
+    from rl_pg.training.interrupt import InterruptRequest
+
+    env = scenarios()
+    env.reset(seed=0)
+
+    def ctrl_c_inside_the_frame(task):
+        os.kill(os.getpid(), signal.SIGINT)
+        return task.done
+
+    def step_with_ctrl_c():
+        env.env.engine.taskMgr.add(ctrl_c_inside_the_frame, "ctrl-c")
+        with InterruptRequest() as interrupt:
+            env.step(np.array([0.0, 1.0]))  # the update in progress ends normally
+        return interrupt.requested
+
+    assert panda_tasks.signal is None
+    assert step_with_ctrl_c()
+    panda_tasks.signal = signal  # negative control: Panda3D's own handling
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            step_with_ctrl_c()
+    finally:
+        panda_tasks.signal = None
+
+
+@needs_metadrive
 def test_episode_speed_is_the_average_speed_over_the_episode_in_km_h(scenarios):
     env = scenarios(horizon=40)
     for episode in range(2):  # the average starts afresh at each reset

@@ -202,6 +202,7 @@ class MetaDriveScenarios(gym.Wrapper):
 
         from metadrive.envs import MetaDriveEnv
 
+        _leave_sigint_to_the_caller()
         super().__init__(MetaDriveEnv(config))
         self.scenarios = range(start_seed, start_seed + num_scenarios)
         self.order = order
@@ -268,6 +269,20 @@ class MetaDriveScenarios(gym.Wrapper):
                 "in a process of its own (torchrl.envs.ParallelEnv(1, make_env, "
                 "mp_start_method='spawn'), or collect with --workers 2 or more)."
             )
+
+
+def _leave_sigint_to_the_caller() -> None:
+    """Stops Panda3D's task manager from taking Ctrl-C over.
+
+    For each frame it swaps in a SIGINT handler of its own and, after the frame, raises
+    ``KeyboardInterrupt`` past the handler of whoever stepped the environment: a
+    training run, which finishes its update and saves on Ctrl-C, would end without
+    its last checkpoint whenever the signal fell inside a simulator step. Panda3D skips
+    that swap where its task module has no ``signal`` (platforms without one); so do we.
+    """
+    import direct.task.Task as panda_tasks
+
+    panda_tasks.signal = None
 
 
 def metadrive_env(
