@@ -9,7 +9,6 @@ from collections.abc import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import CompositeDistribution
-from torchrl.objectives.utils import _sum_td_features
 from torchrl.objectives.value import GAE
 
 from rl_pg._checks import check_real
@@ -391,5 +390,5 @@ class _StepLogProb(torch.nn.Module):
         step = step.unsqueeze(0)  # a batch of one, as the policy expects
         dist = self.actor.get_dist(step)
         if isinstance(dist, CompositeDistribution):
-            return _sum_td_features(dist.log_prob(step)).sum()
+            return dist.log_prob(step).sum(dim="feature", reduce=True).sum()
         return dist.log_prob(step.get(self.action_key)).sum()

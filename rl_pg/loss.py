@@ -22,7 +22,6 @@ from torchrl.objectives import ReinforceLoss as TorchRLReinforceLoss
 from torchrl.objectives.utils import (
     _GAMMA_LMBDA_DEPREC_ERROR,
     _clip_value_loss,
-    _sum_td_features,
     dispatch_value_estimator,
     distance_loss,
 )
@@ -621,7 +620,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             _check_support(dist, action, self.tensor_keys.action, self._declares_bounds)
         log_prob = dist.log_prob(action)
         if is_tensor_collection(log_prob):
-            log_prob = _sum_td_features(log_prob)
+            log_prob = log_prob.sum(dim="feature", reduce=True)  # over the action's entries
         log_prob = _per_step(log_prob, weights.shape, "log-probabilities")
         if not bool(torch.isfinite(log_prob).all()):
             raise ValueError(
@@ -763,7 +762,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             sample = dist.rsample() if dist.has_rsample else dist.sample()
             entropy = -dist.log_prob(sample)
         if is_tensor_collection(entropy):
-            entropy = _sum_td_features(entropy)
+            entropy = entropy.sum(dim="feature", reduce=True)
         return entropy
 
 
