@@ -32,3 +32,15 @@ def test_means_beyond_bounds_takes_the_worst_dimension_and_skips_discrete_polici
     assert means_beyond_bounds(actor, batch) == 0.75  # lateral: 3 of 4; main: 1 of 4
     grid = GridWorldEnv()
     assert means_beyond_bounds(mlp_actor(grid), grid.rollout(3)) is None
+
+
+def test_means_beyond_bounds_of_batched_environments_in_segments_and_flat():
+    env = gym_env("Pendulum-v1", num_envs=3)  # bounds of shape [3, 1]
+    actor = mlp_actor(env, bounded="normal")
+    batch = env.rollout(4, actor)  # [3 environments, 4 steps]
+    assert batch["loc"].shape == (3, 4, 1) and env.action_spec.space.low.shape == (3, 1)
+    loc = torch.zeros(3, 4, 1)
+    loc[0, :2] = 2.5  # 2 of 12 steps beyond
+    batch["loc"] = loc
+    assert means_beyond_bounds(actor, batch) == pytest.approx(2 / 12)
+    assert means_beyond_bounds(actor, batch.reshape(-1)) == pytest.approx(2 / 12)

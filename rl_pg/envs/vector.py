@@ -143,7 +143,7 @@ class VectorGymEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
-        obs, reward, terminated, truncated = self._env_step(action.cpu().numpy())
+        obs, reward, terminated, truncated = self._env_step(action.detach().cpu().numpy())
         out = self._observations(obs)
         shape = (self._n, 1)
         out["reward"] = torch.from_numpy(np.asarray(reward, dtype=np.float32)).view(shape)

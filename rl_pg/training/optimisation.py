@@ -220,9 +220,19 @@ def means_beyond_bounds(actor, batch: TensorDictBase) -> float | None:
     loc = batch.get("loc", None)
     if loc is None or not hasattr(space, "low"):
         return None
-    low, high = space.low.to(loc.device), space.high.to(loc.device)
+    low, high = (_like(bound.to(loc.device), loc) for bound in (space.low, space.high))
     beyond = ((loc < low) | (loc > high)).reshape(-1, loc.shape[-1]).float().mean(0)
     return beyond.max().item()
+
+
+def _like(bound: torch.Tensor, loc: torch.Tensor) -> torch.Tensor:
+    """A batched environment's bounds (``[envs, dims]``) laid against a batch of its
+    steps: ``[envs, time, dims]`` segments, or steps flattened to ``[n, dims]``."""
+    if bound.dim() > 1 and loc.dim() == bound.dim() + 1 and loc.shape[:-2] == bound.shape[:-1]:
+        return bound.unsqueeze(-2)  # the time dimension of each environment's segment
+    if bound.dim() > 1 and loc.shape[:-1] != bound.shape[:-1]:
+        return bound.reshape(-1, bound.shape[-1])[0]  # copies of one environment
+    return bound
 
 
 def scale_rewards(batch: TensorDictBase, scale: float, reward_key: str = "reward"):
