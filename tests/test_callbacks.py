@@ -149,6 +149,8 @@ class TestBuiltIn:
         assert flag["updates"] == own["updates"]
         assert flag["updates"] < never["updates"] == 60
         assert flag["frames"] == flag["solved_at_frames"] == own["solved_at_frames"]
+        with pytest.raises(ValueError, match="threshold must be a finite number"):
+            StopWhenSolved(float("nan"))  # it would never stop
         with pytest.raises(ValueError, match="Several callbacks have the key"):
             _train(_cfg(tmp_path, "both", stop_when_solved=True, **base),
                    callbacks=[StopWhenSolved(threshold)])  # fmt: skip

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
 
+from rl_pg._checks import check_int, check_real
 from rl_pg.gradient_statistics import GradientStatistics
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.optimisation import scale_rewards
@@ -212,9 +213,7 @@ class GradientNoise(Callback):
     def __init__(
         self, every: int, *, estimators: Sequence[str] | None = None, unit: str = "episode"
     ) -> None:
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ValueError(f"every must be a positive number of updates, got {every!r}.")
-        self.every, self.estimators, self.unit = every, estimators, unit
+        self.every, self.estimators, self.unit = _updates(every), estimators, unit
         self._statistics: GradientStatistics | None = None
         self._pending: dict[str, float] | None = None
 
@@ -260,9 +259,7 @@ class KeepCheckpoints(Callback):
     """
 
     def __init__(self, every: int) -> None:
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise ValueError(f"every must be a positive number of updates, got {every!r}.")
-        self.every = every
+        self.every = _updates(every)
 
     def checkpoint_due(self, run: Run) -> bool:
         return run.state.updates % self.every == 0
@@ -281,7 +278,7 @@ class StopWhenSolved(Callback):
     """
 
     def __init__(self, threshold: float) -> None:
-        self.threshold = threshold
+        self.threshold = check_real("threshold", threshold)
         self._solved = False
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
@@ -290,6 +287,10 @@ class StopWhenSolved(Callback):
     def stop_training(self, run: Run) -> bool:
         solved, self._solved = self._solved, False
         return solved
+
+
+def _updates(every: int) -> int:
+    return check_int("every", every, low=1, hint="It is a positive number of updates.")
 
 
 def from_config(cfg: TrainConfig) -> list[Callback]:

@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
+from torchrl.modules import IndependentNormal
 
 from rl_pg.loss import ReinforceLoss
 from rl_pg.normalization import popart_output, update_running_norms
@@ -209,8 +210,6 @@ def means_beyond_bounds(actor, batch: TensorDictBase) -> float | None:
         >>> means_beyond_bounds(actor, batch)
         0.5
     """
-    from torchrl.modules import IndependentNormal
-
     head = getattr(actor, "module", [None])[-1]
     if getattr(head, "distribution_class", None) is not IndependentNormal:
         return None

@@ -34,7 +34,6 @@ so a run stored before a stream moved resumes on the episodes it was selected on
 
 from __future__ import annotations
 
-import functools
 import random
 
 import numpy as np
@@ -111,7 +110,6 @@ def stream_span(name: str, seed: int) -> list[tuple[int, int]]:
     return [(stream_seed(name, seed), MEMBERS)]
 
 
-@functools.lru_cache(maxsize=4096)
 def stream_seed(name: str, seed: int) -> int:
     """The first seed of stream ``name`` (one of ``STREAMS`` but ``training``, which
     also depends on the updates: [`training_seed`][rl_pg.training.seeds.training_seed])
@@ -139,10 +137,11 @@ def stream_seed(name: str, seed: int) -> int:
     legacy = _LEGACY[name]
     if legacy is not None and _free(legacy(seed), settled):
         return legacy(seed)
-    slot = 4 * seed + list(_LEGACY).index(name)
+    laid_out = len(_LEGACY)  # slots per run
+    slot = laid_out * seed + list(_LEGACY).index(name)
     # Slots of runs below 2**15 never meet; far above, step on until the run's own are free.
     while not _free(value := _LAID_OUT + (slot * MEMBERS) % 2**31, settled):
-        slot += 4
+        slot += laid_out
     return value
 
 
@@ -187,6 +186,6 @@ def run_streams(seed: int, *, stored_before_layout: bool = False) -> dict[str, i
         >>> run_streams(1, stored_before_layout=True)
         {'evaluation': 1000004, 'confirmation': 3000010}
     """
-    if stored_before_layout:
+    if stored_before_layout:  # the old confirmation seed was the replays' (s + 3·P)
         return {"evaluation": _LEGACY["evaluation"](seed), "confirmation": _LEGACY["replay"](seed)}
     return {"evaluation": evaluation_seed(seed), "confirmation": confirmation_seed(seed)}
