@@ -18,6 +18,7 @@ from torchrl.data import Unbounded
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 
 from rl_pg.checkpoint import load_checkpoint
+from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
 
 N_OBS = 3
 N_ACT = 4
@@ -119,8 +120,13 @@ def run_weights(run_dir: Path) -> dict:
     """The loss's parameters and buffers in a run directory's checkpoint, and those of
     its policy average (``policy_ema``) if it keeps one."""
     saved = load_checkpoint(run_dir / "checkpoint.pt")
-    average = saved.get("policy_average", {})
+    average = averaged_weights(saved) or {}
     return {**saved["loss"], **{f"policy_average.{k}": v for k, v in average.items()}}
+
+
+def averaged_weights(saved: dict) -> dict | None:
+    """The ``AveragedModel`` state a checkpoint keeps (``policy_ema``), None without."""
+    return callback_states(saved).get(POLICY_AVERAGE, {}).get("weights")
 
 
 def assert_same_run(summary: dict, run_dir: Path, straight_dir: Path) -> None:

@@ -7,19 +7,24 @@ from dataclasses import replace
 
 import pytest
 import torch
-from conftest import run_weights
+from conftest import assert_same_run, averaged_weights, run_weights
 from test_loop import _cfg as trainer_cfg
 from test_loop import _train
 
+from rl_pg.checkpoint import load_checkpoint, save_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.training import Callback, TrainConfig, read_run, scalar_log_rows
 from rl_pg.training.callbacks import (
     Callbacks,
+    Confirmation,
     GradientNoise,
     KeepCheckpoints,
+    PolicyAverage,
     StopWhenSolved,
     from_config,
 )
+from rl_pg.training.checkpoints import POLICY_AVERAGE
+from rl_pg.training.curves import read_curve
 
 
 def _cfg(tmp_path, name="run", **overrides) -> TrainConfig:
@@ -121,6 +126,63 @@ class TestBuiltIn:
         kinds = [type(c) for c in from_config(cfg)]
         assert kinds == [StopWhenSolved, KeepCheckpoints]
         assert from_config(replace(cfg, stop_when_solved=False, keep_every=None)) == []
+        average, confirmation = from_config(
+            _cfg(tmp_path, policy_ema=0.9, confirm_episodes=5, threshold=0.5,
+                 stop_when_solved=False)
+        )  # fmt: skip
+        assert isinstance(average, PolicyAverage) and average.decay == 0.9
+        assert isinstance(confirmation, Confirmation)
+        assert (confirmation.episodes, confirmation.threshold) == (5, 0.5)
+
+    def test_policy_average_and_confirmation_as_their_flags_do(self, tmp_path):
+        base = {"total_updates": 12, "eval_interval": 100}
+        flag = _train(_cfg(tmp_path, "flag", policy_ema=0.8, confirm_episodes=4, **base))
+        own = _train(_cfg(tmp_path, "own", **base), callbacks=[PolicyAverage(0.8), Confirmation(4)])
+        plain = _train(_cfg(tmp_path, "plain", **base))
+        assert read_curve(tmp_path / "own", "confirm/score")[1].size >= 1
+        for key in ("best_confirmed", "best_at_frames", "best_eval_mean_return"):
+            assert flag[key] == own[key], key
+        assert plain["best_confirmed"] is None is not own["best_confirmed"]
+        for checkpoint in ("checkpoint.pt", "best.pt"):
+            flag_saved, own_saved = (
+                load_checkpoint(tmp_path / r / checkpoint) for r in ("flag", "own")
+            )
+            for key, value in averaged_weights(flag_saved).items():
+                assert torch.equal(value, averaged_weights(own_saved)[key]), key
+        with pytest.raises(ValueError, match="decay"):
+            PolicyAverage(1.0)
+        with pytest.raises(ValueError, match="number of episodes"):
+            Confirmation(0)
+
+    def test_a_callback_of_your_own_decides_what_best_pt_keeps(self, tmp_path):
+        class KeepLatest(Callback):
+            def keeps_best(self, run, result):
+                return True
+
+        summary = _train(
+            _cfg(tmp_path, total_updates=12, eval_interval=100), callbacks=[KeepLatest()]
+        )
+        frames, _ = read_curve(tmp_path / "run", "eval/mean_return")
+        best = read_run(tmp_path / "run", which="best")
+        assert best["state"]["frames"] == frames[-1] == summary["frames"]
+        for key, value in best["loss"].items():
+            assert torch.equal(value, read_run(tmp_path / "run")["loss"][key]), key
+
+    def test_a_checkpoint_keeping_its_average_at_the_top_level_resumes_and_plays(self, tmp_path):
+        # Runs checkpointed before the average was a callback kept it at the top level.
+        straight = _train(_cfg(tmp_path, "straight", total_updates=6, policy_ema=0.8))
+        _train(_cfg(tmp_path, "old", total_updates=3, policy_ema=0.8))
+        path = tmp_path / "old" / "checkpoint.pt"
+        saved = load_checkpoint(path)
+        saved[POLICY_AVERAGE] = saved["callbacks"].pop(POLICY_AVERAGE)["weights"]
+        save_checkpoint(saved, path)
+        played = read_run(tmp_path / "old")
+        assert averaged_weights(played) is not None  # read where the old layout kept it
+        resumed = _train(_cfg(tmp_path, "old", total_updates=6, policy_ema=0.8, resume=True))
+        assert_same_run(resumed, tmp_path / "old", tmp_path / "straight")
+        for key, value in run_weights(tmp_path / "straight").items():
+            assert torch.equal(value, run_weights(tmp_path / "old")[key]), key
+        assert straight["updates"] == 6
 
     def test_keep_checkpoints_as_the_flag_does(self, tmp_path):
         _train(_cfg(tmp_path, "flag", total_updates=5, keep_every=2))

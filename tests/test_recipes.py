@@ -7,7 +7,7 @@ import json
 
 import pytest
 import torch
-from conftest import assert_same_run
+from conftest import assert_same_run, averaged_weights
 from PIL import Image
 
 from rl_pg.recipes import evaluate, load, play
@@ -198,7 +198,7 @@ def test_evaluate_plays_a_policy_average_or_on_request_the_trained_weights(
     assert trained["weights"] == "trained" and "trained weights" in capsys.readouterr().out
     last = read_run(tmp_path, which="last")
     for weights, source, prefix in (
-        (played[0], last["policy_average"], "module."),
+        (played[0], averaged_weights(last), "module."),
         (played[1], last["loss"], "actor_network."),
     ):
         for key, value in weights.items():

@@ -9,7 +9,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
-from conftest import assert_same_run, run_weights
+from conftest import assert_same_run, averaged_weights, run_weights
 from test_loop import _cfg, _train, make_grid, make_grid_models
 from torch import nn
 
@@ -47,18 +47,18 @@ class TestBestCheckpoint:
         kept = [read_run(tmp_path / "run" / "checkpoints" / f"update_{n}.pt") for n in range(1, 7)]
         # After every update: average <- decay * average + (1 - decay) * trained weights.
         for before, after in itertools.pairwise(kept):
-            for key, value in after["policy_average"].items():
+            for key, value in averaged_weights(after).items():
                 if not key.startswith("module.") or not value.is_floating_point():
                     continue
                 trained = after["loss"]["actor_network." + key.removeprefix("module.")]
-                expected = decay * before["policy_average"][key] + (1 - decay) * trained
+                expected = decay * averaged_weights(before)[key] + (1 - decay) * trained
                 torch.testing.assert_close(value, expected)
         last = kept[-1]
-        assert int(last["policy_average"]["n_averaged"]) == 7  # the initial copy + 6 updates
+        assert int(averaged_weights(last)["n_averaged"]) == 7  # the initial copy + 6 updates
         actor = mlp_actor(make_grid(), hidden=(32,), activation=nn.ReLU)
         load_models(last, actor)
         for key, value in actor.state_dict().items():
-            assert torch.equal(value, last["policy_average"]["module." + key]), key
+            assert torch.equal(value, averaged_weights(last)["module." + key]), key
         assert not all(
             torch.equal(value, last["loss"]["actor_network." + key])
             for key, value in actor.state_dict().items()
@@ -66,7 +66,7 @@ class TestBestCheckpoint:
         load_models(last, actor, average=False)  # ... which are one argument away
         for key, value in actor.state_dict().items():
             assert torch.equal(value, last["loss"]["actor_network." + key]), key
-        plain = {k: v for k, v in last.items() if k != "policy_average"}
+        plain = {k: v for k, v in last.items() if k != "callbacks"}
         with pytest.raises(CheckpointError, match=r"keeps no average.*leave average=False"):
             load_models(plain, actor, average=False)
         # Evaluations played the average: best.pt's plays back its evaluation's return.

@@ -14,7 +14,8 @@ One file per concern, imports pointing down (config first, loop and cli last):
   summary;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours;
-  early stop, kept checkpoints and the gradient-noise measurement);
+  the policy average, confirmation, early stop, kept checkpoints and the
+  gradient-noise measurement);
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;

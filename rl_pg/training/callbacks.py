@@ -15,11 +15,14 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from rl_pg._checks import check_int, check_real
 from rl_pg.gradient_statistics import GradientStatistics
+from rl_pg.training.checkpoints import POLICY_AVERAGE
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.optimisation import scale_rewards
+from rl_pg.training.selection import confirm
 
 if TYPE_CHECKING:
     from rl_pg.training.loop import Run
@@ -27,8 +30,10 @@ if TYPE_CHECKING:
 __all__ = [
     "Callback",
     "Callbacks",
+    "Confirmation",
     "GradientNoise",
     "KeepCheckpoints",
+    "PolicyAverage",
     "StopWhenSolved",
     "from_config",
 ]
@@ -39,14 +44,19 @@ class Callback:
 
     Every hook gets the [`Run`][rl_pg.training.loop.Run]: ``run.cfg``, ``run.state``
     (``frames``, ``updates``, ``last_eval``, …), ``run.loss``, ``run.actor``,
-    ``run.optimizer``, ``run.path`` (the run directory), ``run.log(name, value)``,
+    ``run.optimizer``, ``run.deployed`` (the policy that evaluations play and
+    ``best.pt`` deploys: ``run.actor`` unless a callback such as
+    [`PolicyAverage`][rl_pg.training.callbacks.PolicyAverage] sets another),
+    ``run.eval_env``, ``run.path`` (the run directory), ``run.log(name, value)``,
     which sends a scalar to every logger of the run at the current frame count, and
     ``run.save(to=...)``, which writes the run's checkpoint.
 
     Order within one update: ``on_batch`` (the parameters that collected the batch,
-    before the optimiser step), ``on_update`` (after it, frames and updates counted),
-    ``on_evaluation`` when an evaluation ran, ``stop_training``, ``checkpoint_due``,
-    and ``on_checkpoint`` when a checkpoint was written.
+    before the optimiser step), ``on_update`` (after it, frames and updates counted);
+    when an evaluation is due, ``keeps_best`` (after the evaluation played) and
+    ``on_evaluation`` (after ``best.pt`` was written, if it was); then
+    ``stop_training``, ``checkpoint_due``, and ``on_checkpoint`` when a checkpoint was
+    written.
 
     Examples:
         >>> import tempfile
@@ -82,6 +92,13 @@ class Callback:
     def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
         """The optimiser stepped on ``batch``; ``metrics`` are the update's (``loss/*``,
         ``train/*``), whether or not this update logs them."""
+
+    def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
+        """Whether the policy just evaluated (``result``: its ``eval/*`` entries)
+        becomes ``best.pt``: True or False decides, None (the default) leaves it to the
+        next callback, and to the run's own rule when none decides (the highest
+        evaluation mean return so far)."""
+        return None
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
         """An evaluation ended with ``result`` (``eval/*`` entries)."""
@@ -145,6 +162,11 @@ class Callbacks:
     def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
         for callback in self.callbacks:
             callback.on_update(run, batch, metrics)
+
+    def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
+        # Every callback is asked; the first answer that is not None decides.
+        verdicts = [callback.keeps_best(run, result) for callback in self.callbacks]
+        return next((verdict for verdict in verdicts if verdict is not None), None)
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
         for callback in self.callbacks:
@@ -289,14 +311,90 @@ class StopWhenSolved(Callback):
         return solved
 
 
+class PolicyAverage(Callback):
+    """Evaluates, keeps as ``best.pt`` and deploys an exponential moving average of the
+    actor's weights (torch's ``AveragedModel``) instead of the weights themselves
+    (``--policy-ema``); the environments are still played with the trained weights.
+
+    After every update the average moves towards the trained weights by
+    ``1 - decay``; it starts as a copy of the initial weights. Its buffers (a
+    [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied, not
+    averaged, so the averaged weights read observations standardised as the trained
+    ones do. Checkpoints keep it under ``policy_average``, where
+    [`load_models`][rl_pg.training.checkpoints.load_models] finds it.
+
+    Args:
+        decay (float): in [0, 1): the weight of the average's past at each update.
+    """
+
+    key = POLICY_AVERAGE
+
+    def __init__(self, decay: float) -> None:
+        self.decay = check_real("decay", decay, low=0, high=1, high_open=True)
+        self.average: AveragedModel | None = None
+        self._saved: dict[str, Any] | None = None
+
+    def on_start(self, run: Run) -> None:
+        self.average = AveragedModel(run.actor, multi_avg_fn=get_ema_multi_avg_fn(self.decay))
+        self.average.update_parameters(run.actor)
+        if self._saved is not None:
+            self.average.load_state_dict(self._saved["weights"])
+        run.deployed = self.average.module
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        self.average.update_parameters(run.actor)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"weights": self.average.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._saved = state  # loaded once on_start has built the average
+
+
+class Confirmation(Callback):
+    """Replays each evaluation that could become ``best.pt`` on ``episodes`` more
+    episodes, greedily and by sampling, and keeps the policy whose lower mean of the
+    two is highest (``--confirm-episodes``).
+
+    Replayed are the evaluations at or above ``threshold`` (when given) whose mean is
+    above the best confirmed score; they play the run's confirmation seed, with random
+    numbers of their own, so confirming changes which checkpoint is kept, not the run.
+    Once one evaluation was confirmed, only confirmations decide. Each replay logs
+    ``confirm/greedy_mean_return``, ``confirm/sampled_mean_return``, ``confirm/score``
+    and its cost ``time/confirm_s``.
+
+    Args:
+        episodes (int): episodes of each replay, in each mode.
+        threshold (float, optional): only evaluations at or above it are replayed.
+    """
+
+    def __init__(self, episodes: int, threshold: float | None = None) -> None:
+        self.episodes = check_int("episodes", episodes, low=1, hint="It is a number of episodes.")
+        self.threshold = None if threshold is None else check_real("threshold", threshold)
+
+    def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
+        state = run.state
+        if not state.worth_confirming(self.threshold):
+            return None  # the run's own rule, which keeps nothing once a replay decided
+        score = confirm(
+            run.cfg, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
+        )
+        return state.is_best_confirmed(score)
+
+
 def _updates(every: int) -> int:
     return check_int("every", every, low=1, hint="It is a positive number of updates.")
 
 
 def from_config(cfg: TrainConfig) -> list[Callback]:
-    """The callbacks the config's optional behaviours ask for (``stop_when_solved``
-    with a ``threshold``, ``keep_every``, ``grad_stats``)."""
+    """The callbacks the config's optional behaviours ask for (``policy_ema``,
+    ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
+    ``grad_stats``)."""
     callbacks: list[Callback] = []
+    if cfg.policy_ema > 0:
+        callbacks.append(PolicyAverage(cfg.policy_ema))
+    if cfg.confirm_episodes is not None:
+        callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold))
     if cfg.stop_when_solved and cfg.threshold is not None:
         callbacks.append(StopWhenSolved(cfg.threshold))
     if cfg.keep_every is not None:

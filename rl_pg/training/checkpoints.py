@@ -20,7 +20,9 @@ from rl_pg.training.seeds import run_streams
 __all__ = [
     "BEST",
     "CHECKPOINT",
+    "POLICY_AVERAGE",
     "RunState",
+    "callback_states",
     "load_models",
     "read_run",
     "restore",
@@ -32,6 +34,9 @@ CHECKPOINT = "checkpoint.pt"
 """The last checkpoint: what a run resumes from."""
 BEST = "best.pt"
 """The checkpoint of the best evaluation so far: what is deployed by default."""
+POLICY_AVERAGE = "policy_average"
+"""Where a checkpoint keeps the average of the policy's weights (``policy_ema``): the
+[`PolicyAverage`][rl_pg.training.callbacks.PolicyAverage] callback's key."""
 
 
 @dataclass
@@ -106,15 +111,14 @@ def save(
     )
 
 
-def restore(saved: dict, loss, optimizer, path: Path, *, average=None) -> RunState:
-    """Loads a checkpoint into the run's loss, optimiser and policy ``average`` (if the
-    run keeps one) and returns the run's progress (``restore_rng`` then restores the
-    random number generators)."""
+def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
+    """Loads a checkpoint into the run's loss and optimiser and returns the run's
+    progress (``restore_rng`` then restores the random number generators; the
+    callbacks take their states from
+    [`callback_states`][rl_pg.training.checkpoints.callback_states])."""
     try:
         loss.load_state_dict(saved["loss"])
         optimizer.load_state_dict(saved["optimizer"])
-        if average is not None:
-            average.load_state_dict(saved["policy_average"])
     except (RuntimeError, ValueError, KeyError) as err:
         raise CheckpointError(
             f"{path} does not fit the models this configuration builds ({err}). It was "
@@ -175,11 +179,31 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
     return load_checkpoint(path / files[which])
 
 
+def callback_states(saved: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The states of a checkpoint's callbacks, by key. Checkpoints written before the
+    policy average became a callback keep it at their top level; it is read from there."""
+    states = dict(saved.get("callbacks", {}))
+    if POLICY_AVERAGE in saved:
+        states.setdefault(POLICY_AVERAGE, {"weights": saved[POLICY_AVERAGE]})
+    return states
+
+
+def _averaged_weights(saved: dict[str, Any]) -> dict[str, torch.Tensor] | None:
+    """The ``AveragedModel`` state of a run trained with ``policy_ema`` (None without)."""
+    state = callback_states(saved).get(POLICY_AVERAGE)
+    return None if state is None else state["weights"]
+
+
+def has_average(saved: dict[str, Any]) -> bool:
+    """Whether the checkpoint keeps an average of the policy's weights (``policy_ema``)."""
+    return _averaged_weights(saved) is not None
+
+
 def check_average(saved: dict[str, Any], average: bool) -> None:
     """Raises CheckpointError if ``average=False`` asks for the trained weights of a
     checkpoint that keeps no average (see
     [`load_models`][rl_pg.training.checkpoints.load_models])."""
-    if not average and "policy_average" not in saved:
+    if not average and not has_average(saved):
         raise CheckpointError(
             "This checkpoint keeps no average of the policy's weights (its run trained "
             "without policy_ema): its trained weights are the ones loaded anyway; "
@@ -237,7 +261,7 @@ def load_models(
         return {k.removeprefix(prefix): v for k, v in source.items() if k.startswith(prefix)}
 
     check_average(saved, average)
-    averaged = saved.get("policy_average")  # an AveragedModel's: the actor's under "module."
+    averaged = _averaged_weights(saved)  # an AveragedModel's: the actor's under "module."
     parts = {
         "actor": (actor, part(averaged, "module.") if average and averaged is not None
                   else part(saved["loss"], "actor_network.")),

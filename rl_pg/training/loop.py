@@ -34,7 +34,7 @@ from torchrl.envs import EnvBase
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EvaluationEnv
 from rl_pg.training.callbacks import Callback, Callbacks, from_config
-from rl_pg.training.checkpoints import RunState, restore, restore_rng
+from rl_pg.training.checkpoints import RunState, callback_states, restore, restore_rng
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
@@ -50,7 +50,7 @@ from rl_pg.training.optimisation import (
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 from rl_pg.training.seeds import run_streams, seed_everything
-from rl_pg.training.selection import confirm, evaluate_run, policy_average
+from rl_pg.training.selection import evaluate_run
 from rl_pg.training.threads import torch_threads
 
 __all__ = ["Run", "train"]
@@ -187,8 +187,8 @@ class Run:
     """The pieces of one run and the steps the loop calls them through.
 
     Callbacks read it: ``cfg``, ``state`` (a ``RunState``: ``frames``, ``updates``,
-    ``last_eval``, …), ``loss``, ``actor``, ``optimizer``, ``path``, ``log`` and
-    ``save``.
+    ``last_eval``, …), ``loss``, ``actor``, ``deployed``, ``optimizer``, ``eval_env``,
+    ``logger``, ``path``, ``log`` and ``save``.
     """
 
     def __init__(
@@ -208,13 +208,11 @@ class Run:
         self.loss = make_loss(cfg, self.actor, critic).to(device)
         warm_up(self.loss, env, device)
         self.optimizer = make_optimizer(cfg, self.loss)
-        # The weights evaluated, kept and deployed: the trained ones, or their average.
-        self.average = policy_average(cfg, self.actor)
+        # What evaluations play and best.pt deploys (a callback may set another).
+        self.deployed = self.actor
         self.state = RunState(streams=run_streams(cfg.seed))
         if saved is not None:
-            self.state = restore(
-                saved, self.loss, self.optimizer, directory.checkpoint_path, average=self.average
-            )
+            self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
         self.eval_env = (make_eval_env or make_env)()
         self.collection = Collection(
             cfg, env, make_env, self.actor, updates=self.state.updates, device=device,
@@ -233,7 +231,7 @@ class Run:
             if "episodes" in saved:
                 self.episode_returns.load_state_dict(saved["episodes"])
             restore_rng(saved)
-            hooks.load_state_dict(saved.get("callbacks", {}))
+            hooks.load_state_dict(callback_states(saved))
         self.next_eval = self._next_evaluation()
         self.spent = 0
         hooks.on_start(self)
@@ -264,8 +262,6 @@ class Run:
             lr=learning_rate(cfg, state.frames),
             entropy_coeff=entropy_coeff(cfg, state.frames),
         )
-        if self.average is not None:
-            self.average.update_parameters(self.actor)
         self.episode_returns.add(batch)
         state.updates += 1
         self.spent = self.collection.frames_spent(batch)
@@ -294,11 +290,9 @@ class Run:
         cfg, state = self.cfg, self.state
         self._pause()
         self.next_eval = self._next_evaluation()
-        actor = self.actor if self.average is None else self.average.module
-        evaluate_run(cfg, actor, self.eval_env, self.eval_entries, state, self.logger)
-        if cfg.confirm_episodes is not None and state.worth_confirming(cfg.threshold):
-            best = state.is_best_confirmed(confirm(cfg, actor, self.eval_env, state, self.logger))
-        else:
+        evaluate_run(cfg, self.deployed, self.eval_env, self.eval_entries, state, self.logger)
+        best = self.hooks.keeps_best(self, state.last_eval)
+        if best is None:
             best = state.is_best()
         if best:
             self.save(to="best")
@@ -320,11 +314,10 @@ class Run:
     def save(self, *, to: str = "last") -> None:
         """Writes the run's checkpoint ``to`` ``"last"`` (``checkpoint.pt``), ``"best"``
         (``best.pt``) or ``"kept"`` (``checkpoints/update_<updates>.pt``)."""
-        average = {} if self.average is None else {"policy_average": self.average.state_dict()}
         self.directory.save(
             self.loss, self.optimizer, self.state, to=to,
             collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
-            callbacks=self.hooks.state_dict(), **average,
+            callbacks=self.hooks.state_dict(),
         )  # fmt: skip
 
     def close(self) -> None:

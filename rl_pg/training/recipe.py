@@ -32,7 +32,7 @@ from torchrl.envs import EnvBase
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EvaluationEnv, evaluate
 from rl_pg.training.callbacks import Callback
-from rl_pg.training.checkpoints import check_average, load_models
+from rl_pg.training.checkpoints import check_average, has_average, load_models
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.loop import train
 from rl_pg.training.seeds import fresh_seed
@@ -165,7 +165,7 @@ class Recipe:
         """
         cfg = self.config.from_stored(saved["config"])
         check_average(saved, not trained_weights)  # before any simulator starts
-        averaged = "policy_average" in saved
+        averaged = has_average(saved)
         seed = fresh_seed(cfg.seed) if seed is None else seed
         with torch_threads(cfg.threads):  # as the run's own evaluations played
             env = self.test_env(cfg, on)

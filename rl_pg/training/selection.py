@@ -1,6 +1,6 @@
-"""What a run does at each evaluation: play the evaluation episodes, confirm a
-candidate for ``best.pt`` on more of them, and keep the average of the policy's weights
-that is evaluated instead of the weights themselves."""
+"""What a run plays at each evaluation: the evaluation episodes, and the replays that
+confirm a candidate for ``best.pt`` on more of them (the
+[`Confirmation`][rl_pg.training.callbacks.Confirmation] callback's)."""
 
 from __future__ import annotations
 
@@ -8,31 +8,16 @@ import contextlib
 import time
 
 import torch
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from rl_pg.evaluation import evaluate
 from rl_pg.training.checkpoints import RunState
 from rl_pg.training.config import TrainConfig
 
-__all__ = ["confirm", "evaluate_run", "policy_average"]
+__all__ = ["confirm", "evaluate_run"]
 
 
-def policy_average(cfg: TrainConfig, actor) -> AveragedModel | None:
-    """An exponential moving average of ``actor``'s weights (``cfg.policy_ema`` > 0).
-
-    Its buffers (a [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied,
-    not averaged: the averaged weights read observations standardised as the trained
-    ones do. It starts as a copy of the initial weights.
-    """
-    if cfg.policy_ema == 0:
-        return None
-    average = AveragedModel(actor, multi_avg_fn=get_ema_multi_avg_fn(cfg.policy_ema))
-    average.update_parameters(actor)
-    return average
-
-
-def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
-    """Replays ``actor`` on ``cfg.confirm_episodes`` episodes greedily, then by sampling,
+def confirm(cfg, actor, eval_env, state: RunState, logger, *, episodes: int) -> float:
+    """Replays ``actor`` on ``episodes`` episodes greedily, then by sampling,
     both from the confirmation seed; logs both means and returns the lower one. Training's
     random stream is left as it was: confirming changes which checkpoint is kept, not
     the run."""
@@ -41,7 +26,7 @@ def confirm(cfg, actor, eval_env, state: RunState, logger) -> float:
     for mode, greedy in (("greedy", True), ("sampled", False)):
         with _random_stream(cfg, state.streams["confirmation"]):
             eval_env.set_seed(state.streams["confirmation"])
-            result = evaluate(actor, eval_env, episodes=cfg.confirm_episodes, deterministic=greedy)
+            result = evaluate(actor, eval_env, episodes=episodes, deterministic=greedy)
         means[f"confirm/{mode}_mean_return"] = result["mean_return"]
     score = min(means.values())
     logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
