@@ -1,5 +1,8 @@
-"""A faster stand-in for a categorical actor while collecting: the same actions from
-the same random stream, with less Python around each call."""
+"""Categorical actors with less Python around each call: the same actions from the same
+random stream, and the same distributions, faster. A collector calls its policy at every
+step ([`lean_policy`][rl_pg.lean.lean_policy]), a loss builds the distribution once per
+batch ([`LeanCategoricalActor`][rl_pg.lean.LeanCategoricalActor], what
+[`mlp_actor`][rl_pg.models.mlp_actor] builds for discrete actions)."""
 
 from __future__ import annotations
 
@@ -13,8 +16,9 @@ from tensordict.nn import (
     TensorDictSequential,
 )
 from torchrl.envs.utils import ExplorationType, exploration_type
+from torchrl.modules import ProbabilisticActor
 
-__all__ = ["LeanCategoricalPolicy", "lean_policy"]
+__all__ = ["LeanCategoricalActor", "LeanCategoricalPolicy", "lean_policy"]
 
 
 def lean_policy(actor: TensorDictModuleBase) -> TensorDictModuleBase:
@@ -120,6 +124,46 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
         action = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1, True).T
         tensordict.set(self._action_key, action.reshape(probs.shape[:-1]))
         return tensordict
+
+
+class LeanCategoricalActor(ProbabilisticActor):
+    """A ``ProbabilisticActor`` whose ``get_dist`` builds its categorical distribution
+    as [`LeanCategoricalPolicy`][rl_pg.lean.LeanCategoricalPolicy] does: the same
+    distribution (gradients included) and the same entries written, with less Python.
+
+    It takes ``ProbabilisticActor`` 's arguments and holds the same modules (so the same
+    parameter names in a ``state_dict``); an actor whose structure the shortcut does not
+    reproduce (see ``LeanCategoricalPolicy.supports``) builds its distribution as
+    ``ProbabilisticActor`` does. Anything holding the actor gets the shortcut, a
+    ``ReinforceLoss`` included, without knowing of it.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.lean import LeanCategoricalActor
+        >>> env = GridWorldEnv(batch_size=4)
+        >>> actor = LeanCategoricalActor(
+        ...     TensorDictModule(torch.nn.Linear(16, 4), ["observation"], ["logits"]),
+        ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+        ... )
+        >>> td = env.reset()
+        >>> torch.equal(actor.get_dist(td.clone()).logits,
+        ...             torch.distributions.Categorical(logits=actor(td)["logits"]).logits)
+        True
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # Kept out of the module tree: its modules are this actor's own.
+        self.__dict__["_lean"] = (
+            LeanCategoricalPolicy(self) if LeanCategoricalPolicy.supports(self) else None
+        )
+
+    def get_dist(self, tensordict: TensorDictBase, tensordict_out=None, **kwargs):
+        if self._lean is None or tensordict_out is not None or kwargs:
+            return super().get_dist(tensordict, tensordict_out, **kwargs)
+        return self._lean.get_dist(tensordict)
 
 
 def _plain(modules) -> list[TensorDictModule] | None:

@@ -30,7 +30,6 @@ from torchrl.objectives.value import ValueEstimatorBase
 from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import _MonteCarloReturn
-from rl_pg.lean import LeanCategoricalPolicy
 
 __all__ = ["ReinforceLoss"]
 
@@ -250,10 +249,6 @@ class ReinforceLoss(TorchRLReinforceLoss):
             self.convert_to_functional(actor_network, "actor_network", create_target_params=False)
         else:
             self.actor_network = actor_network
-        # The same distribution with less overhead per call, where the actor allows it;
-        # kept out of the module tree (its parameters are the actor's own).
-        lean = not functional and LeanCategoricalPolicy.supports(actor_network)
-        self.__dict__["_lean_actor"] = LeanCategoricalPolicy(actor_network) if lean else None
         if critic_network is not None:
             policy_params = list(actor_network.parameters()) if separate_losses else None
             if functional:
@@ -595,8 +590,6 @@ class ReinforceLoss(TorchRLReinforceLoss):
             else contextlib.nullcontext()
         ):
             try:
-                if self._lean_actor is not None:
-                    return self._lean_actor.get_dist(tensordict)
                 return self.actor_network.get_dist(tensordict)
             except ValueError as err:
                 # torch.distributions validates its parameters (NaN logits or scales).

@@ -27,6 +27,7 @@ from torchrl.modules import (
 
 from rl_pg._checks import check_int
 from rl_pg.distributions import BetaConcentrations, BoundedBeta
+from rl_pg.lean import LeanCategoricalActor
 from rl_pg.normalization import RunningNorm
 
 __all__ = ["mlp_actor", "mlp_actor_critic", "mlp_critic"]
@@ -185,7 +186,7 @@ def mlp_actor(
         distribution = (
             torch.distributions.Categorical if isinstance(spec, Categorical) else OneHotCategorical
         )
-        return ProbabilisticActor(
+        return LeanCategoricalActor(  # a ProbabilisticActor, faster to build a distribution
             TensorDictModule(trunk(n_act), [observation_key], ["logits"]),
             in_keys=["logits"],
             spec=spec,

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import copy
+import math
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -16,7 +20,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
 from rl_pg import ReinforceLoss
 from rl_pg.distributions import BoundedBeta
 from rl_pg.envs import GridWorldEnv, gym_env
-from rl_pg.lean import LeanCategoricalPolicy, lean_policy
+from rl_pg.lean import LeanCategoricalActor, LeanCategoricalPolicy, lean_policy
 from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
 from rl_pg.normalization import RunningNorm, update_running_norms
 
@@ -302,3 +306,77 @@ class TestLeanPolicy:
         with_log_prob = mlp_actor(env)
         with_log_prob.module[-1].return_log_prob = True
         assert lean_policy(with_log_prob) is with_log_prob
+
+
+class TestLeanCategoricalActor:
+    """mlp_actor's categorical actor: ProbabilisticActor's distribution, built faster."""
+
+    @staticmethod
+    def _pair(env, **kwargs):
+        """A LeanCategoricalActor and a plain ProbabilisticActor with equal weights."""
+        lean = mlp_actor(env, hidden=(16,), **kwargs)
+        assert isinstance(lean, LeanCategoricalActor) and lean._lean is not None
+        plain = ProbabilisticActor(
+            copy.deepcopy(lean.module[0]),
+            in_keys=["logits"],
+            spec=env.action_spec,
+            distribution_class=torch.distributions.Categorical,
+        )
+        assert type(plain) is ProbabilisticActor
+        return lean, plain
+
+    def test_same_distribution_entries_gradients_and_state_dict(self):
+        env = GridWorldEnv(batch_size=32)
+        lean, plain = self._pair(env, normalize=True)
+        assert lean.state_dict().keys() == plain.state_dict().keys()
+        td = env.reset()
+        got, expected = td.clone(), td.clone()
+        dist, reference = lean.get_dist(got), plain.get_dist(expected)
+        assert type(dist) is type(reference)
+        torch.testing.assert_close(dist.logits, reference.logits, rtol=0, atol=0)
+        assert set(got.keys(True, True)) == set(expected.keys(True, True))
+        actions = torch.arange(32) % 4
+        dist.log_prob(actions).sum().backward()
+        reference.log_prob(actions).sum().backward()
+        for (name, p), q in zip(lean.named_parameters(), plain.parameters(), strict=True):
+            assert p.grad is not None and torch.equal(p.grad, q.grad), name
+
+    @pytest.mark.parametrize("functional", [True, False])
+    def test_a_loss_holding_it_computes_what_it_does_with_the_plain_actor(self, functional):
+        env = GridWorldEnv(batch_size=8)
+        lean, plain = self._pair(env)
+        batch = env.rollout(6, plain, break_when_any_done=False)
+        losses = []
+        for actor in (lean, plain):
+            loss = ReinforceLoss(actor, functional=functional)
+            out = loss(batch.clone())
+            out["loss_actor"].backward()
+            grads = [p.grad for p in loss.parameters() if p.requires_grad]
+            losses.append((out["loss_actor"].detach(), grads))
+        torch.testing.assert_close(losses[0][0], losses[1][0], rtol=0, atol=0)
+        for got, expected in zip(losses[0][1], losses[1][1], strict=True):
+            torch.testing.assert_close(got, expected, rtol=0, atol=0)
+
+    def test_a_copy_builds_its_distribution_from_its_own_weights(self):
+        env = GridWorldEnv(batch_size=4)
+        actor = mlp_actor(env, hidden=(8,))
+        copied = pickle.loads(pickle.dumps(copy.deepcopy(actor)))
+        with torch.no_grad():
+            for parameter in copied.parameters():
+                parameter.zero_()
+        td = env.reset()
+        assert torch.equal(copied.get_dist(td.clone()).logits, torch.full((4, 4), -math.log(4)))
+        assert not torch.equal(actor.get_dist(td.clone()).logits, copied.get_dist(td).logits)
+
+    def test_another_structure_builds_its_distribution_as_probabilistic_actor_does(self):
+        env = GridWorldEnv(batch_size=4)
+        actor = LeanCategoricalActor(
+            TensorDictModule(nn.Linear(16, 4), ["observation"], ["logits"]),
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+            return_log_prob=True,  # a structure the shortcut does not reproduce
+        )
+        assert actor._lean is None
+        td = env.reset()
+        expected = torch.distributions.Categorical(logits=actor.module[0](td.clone())["logits"])
+        torch.testing.assert_close(actor.get_dist(td).logits, expected.logits)
