@@ -14,17 +14,11 @@ from test_loop import _train
 from rl_pg.checkpoint import load_checkpoint, save_checkpoint
 from rl_pg.envs import GridWorldEnv
 from rl_pg.training import Callback, TrainConfig, read_run, scalar_log_rows
-from rl_pg.training.callbacks import (
-    Callbacks,
-    Confirmation,
-    GradientNoise,
-    KeepCheckpoints,
-    PolicyAverage,
-    StopWhenSolved,
-    from_config,
-)
+from rl_pg.training.callbacks import Callbacks, GradientNoise, KeepCheckpoints, StopWhenSolved
 from rl_pg.training.checkpoints import POLICY_AVERAGE
 from rl_pg.training.curves import read_curve
+from rl_pg.training.loop import from_config
+from rl_pg.training.selection import Confirmation, PolicyAverage
 
 
 def _cfg(tmp_path, name="run", **overrides) -> TrainConfig:

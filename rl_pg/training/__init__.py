@@ -14,8 +14,9 @@ One file per concern, imports pointing down (config first, loop and cli last):
   summary;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours;
-  the policy average, confirmation, early stop, kept checkpoints and the
-  gradient-noise measurement);
+  early stop, kept checkpoints and the gradient-noise measurement);
+* [`selection`][rl_pg.training.selection]: which policy is evaluated and kept as
+  ``best.pt`` (evaluations, the policy average, confirmation replays);
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;

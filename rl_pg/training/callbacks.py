@@ -2,8 +2,9 @@
 is called at fixed points of every run, and sees the run's pieces by name.
 
 ``train(cfg, ..., callbacks=[...])`` (or ``recipe.train(cfg, callbacks=[...])``) adds
-your own; the config's optional behaviours that are callbacks are built by
-[`from_config`][rl_pg.training.callbacks.from_config]. A callback that keeps state
+your own; the config's optional behaviours are callbacks too, built by
+[`from_config`][rl_pg.training.loop.from_config]: those here, and the policy average
+and confirmation of [`selection`][rl_pg.training.selection]. A callback that keeps state
 returns it from ``state_dict()``: it is saved in every checkpoint and handed back to
 ``load_state_dict()`` when the run resumes, so a resumed run continues as it would have.
 """
@@ -15,14 +16,10 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from rl_pg._checks import check_int, check_real
 from rl_pg.gradient_statistics import GradientStatistics
-from rl_pg.training.checkpoints import POLICY_AVERAGE
-from rl_pg.training.config import TrainConfig
 from rl_pg.training.optimisation import scale_rewards
-from rl_pg.training.selection import confirm
 
 if TYPE_CHECKING:
     from rl_pg.training.loop import Run
@@ -30,12 +27,9 @@ if TYPE_CHECKING:
 __all__ = [
     "Callback",
     "Callbacks",
-    "Confirmation",
     "GradientNoise",
     "KeepCheckpoints",
-    "PolicyAverage",
     "StopWhenSolved",
-    "from_config",
 ]
 
 
@@ -46,7 +40,7 @@ class Callback:
     (``frames``, ``updates``, ``last_eval``, …), ``run.loss``, ``run.actor``,
     ``run.optimizer``, ``run.deployed`` (the policy that evaluations play and
     ``best.pt`` deploys: ``run.actor`` unless a callback such as
-    [`PolicyAverage`][rl_pg.training.callbacks.PolicyAverage] sets another),
+    [`PolicyAverage`][rl_pg.training.selection.PolicyAverage] sets another),
     ``run.eval_env``, ``run.path`` (the run directory), ``run.log(name, value)``,
     which sends a scalar to every logger of the run at the current frame count, and
     ``run.save(to=...)``, which writes the run's checkpoint.
@@ -151,41 +145,39 @@ class Callbacks:
                 f"saved: give each instance its own `key`."
             )
 
+    def _each(self, hook: str, *args) -> list:
+        """Calls ``hook`` on every callback in order (none is skipped because of an
+        earlier one's answer); their answers."""
+        return [getattr(callback, hook)(*args) for callback in self.callbacks]
+
     def on_start(self, run: Run) -> None:
-        for callback in self.callbacks:
-            callback.on_start(run)
+        self._each("on_start", run)
 
     def on_batch(self, run: Run, batch: TensorDictBase) -> None:
-        for callback in self.callbacks:
-            callback.on_batch(run, batch)
+        self._each("on_batch", run, batch)
 
     def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
-        for callback in self.callbacks:
-            callback.on_update(run, batch, metrics)
+        self._each("on_update", run, batch, metrics)
 
     def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
-        # Every callback is asked; the first answer that is not None decides.
-        verdicts = [callback.keeps_best(run, result) for callback in self.callbacks]
+        """The first answer that is not None."""
+        verdicts = self._each("keeps_best", run, result)
         return next((verdict for verdict in verdicts if verdict is not None), None)
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
-        for callback in self.callbacks:
-            callback.on_evaluation(run, result)
+        self._each("on_evaluation", run, result)
 
     def stop_training(self, run: Run) -> bool:
-        # Every callback is asked (none is skipped because an earlier one said stop).
-        return any([callback.stop_training(run) for callback in self.callbacks])
+        return any(self._each("stop_training", run))
 
     def checkpoint_due(self, run: Run) -> bool:
-        return any([callback.checkpoint_due(run) for callback in self.callbacks])
+        return any(self._each("checkpoint_due", run))
 
     def on_checkpoint(self, run: Run) -> None:
-        for callback in self.callbacks:
-            callback.on_checkpoint(run)
+        self._each("on_checkpoint", run)
 
     def on_end(self, run: Run) -> None:
-        for callback in self.callbacks:
-            callback.on_end(run)
+        self._each("on_end", run)
 
     def state_dict(self) -> dict[str, dict[str, Any]]:
         return {_key(c): c.state_dict() for c in self.callbacks}
@@ -311,94 +303,5 @@ class StopWhenSolved(Callback):
         return solved
 
 
-class PolicyAverage(Callback):
-    """Evaluates, keeps as ``best.pt`` and deploys an exponential moving average of the
-    actor's weights (torch's ``AveragedModel``) instead of the weights themselves
-    (``--policy-ema``); the environments are still played with the trained weights.
-
-    After every update the average moves towards the trained weights by
-    ``1 - decay``; it starts as a copy of the initial weights. Its buffers (a
-    [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied, not
-    averaged, so the averaged weights read observations standardised as the trained
-    ones do. Checkpoints keep it under ``policy_average``, where
-    [`load_models`][rl_pg.training.checkpoints.load_models] finds it.
-
-    Args:
-        decay (float): in [0, 1): the weight of the average's past at each update.
-    """
-
-    key = POLICY_AVERAGE
-
-    def __init__(self, decay: float) -> None:
-        self.decay = check_real("decay", decay, low=0, high=1, high_open=True)
-        self.average: AveragedModel | None = None
-        self._saved: dict[str, Any] | None = None
-
-    def on_start(self, run: Run) -> None:
-        self.average = AveragedModel(run.actor, multi_avg_fn=get_ema_multi_avg_fn(self.decay))
-        self.average.update_parameters(run.actor)
-        if self._saved is not None:
-            self.average.load_state_dict(self._saved["weights"])
-        run.deployed = self.average.module
-
-    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
-        self.average.update_parameters(run.actor)
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"weights": self.average.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._saved = state  # loaded once on_start has built the average
-
-
-class Confirmation(Callback):
-    """Replays each evaluation that could become ``best.pt`` on ``episodes`` more
-    episodes, greedily and by sampling, and keeps the policy whose lower mean of the
-    two is highest (``--confirm-episodes``).
-
-    Replayed are the evaluations at or above ``threshold`` (when given) whose mean is
-    above the best confirmed score; they play the run's confirmation seed, with random
-    numbers of their own, so confirming changes which checkpoint is kept, not the run.
-    Once one evaluation was confirmed, only confirmations decide. Each replay logs
-    ``confirm/greedy_mean_return``, ``confirm/sampled_mean_return``, ``confirm/score``
-    and its cost ``time/confirm_s``.
-
-    Args:
-        episodes (int): episodes of each replay, in each mode.
-        threshold (float, optional): only evaluations at or above it are replayed.
-    """
-
-    def __init__(self, episodes: int, threshold: float | None = None) -> None:
-        self.episodes = check_int("episodes", episodes, low=1, hint="It is a number of episodes.")
-        self.threshold = None if threshold is None else check_real("threshold", threshold)
-
-    def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
-        state = run.state
-        if not state.worth_confirming(self.threshold):
-            return None  # the run's own rule, which keeps nothing once a replay decided
-        score = confirm(
-            run.cfg, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
-        )
-        return state.is_best_confirmed(score)
-
-
 def _updates(every: int) -> int:
     return check_int("every", every, low=1, hint="It is a positive number of updates.")
-
-
-def from_config(cfg: TrainConfig) -> list[Callback]:
-    """The callbacks the config's optional behaviours ask for (``policy_ema``,
-    ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
-    ``grad_stats``)."""
-    callbacks: list[Callback] = []
-    if cfg.policy_ema > 0:
-        callbacks.append(PolicyAverage(cfg.policy_ema))
-    if cfg.confirm_episodes is not None:
-        callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold))
-    if cfg.stop_when_solved and cfg.threshold is not None:
-        callbacks.append(StopWhenSolved(cfg.threshold))
-    if cfg.keep_every is not None:
-        callbacks.append(KeepCheckpoints(cfg.keep_every))
-    if cfg.grad_stats is not None:
-        callbacks.append(GradientNoise(cfg.grad_stats))
-    return callbacks

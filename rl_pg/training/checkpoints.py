@@ -36,7 +36,7 @@ BEST = "best.pt"
 """The checkpoint of the best evaluation so far: what is deployed by default."""
 POLICY_AVERAGE = "policy_average"
 """Where a checkpoint keeps the average of the policy's weights (``policy_ema``): the
-[`PolicyAverage`][rl_pg.training.callbacks.PolicyAverage] callback's key."""
+[`PolicyAverage`][rl_pg.training.selection.PolicyAverage] callback's key."""
 
 
 @dataclass

@@ -33,7 +33,13 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EvaluationEnv
-from rl_pg.training.callbacks import Callback, Callbacks, from_config
+from rl_pg.training.callbacks import (
+    Callback,
+    Callbacks,
+    GradientNoise,
+    KeepCheckpoints,
+    StopWhenSolved,
+)
 from rl_pg.training.checkpoints import RunState, callback_states, restore, restore_rng
 from rl_pg.training.collection import Collection
 from rl_pg.training.config import TrainConfig
@@ -50,10 +56,10 @@ from rl_pg.training.optimisation import (
 )
 from rl_pg.training.run_dir import RunDirectory, new_run_dir
 from rl_pg.training.seeds import run_streams, seed_everything
-from rl_pg.training.selection import evaluate_run
+from rl_pg.training.selection import Confirmation, PolicyAverage, evaluate_run
 from rl_pg.training.threads import torch_threads
 
-__all__ = ["Run", "train"]
+__all__ = ["Run", "from_config", "train"]
 
 
 def train(
@@ -335,6 +341,24 @@ class Run:
 
     def _resume_clock(self) -> None:
         self._clock = time.perf_counter()
+
+
+def from_config(cfg: TrainConfig) -> list[Callback]:
+    """The callbacks the config's optional behaviours ask for (``policy_ema``,
+    ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
+    ``grad_stats``)."""
+    callbacks: list[Callback] = []
+    if cfg.policy_ema > 0:
+        callbacks.append(PolicyAverage(cfg.policy_ema))
+    if cfg.confirm_episodes is not None:
+        callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold))
+    if cfg.stop_when_solved and cfg.threshold is not None:
+        callbacks.append(StopWhenSolved(cfg.threshold))
+    if cfg.keep_every is not None:
+        callbacks.append(KeepCheckpoints(cfg.keep_every))
+    if cfg.grad_stats is not None:
+        callbacks.append(GradientNoise(cfg.grad_stats))
+    return callbacks
 
 
 def _models(make_models, env: EnvBase):

@@ -1,19 +1,29 @@
-"""What a run plays at each evaluation: the evaluation episodes, and the replays that
-confirm a candidate for ``best.pt`` on more of them (the
-[`Confirmation`][rl_pg.training.callbacks.Confirmation] callback's)."""
+"""Which policy a run evaluates and keeps as ``best.pt``: the evaluation episodes, the
+average of the policy's weights that can be evaluated instead of the weights
+([`PolicyAverage`][rl_pg.training.selection.PolicyAverage]), and the replays that
+confirm a candidate on more episodes
+([`Confirmation`][rl_pg.training.selection.Confirmation])."""
 
 from __future__ import annotations
 
 import contextlib
 import time
+from typing import TYPE_CHECKING, Any
 
 import torch
+from tensordict import TensorDictBase
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from rl_pg._checks import check_int, check_real
 from rl_pg.evaluation import evaluate
-from rl_pg.training.checkpoints import RunState
+from rl_pg.training.callbacks import Callback
+from rl_pg.training.checkpoints import POLICY_AVERAGE, RunState
 from rl_pg.training.config import TrainConfig
 
-__all__ = ["confirm", "evaluate_run"]
+if TYPE_CHECKING:
+    from rl_pg.training.loop import Run
+
+__all__ = ["Confirmation", "PolicyAverage", "confirm", "evaluate_run"]
 
 
 def confirm(cfg, actor, eval_env, state: RunState, logger, *, episodes: int) -> float:
@@ -53,6 +63,77 @@ def evaluate_run(cfg, actor, eval_env, eval_entries, state: RunState, logger) ->
     state.last_eval = result
     for name, value in result.items():
         logger.log_scalar(name, value, step=state.frames)
+
+
+class PolicyAverage(Callback):
+    """Evaluates, keeps as ``best.pt`` and deploys an exponential moving average of the
+    actor's weights (torch's ``AveragedModel``) instead of the weights themselves
+    (``--policy-ema``); the environments are still played with the trained weights.
+
+    After every update the average moves towards the trained weights by
+    ``1 - decay``; it starts as a copy of the initial weights. Its buffers (a
+    [`RunningNorm`][rl_pg.normalization.RunningNorm]'s statistics) are copied, not
+    averaged, so the averaged weights read observations standardised as the trained
+    ones do. Checkpoints keep it under ``policy_average``, where
+    [`load_models`][rl_pg.training.checkpoints.load_models] finds it.
+
+    Args:
+        decay (float): in [0, 1): the weight of the average's past at each update.
+    """
+
+    key = POLICY_AVERAGE
+
+    def __init__(self, decay: float) -> None:
+        self.decay = check_real("decay", decay, low=0, high=1, high_open=True)
+        self.average: AveragedModel | None = None
+        self._saved: dict[str, Any] | None = None
+
+    def on_start(self, run: Run) -> None:
+        self.average = AveragedModel(run.actor, multi_avg_fn=get_ema_multi_avg_fn(self.decay))
+        self.average.update_parameters(run.actor)
+        if self._saved is not None:
+            self.average.load_state_dict(self._saved["weights"])
+        run.deployed = self.average.module
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        self.average.update_parameters(run.actor)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"weights": self.average.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._saved = state  # loaded once on_start has built the average
+
+
+class Confirmation(Callback):
+    """Replays each evaluation that could become ``best.pt`` on ``episodes`` more
+    episodes, greedily and by sampling, and keeps the policy whose lower mean of the
+    two is highest (``--confirm-episodes``).
+
+    Replayed are the evaluations at or above ``threshold`` (when given) whose mean is
+    above the best confirmed score; they play the run's confirmation seed, with random
+    numbers of their own, so confirming changes which checkpoint is kept, not the run.
+    Once one evaluation was confirmed, only confirmations decide. Each replay logs
+    ``confirm/greedy_mean_return``, ``confirm/sampled_mean_return``, ``confirm/score``
+    and its cost ``time/confirm_s``.
+
+    Args:
+        episodes (int): episodes of each replay, in each mode.
+        threshold (float, optional): only evaluations at or above it are replayed.
+    """
+
+    def __init__(self, episodes: int, threshold: float | None = None) -> None:
+        self.episodes = check_int("episodes", episodes, low=1, hint="It is a number of episodes.")
+        self.threshold = None if threshold is None else check_real("threshold", threshold)
+
+    def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
+        state = run.state
+        if not state.worth_confirming(self.threshold):
+            return None  # the run's own rule, which keeps nothing once a replay decided
+        score = confirm(
+            run.cfg, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
+        )
+        return state.is_best_confirmed(score)
 
 
 @contextlib.contextmanager
