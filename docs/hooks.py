@@ -14,10 +14,19 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import re
+import warnings
 from pathlib import Path
 
-from rl_pg.recipes import load
-from rl_pg.recipes.cli import field_docs
+# TorchRL 0.14 warns, with a stack trace, about its own collectors' weight updaters on
+# import; it says nothing about these docs, so the build does not print it.
+warnings.filterwarnings(
+    "ignore",
+    message=r"Creating \w+ which inherits from WeightUpdaterBase",
+    category=DeprecationWarning,
+)
+
+from rl_pg.recipes import load  # noqa: E402
+from rl_pg.recipes.cli import field_docs  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')

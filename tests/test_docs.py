@@ -1,8 +1,10 @@
 """The documentation's code: every ```python block of docs/ runs, page by page.
 
 Blocks of one page share a namespace and run top to bottom, as a reader would paste
-them. A block followed directly by a ```text title="Output" block must print exactly
-that text. Pages with nothing to run are skipped.
+them. A block titled as a file (```python title="script.py"```) is a whole script: it
+runs on its own as ``python script.py``, as a reader would save and run it. A block
+followed directly by a ```text title="Output" block must print exactly that text.
+Pages with nothing to run are skipped.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import contextlib
 import gc
 import io
 import re
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -22,11 +25,41 @@ BLOCK = re.compile(
     r'^```python\n(?P<code>.*?)^```\n(?:\n?^```text title="Output"\n(?P<output>.*?)^```\n)?',
     re.DOTALL | re.MULTILINE,
 )
+SCRIPT = re.compile(
+    r'^```python title="(?P<name>[\w-]+\.py)"\n(?P<code>.*?)^```\n'
+    r'(?:\n?^```text title="Output"\n(?P<output>.*?)^```\n)?',
+    re.DOTALL | re.MULTILINE,
+)
 PAGES = sorted(p for p in DOCS.rglob("*.md") if BLOCK.search(p.read_text()))
+SCRIPTS = [
+    (page, match)
+    for page in sorted(DOCS.rglob("*.md"))
+    for match in SCRIPT.finditer(page.read_text())
+]
 
 
 def _lines(text: str) -> list[str]:
     return [line.rstrip() for line in text.strip("\n").splitlines()]
+
+
+@pytest.mark.parametrize(
+    ("page", "script"), SCRIPTS, ids=lambda x: x["name"] if isinstance(x, re.Match) else ""
+)
+def test_page_scripts_run_as_scripts(page, script, tmp_path):
+    path = tmp_path / script["name"]
+    path.write_text(script["code"])
+    try:
+        done = subprocess.run(
+            [sys.executable, path.name], cwd=tmp_path, capture_output=True, text=True,
+            timeout=300,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired as err:
+        raise AssertionError(f"{page.name}: {path.name} did not end in 5 minutes") from err
+    assert done.returncode == 0, f"{page.name}: {path.name} failed:\n{done.stderr[-3000:]}"
+    if script["output"] is not None:
+        assert _lines(done.stdout) == _lines(script["output"]), (
+            f"{page.name}: {path.name} printed something else than its Output block"
+        )
 
 
 def test_there_is_code_to_run():
