@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -307,3 +308,72 @@ def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
         [command, "play", "run", "--episodes", "1"], cwd=work, capture_output=True, text=True
     )
     assert played.returncode == 0 and "mean return" in played.stdout, played.stderr
+
+
+def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, capsys):
+    runs = [str(tmp_path / f"seed{seed}") for seed in (0, 1)]
+    for seed, run in enumerate(runs):
+        status, _, err = in_process(
+            "train", "gridworld", "--seed", str(seed), "--run-dir", run, *QUICK, capsys=capsys
+        )
+        assert status == 0, err
+        for mode in ((), ("--sample",)):
+            assert in_process("evaluate", run, "--episodes", "3", *mode, capsys=capsys)[0] == 0
+    # A result on other episodes (--seed) comes after, and does not replace the ones on
+    # rl-pg evaluate's own fresh episodes.
+    status, _, _ = in_process("evaluate", runs[0], "--episodes", "3", "--sample", "--seed",
+                                  "424242", capsys=capsys)  # fmt: skip
+    assert status == 0
+    stored = tmp_path / "results" / "seeds.json"
+    stored.parent.mkdir()
+    status, table, err = in_process("report", *runs, "--store", str(stored), capsys=capsys)
+    assert status == 0, err
+    table = table.split("stored: ")[0].strip()
+    records = [json.loads(line) for line in (tmp_path / "seed0" / "evaluations.jsonl").open()]
+    fresh = records[1]  # the sampled one on the fresh episodes, before the --seed one
+    assert records[-1]["seed"] == 424242 and fresh["seed"] != 424242
+    assert f"{fresh['mean_return']:.2f} ± {fresh['std_return']:.2f} (3)" in table
+    saved = json.loads(stored.read_text())["runs"]
+    assert [run["name"] for run in saved] == ["seed0", "seed1"]
+    assert saved[0]["config"]["seed"] == 0 and saved[0]["curve"]["metric"] == "eval/mean_return"
+    assert len(saved[0]["curve"]["frames"]) == len(saved[0]["curve"]["values"]) >= 1
+    # read back: the same table, without the run directories
+    for run in runs:
+        shutil.rmtree(run)
+    status, again, err = in_process("report", "--stored", str(stored), capsys=capsys)
+    assert status == 0 and again.strip() == table, err
+    # a page shows it between its markers; --refresh rewrites what drifted
+    page = tmp_path / "RESULTS.md"
+    opening = "<!-- rl-pg report --stored results/seeds.json -->"
+    page.write_text(f"Intro.\n\n{opening}\n| stale |\n<!-- end of report -->\n\nAfter.\n")
+    status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 0 and "refreshed" in out, err
+    assert page.read_text() == f"Intro.\n\n{opening}\n{table}\n<!-- end of report -->\n\nAfter.\n"
+    status, out, _ = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 0 and "current" in out
+    # what cannot be done says so
+    for args, message in [
+        (("report",), "one of the three"),
+        (("report", "--stored", str(stored), runs[0]), "one of the three"),
+        (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
+        (("report", "--stored", str(page)), "is not a stored report"),
+        (("report", "--stored", str(stored), "--plot", "x.png"), "leave them out"),
+    ]:
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status == 1 and message in err, (args, err)
+
+
+def test_every_stored_table_in_the_repository_is_current(tmp_path):
+    from rl_pg.recipes.report import STORED_TABLE, format_report, read_stored
+
+    pages = [REPO / "README.md", REPO / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
+    found = 0
+    for page in pages:
+        for match in STORED_TABLE.finditer(page.read_text()):
+            found += 1
+            expected = format_report(*read_stored(page.parent / match["file"]))
+            assert match["table"].strip() == expected, (
+                f"{page.name}: the table of {match['file']} is not what the file holds; "
+                f"run rl-pg report --refresh {page.relative_to(REPO)}"
+            )
+    assert found >= 2

@@ -2,34 +2,65 @@
 
 rl-pg report runs/lunarlander-seed*                    # a Markdown table
 rl-pg report runs/lunarlander-seed* --plot seeds.png   # and the evaluation curves
+rl-pg report runs/lunarlander-seed* --store seeds.json # and keep what the table shows
+rl-pg report --stored seeds.json                       # the same table, from that file
+rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
 first reached the recipe's threshold, its best evaluation) and the latest ``rl-pg
 evaluate`` results of that best checkpoint, greedy and sampled, when there are any.
+
+Results are data: ``--store`` writes the rows with each run's config and evaluation
+curve to a JSON file, and a Markdown page shows a stored table between the lines
+``<!-- rl-pg report --stored FILE -->`` and ``<!-- end of report -->`` (FILE relative to
+the page), which ``--refresh`` rewrites from the file, so the page cannot drift from it.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tyro
 
+from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import plot_runs
-from rl_pg.training.run_dir import SUMMARY
+from rl_pg.training.curves import plot_runs, read_curve
+from rl_pg.training.run_dir import CONFIG, SUMMARY
+from rl_pg.training.seeds import fresh_seed
 
-__all__ = ["Args", "format_report", "main", "read_report"]
+__all__ = [
+    "Args",
+    "format_report",
+    "main",
+    "read_report",
+    "read_stored",
+    "refresh",
+    "store_report",
+]
+
+STORED_TABLE = re.compile(
+    r"^<!-- rl-pg report --stored (?P<file>\S+) -->\n(?P<table>.*?)^<!-- end of report -->$",
+    re.MULTILINE | re.DOTALL,
+)
 
 
 @dataclass
 class Args:
     """Tabulate runs side by side and plot their evaluation curves."""
 
-    runs: tyro.conf.Positional[list[Path]]
+    runs: tyro.conf.Positional[list[Path]] = field(default_factory=list)
     """Run directories written by a recipe (a shell glob works)."""
+    store: Path | None = None
+    """Also write the table's rows, with every run's config and evaluation curve, to
+    this JSON file (read back with --stored)."""
+    stored: Path | None = None
+    """Print the table of a file written by --store instead of reading run directories."""
+    refresh: list[Path] | None = None
+    """Rewrite every stored table of these Markdown files from its file (see above)."""
     plot: Path | None = None
     """Also draw every run's ``metric`` by frame into this PNG file."""
     metric: str = "eval/mean_return"
@@ -42,7 +73,7 @@ class Args:
 def read_report(run_dir: Path) -> dict[str, Any]:
     """A run's summary, with its best checkpoint's latest greedy and sampled
     ``rl-pg evaluate`` results (``"greedy"``, ``"sampled"``; ``None`` when there are
-    none of that checkpoint)."""
+    none of that checkpoint), those on its default fresh episodes first."""
     path = Path(run_dir) / SUMMARY
     if not path.is_file():
         raise ValueError(
@@ -53,18 +84,76 @@ def read_report(run_dir: Path) -> dict[str, Any]:
     report["greedy"] = report["sampled"] = None
     evaluations = Path(run_dir) / EVALUATIONS
     if evaluations.is_file():
+        # best.pt moves on when a resumed run evaluates better: only results of the
+        # checkpoint that is best now, on the recipe's test set (not `--on` another one),
+        # describe it; of those, the latest on rl-pg evaluate's own episodes (a result on
+        # episodes chosen with --seed is only taken where there is none).
+        fresh = fresh_seed(report["seed"])
         for line in evaluations.read_text().splitlines():
             record = json.loads(line)
-            # best.pt moves on when a resumed run evaluates better: only results of the
-            # checkpoint that is best now, on the recipe's test set (not `--on` another
-            # one), describe it.
             if (
                 record["checkpoint"] == "best"
                 and record["frames"] == report["best_at_frames"]
                 and "on" not in record
             ):
-                report[record["mode"]] = record
+                kept = report[record["mode"]]
+                if kept is None or record["seed"] == fresh or kept["seed"] != fresh:
+                    report[record["mode"]] = record
     return report
+
+
+def store_report(runs: list[Path], path: Path, *, metric: str = "eval/mean_return") -> None:
+    """Writes the runs' rows (as ``read_report`` reads them), names, configs and
+    ``metric`` curves to the JSON file ``path`` (atomically)."""
+    names = _names(runs)
+    stored = []
+    for name, run in zip(names, runs, strict=True):
+        frames, values = read_curve(run, metric)
+        stored.append({
+            "name": name,
+            "report": read_report(run),
+            "config": json.loads((Path(run) / CONFIG).read_text()),
+            "curve": {"metric": metric, "frames": frames.tolist(), "values": values.tolist()},
+        })  # fmt: skip
+    write_atomically(Path(path), json.dumps({"runs": stored}, indent=1) + "\n")
+
+
+def read_stored(path: Path) -> tuple[list[dict[str, Any]], list[str]]:
+    """The rows and names ``store_report`` wrote to ``path``.
+
+    Raises:
+        ValueError: ``path`` is missing, or is not a file ``--store`` wrote (the
+            message names the file).
+    """
+    try:
+        runs = json.loads(Path(path).read_text())["runs"]
+        return [run["report"] for run in runs], [run["name"] for run in runs]
+    except FileNotFoundError as err:
+        raise ValueError(
+            f"{path} does not exist: write it with rl-pg report RUN... --store."
+        ) from err
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(
+            f"{path} is not a stored report ({type(err).__name__}: {err}); write it with "
+            f"rl-pg report RUN... --store {path}."
+        ) from err
+
+
+def refresh(page: Path) -> bool:
+    """Rewrites every stored table of the Markdown file ``page`` from its file; True if
+    the page changed."""
+    page = Path(page)
+    text = page.read_text()
+
+    def table(match: re.Match) -> str:
+        opening = match.group(0).splitlines()[0]
+        reports, names = read_stored(page.parent / match["file"])
+        return f"{opening}\n{format_report(reports, names)}\n<!-- end of report -->"
+
+    refreshed = STORED_TABLE.sub(table, text)
+    if refreshed != text:
+        write_atomically(page, refreshed)
+    return refreshed != text
 
 
 def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
@@ -107,6 +196,15 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
     if with_threshold:
         solved = sum(r.get("solved_at_frames") is not None for r in with_threshold)
         lines.append(f"{solved}/{len(with_threshold)} runs reached their threshold.")
+        if all(r["greedy"] is not None and r["sampled"] is not None for r in with_threshold):
+            held = sum(
+                min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]
+                for r in with_threshold
+            )
+            lines.append(
+                f"{held}/{len(with_threshold)} best checkpoints score at least their "
+                "threshold both greedily and by sampling."
+            )
     return "\n".join(lines)
 
 
@@ -118,12 +216,32 @@ def _result(record: dict[str, Any] | None) -> str:
 
 def main(args: Args) -> str:
     """Prints (and returns) the table; draws the figure when ``args.plot`` is set."""
-    if not args.runs:
-        raise ValueError("name at least one run directory")
+    sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
+    if sources != 1:
+        raise ValueError(
+            "name run directories, or one file with --stored, or pages with --refresh "
+            "(one of the three)."
+        )
+    if args.refresh is not None:
+        changed = [str(page) for page in args.refresh if refresh(page)]
+        message = f"refreshed: {', '.join(changed)}" if changed else "every stored table is current"
+        print(message)
+        return message
+    if args.stored is not None:
+        if args.plot is not None or args.store is not None:
+            raise ValueError(
+                "--plot and --store read run directories: leave them out with --stored."
+            )
+        table = format_report(*read_stored(args.stored))
+        print(table)
+        return table
     reports = [read_report(run) for run in args.runs]
     names = _names(args.runs)
     table = format_report(reports, names)
     print(table)
+    if args.store is not None:
+        store_report(args.runs, args.store, metric=args.metric)
+        print(f"stored: {args.store}")
     if args.plot is not None:
         thresholds = {r.get("threshold") for r in reports}
         shared = thresholds.pop() if len(thresholds) == 1 else None
