@@ -171,6 +171,7 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
         >>> for line in table.splitlines()[2:]:
         ...     print(line)
         | s0 | cartpole | 0 | 20,224 | 1 | 20,224 | 500.00 at 20,224 | 500.00 ± 0.00 (100) | — |
+        <BLANKLINE>
         1/1 runs reached their threshold.
     """
     head = (
@@ -194,6 +195,7 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
         )
     with_threshold = [r for r in reports if r.get("threshold") is not None]
     if with_threshold:
+        lines.append("")  # the counts are not rows of the table
         solved = sum(r.get("solved_at_frames") is not None for r in with_threshold)
         lines.append(f"{solved}/{len(with_threshold)} runs reached their threshold.")
         if all(r["greedy"] is not None and r["sampled"] is not None for r in with_threshold):
