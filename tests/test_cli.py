@@ -363,8 +363,17 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         assert status == 1 and message in err, (args, err)
 
 
-def test_every_stored_table_in_the_repository_is_current(tmp_path):
-    from rl_pg.recipes.report import STORED_TABLE, format_report, read_stored
+def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
+    from matplotlib.testing.compare import compare_images
+
+    from rl_pg.recipes.report import (
+        STORED_FIGURE,
+        STORED_TABLE,
+        figure_ylim,
+        format_report,
+        plot_stored,
+        read_stored,
+    )
 
     pages = [REPO / "README.md", REPO / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
     found = 0
@@ -376,4 +385,15 @@ def test_every_stored_table_in_the_repository_is_current(tmp_path):
                 f"{page.name}: the table of {match['file']} is not what the file holds; "
                 f"run rl-pg report --refresh {page.relative_to(REPO)}"
             )
-    assert found >= 2
+        for match in STORED_FIGURE.finditer(page.read_text()):
+            found += 1
+            drawn = plot_stored(
+                page.parent / match["file"], tmp_path / f"{found}.png", ylim=figure_ylim(match)
+            )
+            # a tolerance for another matplotlib's anti-aliasing, not for other data
+            difference = compare_images(str(page.parent / match["figure"]), str(drawn), tol=2)
+            assert difference is None, (
+                f"{page.name}: {match['figure']} is not drawn from {match['file']} "
+                f"({difference}); run rl-pg report --refresh {page.relative_to(REPO)}"
+            )
+    assert found >= 3

@@ -4,6 +4,7 @@ rl-pg report runs/lunarlander-seed*                    # a Markdown table
 rl-pg report runs/lunarlander-seed* --plot seeds.png   # and the evaluation curves
 rl-pg report runs/lunarlander-seed* --store seeds.json # and keep what the table shows
 rl-pg report --stored seeds.json                       # the same table, from that file
+rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregate curve
 rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
@@ -14,6 +15,8 @@ Results are data: ``--store`` writes the rows with each run's config and evaluat
 curve to a JSON file, and a Markdown page shows a stored table between the lines
 ``<!-- rl-pg report --stored FILE -->`` and ``<!-- end of report -->`` (FILE relative to
 the page), which ``--refresh`` rewrites from the file, so the page cannot drift from it.
+A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->``
+names a figure drawn from the file, which ``--refresh`` draws again.
 """
 
 from __future__ import annotations
@@ -24,11 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tyro
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import plot_runs, read_curve
+from rl_pg.training.curves import plot_runs, plot_seeds, read_curve
 from rl_pg.training.run_dir import CONFIG, SUMMARY
 from rl_pg.training.seeds import fresh_seed
 
@@ -36,12 +40,18 @@ __all__ = [
     "Args",
     "format_report",
     "main",
+    "plot_stored",
     "read_report",
     "read_stored",
     "refresh",
     "store_report",
 ]
 
+STORED_FIGURE = re.compile(
+    r"^<!-- rl-pg report --stored (?P<file>\S+) --plot (?P<figure>\S+)"
+    r"(?: --ylim (?P<low>\S+) (?P<high>\S+))? -->$",
+    re.MULTILINE,
+)
 STORED_TABLE = re.compile(
     r"^<!-- rl-pg report --stored (?P<file>\S+) -->\n(?P<table>.*?)^<!-- end of report -->$",
     re.MULTILINE | re.DOTALL,
@@ -62,7 +72,8 @@ class Args:
     refresh: list[Path] | None = None
     """Rewrite every stored table of these Markdown files from its file (see above)."""
     plot: Path | None = None
-    """Also draw every run's ``metric`` by frame into this PNG file."""
+    """Also draw every run's ``metric`` by frame into this PNG file (with --stored: each
+    stored curve, and their interquartile mean with a 95 % bootstrap band)."""
     metric: str = "eval/mean_return"
     """With plot: the logged scalar to draw (a CSV under RUN/logs/csv/scalars, without
     .csv), e.g. train/episode_return or eval/mean_route_completion."""
@@ -139,9 +150,31 @@ def read_stored(path: Path) -> tuple[list[dict[str, Any]], list[str]]:
         ) from err
 
 
+def plot_stored(path: Path, figure: Path, *, ylim: tuple[float, float] | None = None) -> Path:
+    """Draws the seeds of a stored report into ``figure``: each run's curve, and their
+    interquartile mean with a 95 % bootstrap band (see
+    [`plot_seeds`][rl_pg.training.curves.plot_seeds])."""
+    runs = json.loads(Path(path).read_text())["runs"]
+    metrics = {run["curve"]["metric"] for run in runs}
+    thresholds = {run["report"].get("threshold") for run in runs}
+    metric = metrics.pop() if len(metrics) == 1 else "the stored metric"
+    shared = thresholds.pop() if len(thresholds) == 1 else None
+    return plot_seeds(
+        {
+            run["name"]: (np.array(run["curve"]["frames"]), np.array(run["curve"]["values"]))
+            for run in runs
+        },
+        Path(figure),
+        ylabel=metric,
+        title=", ".join(sorted({run["report"]["recipe"] for run in runs})),
+        threshold=shared if metric == "eval/mean_return" else None,
+        ylim=ylim,
+    )
+
+
 def refresh(page: Path) -> bool:
-    """Rewrites every stored table of the Markdown file ``page`` from its file; True if
-    the page changed."""
+    """Rewrites every stored table of the Markdown file ``page`` from its file and draws
+    its stored figures again; True if the page or a figure changed."""
     page = Path(page)
     text = page.read_text()
 
@@ -151,9 +184,20 @@ def refresh(page: Path) -> bool:
         return f"{opening}\n{format_report(reports, names)}\n<!-- end of report -->"
 
     refreshed = STORED_TABLE.sub(table, text)
-    if refreshed != text:
+    changed = refreshed != text
+    if changed:
         write_atomically(page, refreshed)
-    return refreshed != text
+    for match in STORED_FIGURE.finditer(refreshed):
+        figure = page.parent / match["figure"]
+        before = figure.read_bytes() if figure.is_file() else None
+        plot_stored(page.parent / match["file"], figure, ylim=figure_ylim(match))
+        changed |= figure.read_bytes() != before
+    return changed
+
+
+def figure_ylim(match: re.Match) -> tuple[float, float] | None:
+    """The ``--ylim`` of a stored figure's line (None without one)."""
+    return None if match["low"] is None else (float(match["low"]), float(match["high"]))
 
 
 def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
@@ -230,12 +274,13 @@ def main(args: Args) -> str:
         print(message)
         return message
     if args.stored is not None:
-        if args.plot is not None or args.store is not None:
-            raise ValueError(
-                "--plot and --store read run directories: leave them out with --stored."
-            )
-        table = format_report(*read_stored(args.stored))
+        if args.store is not None:
+            raise ValueError("--store reads run directories: leave it out with --stored.")
+        reports, names = read_stored(args.stored)
+        table = format_report(reports, names)
         print(table)
+        if args.plot is not None:
+            print(f"curves: {plot_stored(args.stored, args.plot, ylim=args.ylim)}")
         return table
     reports = [read_report(run) for run in args.runs]
     names = _names(args.runs)

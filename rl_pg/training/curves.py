@@ -22,7 +22,16 @@ from rl_pg.training.metrics import scalar_log_rows
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-__all__ = ["plot_curves", "plot_run", "plot_runs", "png_figure", "read_curve"]
+__all__ = [
+    "interquartile_mean",
+    "plot_curves",
+    "plot_run",
+    "plot_runs",
+    "plot_seeds",
+    "png_figure",
+    "read_curve",
+    "seed_aggregate",
+]
 
 CURVE = "learning_curve.png"
 
@@ -113,6 +122,84 @@ def plot_curves(
             ax.axhline(y, color="grey", linestyle=":")
         ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
         ax.legend(loc="best")
+    return path
+
+
+def interquartile_mean(values: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The mean of the middle half of ``values`` along ``axis`` (25 % trimmed at each
+    end): robust to one seed that fails or one that is lucky, and less noisy than the
+    median (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice").
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.training.curves import interquartile_mean
+        >>> float(interquartile_mean(np.array([-500.0, 1.0, 2.0, 3.0, 4.0, 900.0, 5.0, 6.0])))
+        3.5
+    """
+    from scipy.stats import trim_mean
+
+    return trim_mean(values, 0.25, axis=axis)
+
+
+def seed_aggregate(
+    values: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Interquartile mean over seeds (``values``: ``[seeds, points]``) at each point,
+    with a percentile-bootstrap confidence interval over the seeds (scipy's
+    ``bootstrap``, a fixed random state: the same data give the same band).
+
+    Returns:
+        ``(iqm, low, high)``, each of shape ``[points]``.
+
+    Raises:
+        ValueError: fewer than 2 seeds (a single run has no spread to bound).
+    """
+    from scipy.stats import bootstrap
+
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2 or values.shape[0] < 2:
+        raise ValueError(
+            f"seed_aggregate needs values of shape [seeds, points] with at least 2 seeds, "
+            f"got shape {values.shape}."
+        )
+    interval = bootstrap(
+        (values,), interquartile_mean, axis=0, vectorized=True, confidence_level=confidence,
+        n_resamples=resamples, method="percentile", random_state=0,
+    ).confidence_interval  # fmt: skip
+    return interquartile_mean(values), interval.low, interval.high
+
+
+def plot_seeds(
+    curves: dict[str, tuple[np.ndarray, np.ndarray]],
+    path: Path,
+    *,
+    ylabel: str,
+    title: str,
+    threshold: float | None = None,
+    ylim: tuple[float, float] | None = None,
+) -> Path:
+    """Several seeds of one setting (``{name: (frames, values)}``, evaluated at the same
+    frames): each seed as a thin line, and their interquartile mean with its 95 %
+    bootstrap confidence band (see [`seed_aggregate`][rl_pg.training.curves.seed_aggregate])."""
+    grids = [frames for frames, _ in curves.values()]
+    if any(not np.array_equal(grid, grids[0]) for grid in grids):
+        raise ValueError(
+            "plot_seeds needs every seed evaluated at the same frames; these runs were "
+            "evaluated at different ones (another eval_interval, or a run not finished)."
+        )
+    values = np.stack([vals for _, vals in curves.values()])
+    iqm, low, high = seed_aggregate(values)
+    with png_figure(path) as ax:
+        for frames, vals in curves.values():
+            ax.plot(frames, vals, color="grey", linewidth=0.6, alpha=0.6)
+        ax.plot(grids[0], iqm, color="C0", linewidth=2,
+                label=f"interquartile mean of {len(curves)} seeds")  # fmt: skip
+        ax.fill_between(grids[0], low, high, color="C0", alpha=0.25, label="95 % bootstrap CI")
+        _threshold_line(ax, threshold)
+        ax.set(xlabel="frames", ylabel=ylabel, title=title)
+        if ylim is not None:
+            ax.set_ylim(*ylim)
+        ax.legend(loc="best", fontsize="small")
     return path
 
 
