@@ -357,7 +357,9 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", "--stored", str(stored), runs[0]), "one of the three"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
         (("report", "--stored", str(page)), "is not a stored report"),
-        (("report", "--stored", str(stored), "--plot", "x.png"), "leave them out"),
+        (("report", "--stored", str(stored), "--store", "x.json"), "leave it out"),
+        # these two runs of whole episodes were evaluated at different frames
+        (("report", "--stored", str(stored), "--plot", "x.png"), "evaluated at the same frames"),
     ]:
         status, _, err = in_process(*args, capsys=capsys)
         assert status == 1 and message in err, (args, err)

@@ -1103,3 +1103,37 @@ def test_worker_factories_leave_the_main_process_ctrl_c_alone():
         assert signal.getsignal(signal.SIGINT) is before
         os.kill(os.getpid(), signal.SIGINT)
         assert interrupt.requested
+
+
+class TestSessions:
+    """The summary records each session of a run: frames, code, libraries, machine."""
+
+    def test_a_resumed_run_lists_both_sessions(self, tmp_path):
+        import subprocess
+
+        import torch as torch_module
+
+        import rl_pg
+
+        first = _train(_cfg(tmp_path, total_updates=2))
+        (session,) = first["sessions"]
+        assert session["frames_at_start"] == 0
+        assert session["frames_at_end"] == first["frames"] > 0
+        assert session["interrupted"] is False
+        assert session["code"]["rl_pg"] == rl_pg.__version__
+        assert session["libraries"]["torch"] == torch_module.__version__
+        assert session["machine"]["cores"] == os.cpu_count()
+        repo = Path(rl_pg.__file__).resolve().parents[1]
+        if (repo / ".git").exists():  # a checkout (CI's clean clone is one)
+            git = ["git", "-C", str(repo), "rev-parse", "HEAD"]
+            head = subprocess.run(git, capture_output=True, text=True, check=True).stdout.strip()
+            assert session["code"]["commit"] == head
+        second = _train(_cfg(tmp_path, total_updates=4, resume=True))
+        earlier, latest = second["sessions"]
+        assert earlier == session
+        assert latest["frames_at_start"] == first["frames"]
+        assert latest["frames_at_end"] == second["frames"] > first["frames"]
+        # a summary that cannot be read does not stop the run; its sessions are lost
+        (tmp_path / "run" / "summary.json").write_text("{torn")
+        third = _train(_cfg(tmp_path, total_updates=5, resume=True))
+        assert [s["frames_at_start"] for s in third["sessions"]] == [second["frames"]]

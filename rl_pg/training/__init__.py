@@ -12,6 +12,8 @@ One file per concern, imports pointing down (config first, loop and cli last):
   deploying from one;
 * [`run_dir`][rl_pg.training.run_dir]: the run directory, its lock, its config and the
   summary;
+* [`provenance`][rl_pg.training.provenance]: the code, libraries and machine each
+  session of a run ran on;
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours;
   early stop, kept checkpoints and the gradient-noise measurement);

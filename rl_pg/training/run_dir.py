@@ -27,6 +27,7 @@ from rl_pg.checkpoint import (
 from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
 from rl_pg.training.curves import plot_run
+from rl_pg.training.provenance import session_record
 
 __all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "locked", "new_run_dir"]
 
@@ -161,6 +162,8 @@ class RunDirectory:
         if saved is not None:
             self.keep()
         self.cfg, self.recipe = cfg, {"recipe": recipe, "recipe_module": module}
+        self.sessions = _earlier_sessions(self.path) if saved is not None else []
+        self.session = session_record(saved["state"]["frames"] if saved is not None else 0)
         # Readable by people; the checkpoint's own copy is what resuming checks.
         write_atomically(
             self.path / CONFIG, json.dumps({**self.recipe, **config_dict(cfg)}, indent=2)
@@ -179,10 +182,15 @@ class RunDirectory:
     def finish(
         self, state: RunState, *, interrupted: bool = False, extra: dict[str, Any] | None = None
     ) -> dict[str, Any]:
-        """Writes ``summary.json`` (with the recipe's ``extra`` fields) and the learning
-        curve; returns the summary."""
+        """Writes ``summary.json`` (with the recipe's ``extra`` fields, and under
+        ``sessions`` one record per session of the run: frames at its start and end, the
+        code, libraries and machine it ran on; see
+        [`provenance`][rl_pg.training.provenance]) and the learning curve; returns the
+        summary."""
         summary = {**_summary(self.cfg, self.recipe["recipe"], state, self.path), **(extra or {})}
         summary["interrupted"] = interrupted
+        this = {**self.session, "frames_at_end": state.frames, "interrupted": interrupted}
+        summary["sessions"] = [*self.sessions, this]
         write_atomically(self.path / SUMMARY, json.dumps(summary, indent=2))
         plot_run(self.path, threshold=self.cfg.threshold, title=self.recipe["recipe"])
         return summary
@@ -276,6 +284,16 @@ def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
             f"total_updates={cfg.total_updates} asks for no more. Raise --total-updates "
             f"above {state['updates']} to continue it."
         )
+
+
+def _earlier_sessions(run_dir: Path) -> list[dict[str, Any]]:
+    """The sessions an earlier summary of the run recorded (none if it has no readable
+    summary, or one written before sessions were recorded)."""
+    try:
+        sessions = json.loads((run_dir / SUMMARY).read_text()).get("sessions", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return sessions if isinstance(sessions, list) else []
 
 
 def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> dict[str, Any]:
