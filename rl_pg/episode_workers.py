@@ -157,7 +157,8 @@ def _cpu_copy(policy: TensorDictModuleBase) -> TensorDictModuleBase:
 
 def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
     """Builds one environment, then plays the episodes it is sent until told to stop."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the main process handles Ctrl-C
+    for sig in (signal.SIGINT, signal.SIGTERM):  # the main process handles them, closes us
+        signal.signal(sig, signal.SIG_IGN)
     torch.set_num_threads(1)
     try:
         env = make_env()

@@ -939,27 +939,29 @@ class TestInterruptedRun:
 
     FLAGS = ("--checkpoint-interval", "1000000", "--eval-interval", "100000000")
 
-    def test_ctrl_c_saves_resumes_and_reaches_the_workers(self, tmp_path):
-        # Two runs as a user starts them, side by side (most of their time is imports):
-        # - "single": a gridworld run interrupted by SIGINT to its process, then resumed;
+    def test_ctrl_c_or_kill_saves_resumes_and_reaches_the_workers(self, tmp_path):
+        # Three runs as a user starts them, side by side (most of their time is imports):
+        # - "single": a gridworld run stopped by a plain `kill` (SIGTERM), then resumed;
         # - "workers": CartPole on two worker processes, interrupted as a terminal does,
-        #   by signalling the whole process group: the workers must leave the
-        #   interruption to the main process instead of dying under it.
+        #   by signalling SIGINT to the whole process group, and "workers-term" the same
+        #   with SIGTERM, as a batch scheduler may: the workers must leave the stop to
+        #   the main process instead of dying under it.
         recipes = Path(__file__).resolve().parents[1] / "recipes"
-        runs = {"single": tmp_path / "interrupted", "workers": tmp_path / "workers"}
+        runs = {name: tmp_path / name for name in ("single", "workers", "workers-term")}
+        cartpole = [sys.executable, str(recipes / "cartpole.py"), "--workers", "2",
+                    "--total-frames", "100000000", "--threshold", "100000"]  # fmt: skip
         commands = {
-            "single": [sys.executable, str(recipes / "gridworld.py"), "--run-dir",
-                       str(runs["single"]), "--total-updates", "100000"],
-            "workers": [sys.executable, str(recipes / "cartpole.py"), "--run-dir",
-                        str(runs["workers"]), "--workers", "2", "--total-frames", "100000000",
-                        "--threshold", "100000"],
-        }  # fmt: skip
+            "single": [sys.executable, str(recipes / "gridworld.py"), "--total-updates", "100000"],
+            "workers": cartpole,
+            "workers-term": cartpole,
+        }
+        sent = {"single": signal.SIGTERM, "workers": signal.SIGINT, "workers-term": signal.SIGTERM}
         processes = {
             name: subprocess.Popen(
-                [*command, "--no-progress", *self.FLAGS],
+                [*command, "--run-dir", str(runs[name]), "--no-progress", *self.FLAGS],
                 stderr=subprocess.PIPE,
                 text=True,
-                start_new_session=name == "workers",
+                start_new_session=name != "single",
             )
             for name, command in commands.items()
         }
@@ -969,9 +971,9 @@ class TestInterruptedRun:
                 processes,
                 lambda name: _lines(runs[name] / "logs/csv/scalars/loss/actor.csv") >= 3,
                 lambda name, process: (
-                    os.killpg(process.pid, signal.SIGINT)
-                    if name == "workers"
-                    else process.send_signal(signal.SIGINT)
+                    process.send_signal(sent[name])
+                    if name == "single"
+                    else os.killpg(process.pid, sent[name])
                 ),
                 timeout=180,
             )
@@ -984,6 +986,7 @@ class TestInterruptedRun:
         for name, process in processes.items():
             assert process.returncode == 130, stderr[name]
             assert "Traceback" not in stderr[name]
+            assert f"Interrupted ({sent[name].name}) at" in stderr[name]
             assert f"Continue with: rl-pg resume {runs[name]}" in stderr[name]
 
         run = runs["single"]
@@ -999,18 +1002,28 @@ class TestInterruptedRun:
         assert resumed["interrupted"] is False
         assert_same_run(resumed, run, tmp_path / "straight")
 
-    def test_a_second_ctrl_c_stops_at_once(self):
+    @pytest.mark.parametrize(
+        ("first", "second"),
+        [
+            (signal.SIGINT, signal.SIGINT),
+            (signal.SIGTERM, signal.SIGTERM),
+            (signal.SIGTERM, signal.SIGINT),
+        ],
+    )
+    def test_a_second_stop_stops_at_once(self, first, second):
         from rl_pg.training.interrupt import InterruptRequest
 
+        before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
         with InterruptRequest() as interrupt:
             try:
-                os.kill(os.getpid(), signal.SIGINT)  # the first: only a request
+                os.kill(os.getpid(), first)  # the first: only a request
             except KeyboardInterrupt:
-                pytest.fail("the first Ctrl-C stopped at once instead of asking to stop")
-            assert interrupt.requested
+                pytest.fail(f"the first {first.name} stopped at once instead of asking to stop")
+            assert interrupt.requested and interrupt.signal_name == first.name
             with pytest.raises(KeyboardInterrupt):
-                os.kill(os.getpid(), signal.SIGINT)  # the second: stops at once
-        assert signal.getsignal(signal.SIGINT) is not interrupt._handle  # restored
+                os.kill(os.getpid(), second)  # the second: stops at once
+        for sig, handler in before.items():
+            assert signal.getsignal(sig) is handler  # restored
 
 
 class TestConsole:

@@ -1,13 +1,16 @@
-"""Ctrl-C during a run: finish the update, save, say how to resume, stop.
+"""A stop during a run (Ctrl-C, or a plain ``kill``): finish the update, save, say how
+to resume, stop.
 
-The first Ctrl-C is deferred to the end of the update in progress, where the run's
+The first SIGINT (Ctrl-C) or SIGTERM (``kill``, a batch scheduler's or ``docker stop``'s
+request to stop) is deferred to the end of the update in progress, where the run's
 state is consistent: the loop then writes a checkpoint and the summary and raises
 ``KeyboardInterrupt`` (so a notebook cell or a caller still sees an interruption). A
-second Ctrl-C interrupts at once. Command-line entry points wrap themselves in
+second one interrupts at once. Command-line entry points wrap themselves in
 [`exit_quietly_on_interrupt`][rl_pg.training.interrupt.exit_quietly_on_interrupt] to
 exit with status 130 and the one line the loop printed, instead of a traceback.
 
-A terminal sends Ctrl-C to every process of the command, worker processes included;
+A terminal sends Ctrl-C to every process of the command, and a scheduler may send
+SIGTERM to all of them, worker processes included;
 [`MainProcessInterrupts`][rl_pg.training.interrupt.MainProcessInterrupts] wraps the
 environment factories that run in workers so that only the main process reacts (it
 then shuts the workers down itself).
@@ -26,11 +29,16 @@ from typing import Any
 __all__ = ["InterruptRequest", "MainProcessInterrupts", "exit_quietly_on_interrupt"]
 
 
-class InterruptRequest:
-    """A context manager that turns the first SIGINT into ``requested = True``.
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals that ask a run to stop."""
 
-    Signal handlers can only be set from the main thread; elsewhere Ctrl-C keeps its
-    usual effect.
+
+class InterruptRequest:
+    """A context manager that turns the first SIGINT or SIGTERM into ``requested =
+    True`` (and names it in ``signal_name``); the second raises ``KeyboardInterrupt``.
+
+    Signal handlers can only be set from the main thread; elsewhere both signals keep
+    their usual effect.
 
     Examples:
         >>> import os, signal
@@ -43,29 +51,31 @@ class InterruptRequest:
 
     def __init__(self) -> None:
         self.requested = False
-        self._previous = None
+        self.signal_name: str | None = None
+        self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> InterruptRequest:
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
+            self._previous = {sig: signal.signal(sig, self._handle) for sig in SIGNALS}
         return self
 
     def _handle(self, signum, frame) -> None:
         if self.requested:
             raise KeyboardInterrupt
-        self.requested = True
+        self.requested, self.signal_name = True, signal.Signals(signum).name
 
     def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
 
 
 class MainProcessInterrupts:
-    """An environment factory for a worker process, which then ignores Ctrl-C.
+    """An environment factory for a worker process, which then ignores Ctrl-C and
+    SIGTERM.
 
     Called in a worker process (as TorchRL's collectors and ``ParallelEnv`` call their
-    factories), it sets SIGINT to be ignored there, then builds the environment: the
-    main process handles the interruption and closes the worker. Called in the main
+    factories), it sets SIGINT and SIGTERM to be ignored there, then builds the
+    environment: the main process handles the stop and closes the worker. Called in the main
     process, it only builds the environment. Picklable when ``make_env`` is.
 
     Args:
@@ -80,7 +90,8 @@ class MainProcessInterrupts:
         # specs), whose Ctrl-C handling must stay; and not from a thread (Ray).
         in_worker = multiprocessing.parent_process() is not None
         if in_worker and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            for sig in SIGNALS:
+                signal.signal(sig, signal.SIG_IGN)
         return self.make_env()
 
 

@@ -181,7 +181,8 @@ def train(
         summary = directory.finish(run.state, interrupted=interrupt.requested, extra=extra)
     if interrupt.requested:
         print(
-            f"Interrupted at {run.state.frames} frames; checkpoint and summary saved in "
+            f"Interrupted ({interrupt.signal_name}) at {run.state.frames} frames; checkpoint "
+            f"and summary saved in "
             f"{run_dir}. Continue with: rl-pg resume {run_dir}",
             file=sys.stderr,
         )
