@@ -157,7 +157,8 @@ def _cpu_copy(policy: TensorDictModuleBase) -> TensorDictModuleBase:
 
 def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
     """Builds one environment, then plays the episodes it is sent until told to stop."""
-    for sig in (signal.SIGINT, signal.SIGTERM):  # the main process handles them, closes us
+    stops = ("SIGINT", "SIGTERM", "SIGHUP")  # the main process handles them and closes us
+    for sig in (getattr(signal, name) for name in stops if hasattr(signal, name)):
         signal.signal(sig, signal.SIG_IGN)
     torch.set_num_threads(1)
     try:

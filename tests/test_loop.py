@@ -1008,12 +1008,15 @@ class TestInterruptedRun:
             (signal.SIGINT, signal.SIGINT),
             (signal.SIGTERM, signal.SIGTERM),
             (signal.SIGTERM, signal.SIGINT),
+            (signal.SIGHUP, signal.SIGHUP),
         ],
     )
     def test_a_second_stop_stops_at_once(self, first, second):
         from rl_pg.training.interrupt import InterruptRequest
 
-        before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        before = {
+            sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+        }
         with InterruptRequest() as interrupt:
             try:
                 os.kill(os.getpid(), first)  # the first: only a request

@@ -1,11 +1,11 @@
 """A stop during a run (Ctrl-C, or a plain ``kill``): finish the update, save, say how
 to resume, stop.
 
-The first SIGINT (Ctrl-C) or SIGTERM (``kill``, a batch scheduler's or ``docker stop``'s
-request to stop) is deferred to the end of the update in progress, where the run's
-state is consistent: the loop then writes a checkpoint and the summary and raises
-``KeyboardInterrupt`` (so a notebook cell or a caller still sees an interruption). A
-second one interrupts at once. Command-line entry points wrap themselves in
+The first SIGINT (Ctrl-C), SIGTERM (``kill``, a batch scheduler's or ``docker stop``'s
+request to stop) or SIGHUP (the terminal closed) is deferred to the end of the update
+in progress, where the run's state is consistent: the loop then writes a checkpoint
+and the summary and raises ``KeyboardInterrupt`` (so a notebook cell or a caller still
+sees an interruption). A second one interrupts at once. Command-line entry points wrap themselves in
 [`exit_quietly_on_interrupt`][rl_pg.training.interrupt.exit_quietly_on_interrupt] to
 exit with status 130 and the one line the loop printed, instead of a traceback.
 
@@ -29,12 +29,15 @@ from typing import Any
 __all__ = ["InterruptRequest", "MainProcessInterrupts", "exit_quietly_on_interrupt"]
 
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
-"""The signals that ask a run to stop."""
+SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+"""The signals that ask a run to stop: Ctrl-C, ``kill`` (and schedulers), a closed
+terminal (POSIX only)."""
 
 
 class InterruptRequest:
-    """A context manager that turns the first SIGINT or SIGTERM into ``requested =
+    """A context manager that turns the first of the ``SIGNALS`` into ``requested =
     True`` (and names it in ``signal_name``); the second raises ``KeyboardInterrupt``.
 
     Signal handlers can only be set from the main thread; elsewhere both signals keep
@@ -70,11 +73,10 @@ class InterruptRequest:
 
 
 class MainProcessInterrupts:
-    """An environment factory for a worker process, which then ignores Ctrl-C and
-    SIGTERM.
+    """An environment factory for a worker process, which then ignores the ``SIGNALS``.
 
     Called in a worker process (as TorchRL's collectors and ``ParallelEnv`` call their
-    factories), it sets SIGINT and SIGTERM to be ignored there, then builds the
+    factories), it sets the ``SIGNALS`` to be ignored there, then builds the
     environment: the main process handles the stop and closes the worker. Called in the main
     process, it only builds the environment. Picklable when ``make_env`` is.
 
