@@ -5,8 +5,9 @@ cartpole recipe's config (flag, default, description), read from the dataclass a
 its field docstrings, the same text ``--help`` prints; ``config_table("play", "Args")``
 names a dataclass of another module of ``rl_pg.recipes``.
 
-``$$ ... $$`` blocks of LaTeX become MathML when the site is built (latex2mathml):
-browsers render MathML themselves, so the maths needs no script and no network.
+``$$ ... $$`` blocks of LaTeX, and ``$...$`` inside a line, become MathML when the site
+is built (latex2mathml): browsers render MathML themselves, so the maths needs no script
+and no network.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ from rl_pg.recipes.cli import field_docs  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
 DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
+# $...$ inside a line (no space after the opening or before the closing $), outside code.
+INLINE_MATH = re.compile(r"(?<![\\$\w])\$(?=\S)([^$\n]+?)(?<=\S)\$(?![\w$])")
+CODE = re.compile(r"(^```.*?^```$|`[^`\n]+`)", re.MULTILINE | re.DOTALL)
 
 
 def config_table(recipe: str, name: str | None = None) -> str:
@@ -60,6 +64,17 @@ def mathml(latex: str) -> str:
     return f'<div class="math">{convert(latex, display="block")}</div>'
 
 
+def inline_maths(markdown: str) -> str:
+    """``$...$`` in running text (not in code) as inline MathML."""
+    from latex2mathml.converter import convert
+
+    parts = CODE.split(markdown)  # code at the odd indices, left as it is
+    return "".join(
+        part if i % 2 else INLINE_MATH.sub(lambda m: convert(m.group(1)), part)
+        for i, part in enumerate(parts)
+    )
+
+
 def on_page_markdown(markdown: str, **kwargs) -> str:
-    markdown = DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown)
+    markdown = inline_maths(DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown))
     return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2) or "Config"), markdown)
