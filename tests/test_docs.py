@@ -94,3 +94,26 @@ def test_page_code_runs(page, tmp_path, monkeypatch):
     # Finalise what the page built now, not at interpreter exit (see composing.md).
     namespace.clear()
     gc.collect()
+
+
+def test_maths_becomes_mathml_outside_code_only():
+    sys.path.insert(0, str(DOCS))
+    try:
+        import hooks
+    finally:
+        sys.path.remove(str(DOCS))
+    page = (
+        "A policy $\\pi_\\theta(a \\mid s)$ and $G_t$; it costs $5 and $ 3 $.\n\n"
+        "`echo $HOME` and `$x$` stay code.\n\n```bash\nexport A=$B$C\n```\n\n"
+        "$$\nJ(\\theta) = \\sum_t r_t\n$$\n"
+    )
+    html = hooks.on_page_markdown(page)
+    assert html.count('display="inline"') == 2  # the policy and G_t, nothing else
+    assert html.count('display="block"') == 1
+    for kept in ("$5 and $ 3 $", "`echo $HOME`", "`$x$`", "export A=$B$C"):
+        assert kept in html, kept
+    # every page of the site: no $...$ left unrendered in running text
+    for path in sorted(DOCS.rglob("*.md")):
+        rendered = hooks.CODE.split(hooks.on_page_markdown(path.read_text()))
+        prose = "".join(part for i, part in enumerate(rendered) if i % 2 == 0)
+        assert not hooks.INLINE_MATH.search(prose), path.name
