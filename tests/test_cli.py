@@ -399,3 +399,33 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
                 f"({difference}); run rl-pg report --refresh {page.relative_to(REPO)}"
             )
     assert found >= 3
+
+
+def test_torn_or_bad_records_cost_only_themselves(tmp_path, capsys):
+    run = tmp_path / "run"
+    status, _, err = in_process("train", "gridworld", "--run-dir", str(run), *QUICK,
+                                capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    evaluations = run / "evaluations.jsonl"
+    assert in_process("evaluate", str(run), "--episodes", "2", capsys=capsys)[0] == 0
+    with open(evaluations, "a") as file:
+        file.write('{"checkpoint": "best", "frames": 1')  # a write killed half-way
+    # the next result starts on a line of its own and is kept
+    assert in_process("evaluate", str(run), "--episodes", "2", "--sample", capsys=capsys)[0] == 0
+    lines = evaluations.read_text().splitlines()
+    assert len(lines) == 3 and json.loads(lines[2])["mode"] == "sampled"
+    with open(evaluations, "a") as file:
+        file.write('["not", "a", "record"]\n{"mode": "greedy"}\n')
+    status, out, err = in_process("report", str(run), capsys=capsys)
+    assert status == 0, err
+    for number in (2, 4, 5):
+        assert f"evaluations.jsonl, line {number}, is not an evaluation record" in err
+    row = next(line for line in out.splitlines() if line.startswith("| run | gridworld"))
+    assert row.count("(2)") == 2  # both results read, greedy and sampled
+    # a bad summary is named, with what writes it again
+    (run / "summary.json").write_text('{"recipe": "gridworld"}')
+    status, _, err = in_process("report", str(run), capsys=capsys)
+    assert status == 1 and "summary.json is not a run summary" in err and "rl-pg resume" in err
+    (run / "summary.json").write_text("{torn")
+    status, _, err = in_process("report", str(run), capsys=capsys)
+    assert status == 1 and "is not a run summary" in err

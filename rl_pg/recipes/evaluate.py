@@ -16,6 +16,7 @@ alone. Each result is also appended to the run's ``evaluations.jsonl``.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -71,9 +72,21 @@ def main(args: Args) -> dict[str, Any]:
     record = {"checkpoint": args.checkpoint if args.run.is_dir() else args.run.name, **result}
     print(_describe(record))
     if args.run.is_dir():
-        with open(args.run / EVALUATIONS, "a") as file:
-            file.write(json.dumps(record) + "\n")
+        append_record(args.run / EVALUATIONS, record)
     return record
+
+
+def append_record(path: Path, record: dict[str, Any]) -> None:
+    """Appends ``record`` to the JSON-lines file ``path`` as one line of its own: after a
+    torn last line (a write killed half-way), it starts on a fresh line, so the torn
+    line alone is lost (readers skip it, naming it) and this record is kept."""
+    with open(path, "a+b") as file:
+        file.seek(0, os.SEEK_END)
+        if file.tell() > 0:
+            file.seek(-1, os.SEEK_END)
+            if file.read(1) != b"\n":
+                file.write(b"\n")
+        file.write((json.dumps(record) + "\n").encode())
 
 
 def _describe(record: dict[str, Any]) -> str:

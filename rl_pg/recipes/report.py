@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,8 @@ __all__ = [
     "store_report",
 ]
 
+SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
+RECORD_KEYS = frozenset({"checkpoint", "frames", "mode", "seed", "mean_return"})
 STORED_FIGURE = re.compile(
     r"^<!-- rl-pg report --stored (?P<file>\S+) --plot (?P<figure>\S+)"
     r"(?: --ylim (?P<low>\S+) (?P<high>\S+))? -->$",
@@ -91,7 +94,15 @@ def read_report(run_dir: Path) -> dict[str, Any]:
             f"{run_dir} has no {SUMMARY}: not a run directory, or its first run is still "
             "going (a run writes its summary when it ends or is interrupted)."
         )
-    report = json.loads(path.read_text())
+    try:
+        report = json.loads(path.read_text())
+    except ValueError:
+        report = None
+    if not isinstance(report, dict) or not report.keys() >= SUMMARY_KEYS:
+        raise ValueError(
+            f"{path} is not a run summary (not JSON, or without {sorted(SUMMARY_KEYS)}); "
+            f"rl-pg resume {run_dir} writes it again when the run ends or is stopped."
+        )
     report["greedy"] = report["sampled"] = None
     evaluations = Path(run_dir) / EVALUATIONS
     if evaluations.is_file():
@@ -100,8 +111,19 @@ def read_report(run_dir: Path) -> dict[str, Any]:
         # describe it; of those, the latest on rl-pg evaluate's own episodes (a result on
         # episodes chosen with --seed is only taken where there is none).
         fresh = fresh_seed(report["seed"])
-        for line in evaluations.read_text().splitlines():
-            record = json.loads(line)
+        for number, line in enumerate(evaluations.read_text().splitlines(), start=1):
+            try:
+                record = json.loads(line)
+            except ValueError:
+                record = None
+            if not isinstance(record, dict) or not record.keys() >= RECORD_KEYS:
+                if line.strip():  # a write killed half-way, or an edit: say so, skip it
+                    print(
+                        f"rl-pg report: {evaluations}, line {number}, is not an evaluation "
+                        "record; skipped.",
+                        file=sys.stderr,
+                    )
+                continue
             if (
                 record["checkpoint"] == "best"
                 and record["frames"] == report["best_at_frames"]
