@@ -804,6 +804,27 @@ class TestNothingIsLost:
         assert not (tmp_path / "run").exists()
         assert _train(_cfg(tmp_path))["updates"] == 6  # the directory can be used at once
 
+    def test_a_run_that_fails_while_training_keeps_its_logs(self, tmp_path):
+        from rl_pg.training import Callback
+
+        class FailAtThree(Callback):  # a NaN reward, a full disk, ...
+            def on_update(self, run, batch, metrics):
+                if run.state.updates == 3:
+                    raise RuntimeError("disk full")
+
+        cfg = _cfg(tmp_path, checkpoint_interval=1000)  # no checkpoint before it fails
+        with pytest.raises(RuntimeError, match="disk full"):
+            _train(cfg, callbacks=[FailAtThree()])
+        run = tmp_path / "run"
+        assert (run / "config.json").is_file() and not (run / "checkpoint.pt").exists()
+        frames, _ = read_curve(run, "loss/actor")
+        assert len(frames) == 3  # every update it made is in its logs
+        with pytest.raises(CheckpointError, match=r"no checkpoint: its run stopped before"):
+            _train(replace(cfg, resume=True))
+        with pytest.raises(CheckpointError, match=r"but no checkpoint .*another --run-dir"):
+            _train(cfg)
+        assert len(read_curve(run, "loss/actor")[0]) == 3  # neither touched them
+
     def test_stale_temporary_files_are_removed(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
         stale = tmp_path / "run" / ".checkpoint.pt.x1y2.rl_pg-tmp"

@@ -154,6 +154,7 @@ def train(
             for batch in run.collection:
                 hooks.on_batch(run, batch)
                 metrics = run.update(batch)
+                directory.keep()  # it trained: its logs stay, however the run ends
                 hooks.on_update(run, batch, metrics)
                 done = run.budget_spent()
                 evaluated = done or run.evaluation_due()

@@ -54,7 +54,8 @@ class RunDirectory:
     run left half-way are removed. On exit the lock is released. A directory that was
     empty on entry is emptied again (and removed, if this object created it) when the
     run fails before calling [`keep`][rl_pg.training.run_dir.RunDirectory.keep]: a run that
-    crashed while starting leaves no half-made directory behind.
+    crashed while starting leaves no half-made directory behind. The loop calls it after
+    its first update, so a run that fails while training keeps its logs.
 
     Args:
         path (str or Path): the run directory.
@@ -235,6 +236,13 @@ def new_run_dir(recipe: str, seed: int) -> Path:
 def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
     run_dir, checkpoint_path = directory.path, directory.checkpoint_path
     if cfg.resume:
+        if not checkpoint_path.exists() and directory.contents():
+            raise CheckpointError(
+                f"{run_dir} holds {directory.contents()} but no checkpoint: its run stopped "
+                f"before writing its first one (every --checkpoint-interval updates), so "
+                f"there is nothing to resume. Start the run again with another --run-dir; "
+                f"these logs stay as they are."
+            )
         saved = load_checkpoint(checkpoint_path)
         if saved.get("recipe") != recipe:
             raise CheckpointError(
