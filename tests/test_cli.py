@@ -171,10 +171,12 @@ def test_help_shows_the_flags_in_groups_by_concern(capsys, monkeypatch):
     optimiser = out[out.index("optimiser options") : out.index("evaluation options")]
     assert "--lr FLOAT" in optimiser and "(default: 0.001)" in optimiser
     assert "--continuous, --no-continuous" in out.split("run options")[0]
-    # a docstring is one paragraph that the help wraps, not lines cut where the source
-    # wrapped them ("available)." used to end a line of its own)
-    assert "available). Environments step on the CPU." in out
+    # each flag shows its docstring's first sentence, wrapped whole (not cut where the
+    # source wrapped it); the docs' tables give the rest
+    assert "available). (default: cpu)" in out
+    assert "Environments step on the CPU" not in out
     assert "\n" not in field_docs(TrainConfig)["device"]
+    assert "Environments step on the CPU" in field_docs(TrainConfig)["device"]
 
 
 def test_every_config_field_is_in_one_group():

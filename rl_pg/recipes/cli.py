@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import inspect
 import itertools
+import re
 import sys
 import textwrap
 import typing
@@ -39,7 +40,10 @@ from rl_pg.training.console import format_comparison, format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 from rl_pg.training.run_dir import RunDirBusy
 
-__all__ = ["field_docs", "main", "parse_config", "run_checkout_script"]
+__all__ = ["field_docs", "first_sentence", "main", "parse_config", "run_checkout_script"]
+
+SENTENCE_END = re.compile(r"(?<=[.!?])(?<!e\.g\.)(?<!i\.e\.)\s+(?=[A-Z(`'\"])")
+"""Where a sentence ends: after . ! or ?, before a capital, a bracket or a quote."""
 
 Config = TypeVar("Config", bound=TrainConfig)
 
@@ -111,7 +115,7 @@ def _grouped(config_class: type[Config], defaults: dict[str, Any] | None) -> typ
     groups.update(config_class.groups)
 
     def spec(name: str) -> tuple[str, Any, dataclasses.Field]:
-        kind = Annotated[hints[name], tyro.conf.arg(help=docs.get(name, ""))]
+        kind = Annotated[hints[name], tyro.conf.arg(help=first_sentence(docs.get(name, "")))]
         if defaults is not None:
             value = defaults[name]
         elif fields[name].default is not dataclasses.MISSING:
@@ -142,8 +146,26 @@ def _grouped(config_class: type[Config], defaults: dict[str, Any] | None) -> typ
     cli = dataclasses.make_dataclass(
         config_class.__name__, members, namespace={"__post_init__": build}
     )
-    cli.__doc__ = config_class.__doc__
+    cli.__doc__ = (
+        f"{config_class.__doc__ or ''}\n\nEach flag's first sentence; the docs' recipe pages "
+        "(Flags) give each in full."
+    )
     return cli
+
+
+def first_sentence(text: str) -> str:
+    """The first sentence of a field's docstring: what ``--help`` shows of it.
+
+    Examples:
+        >>> from rl_pg.recipes.cli import first_sentence
+        >>> first_sentence("Learning rate. Decays with lr_schedule, e.g. 'linear'.")
+        'Learning rate.'
+        >>> first_sentence("Where models live ('auto': CUDA when available). More.")
+        "Where models live ('auto': CUDA when available)."
+        >>> first_sentence("Steps (e.g. 5 per update) to take.")
+        'Steps (e.g. 5 per update) to take.'
+    """
+    return SENTENCE_END.split(text, maxsplit=1)[0]
 
 
 def field_docs(cls: type) -> dict[str, str]:
