@@ -1170,7 +1170,18 @@ class TestSessions:
         assert earlier == session
         assert latest["frames_at_start"] == first["frames"]
         assert latest["frames_at_end"] == second["frames"] > first["frames"]
+        assert latest["changed"] == {"total_updates": [2, 4]}
         # a summary that cannot be read does not stop the run; its sessions are lost
         (tmp_path / "run" / "summary.json").write_text("{torn")
         third = _train(_cfg(tmp_path, total_updates=5, resume=True))
         assert [s["frames_at_start"] for s in third["sessions"]] == [second["frames"]]
+
+    def test_a_resume_that_changes_the_results_says_so(self, tmp_path, capsys):
+        _train(_cfg(tmp_path, total_updates=2))
+        capsys.readouterr()
+        summary = _train(_cfg(tmp_path, total_updates=3, resume=True, threads=2))
+        err = capsys.readouterr().err
+        assert "Resuming with threads 1 -> 2: the run goes on" in err
+        assert summary["sessions"][-1]["changed"] == {"total_updates": [2, 3], "threads": [1, 2]}
+        _train(_cfg(tmp_path, total_updates=4, resume=True, threads=2))
+        assert "Resuming with" not in capsys.readouterr().err  # nothing changed this time

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -165,6 +166,8 @@ class RunDirectory:
         self.cfg, self.recipe = cfg, {"recipe": recipe, "recipe_module": module}
         self.sessions = _earlier_sessions(self.path) if saved is not None else []
         self.session = session_record(saved["state"]["frames"] if saved is not None else 0)
+        if saved is not None:
+            self.session["changed"] = _changed_on_resume(cfg, saved)
         # Readable by people; the checkpoint's own copy is what resuming checks.
         write_atomically(
             self.path / CONFIG, json.dumps({**self.recipe, **config_dict(cfg)}, indent=2)
@@ -276,6 +279,38 @@ def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
             f"was overwritten."
         )
     return None
+
+
+TRAJECTORY_FIELDS = {
+    "workers": "collection is split differently between processes",
+    "ray": "collection runs elsewhere",
+    "device": "the arithmetic runs on other hardware",
+    "threads": "torch's reductions may add in another order",
+}
+"""Resumable fields that change what the rest of the run computes: a run resumed with
+another value goes on, but no longer ends as the uninterrupted run would."""
+
+
+def _changed_on_resume(cfg: TrainConfig, saved: dict) -> dict[str, list]:
+    """The resumable fields the resume changes (``{field: [stored, new]}``); says on
+    stderr which of them change the run's results."""
+    stored = type(cfg).as_run(saved["config"])
+    changed = {
+        key: [stored.get(key), value]
+        for key, value in config_dict(cfg).items()
+        if key in RESUMABLE_FIELDS and key not in ("resume", "run_dir")
+        and stored.get(key) != value
+    }  # fmt: skip
+    for key, why in TRAJECTORY_FIELDS.items():
+        if key in changed:
+            old, new = changed[key]
+            print(
+                f"Resuming with {key} {old!r} -> {new!r}: the run goes on, but {why}, so it "
+                f"will not end as the uninterrupted run would (the summary's sessions record "
+                f"the change).",
+                file=sys.stderr,
+            )
+    return changed
 
 
 def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
