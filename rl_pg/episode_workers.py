@@ -14,6 +14,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import check_int
 from rl_pg.evaluation import EpisodeRequest, episode_shares, play_episodes, policy_device
 
 __all__ = ["EpisodeWorkers"]
@@ -38,6 +39,12 @@ class EpisodeWorkers:
             ``multiprocessing.set_start_method`` (as TorchRL's workers do), spawned
             when none is set.
 
+    Keyword Args:
+        distinct_episodes (int, optional): how many episodes the processes play before
+            one repeats (a fixed set of scenarios played in order: its size);
+            [`evaluate`][rl_pg.evaluation.evaluate] refuses to play more. Defaults to
+            None (no limit).
+
     Examples:
         >>> from functools import partial
         >>> from rl_pg.envs import GridWorldEnv
@@ -47,11 +54,18 @@ class EpisodeWorkers:
         (2, True)
     """
 
-    def __init__(self, make_envs: Sequence[Callable[[], EnvBase]]) -> None:
+    def __init__(
+        self, make_envs: Sequence[Callable[[], EnvBase]], *, distinct_episodes: int | None = None
+    ) -> None:
         make_envs = list(make_envs)
         if not make_envs or not all(callable(make) for make in make_envs):
             raise TypeError("make_envs must be a non-empty sequence of environment factories.")
         self.make_envs = make_envs
+        self.distinct_episodes = (
+            None
+            if distinct_episodes is None
+            else check_int("distinct_episodes", distinct_episodes, low=len(make_envs))
+        )
         self._workers: list[tuple[Any, Any]] = []  # (process, pipe)
         self._specs: dict[str, Any] = {}
         self._seed: int | None = None

@@ -124,7 +124,8 @@ def evaluate(
         "mean_<value>", ...}``, and the action statistics when asked for.
 
     Raises:
-        ValueError: for ``episodes < 1`` or ``max_steps < 1``.
+        ValueError: for ``episodes < 1`` or ``max_steps < 1``, or more episodes than an
+            environment with ``distinct_episodes`` (a fixed set of scenarios) has.
         TypeError: for a non-boolean ``deterministic`` or flags that are not strings.
 
     Examples:
@@ -144,6 +145,13 @@ def evaluate(
         0.0
     """
     episodes, max_steps, deterministic = check_playing(episodes, max_steps, deterministic)
+    distinct = getattr(env, "distinct_episodes", None)
+    if distinct is not None and episodes > distinct:
+        raise ValueError(
+            f"This evaluation plays a fixed set of {distinct} episodes (scenarios played in "
+            f"order, each once): {episodes} would play {episodes - distinct} of them twice "
+            f"and count them twice. Ask for at most {distinct} episodes."
+        )
     flags, values = check_names("flags", flags), check_names("values", values)
     action_stats = check_bool("action_stats", action_stats)
     request = EpisodeRequest(episodes, deterministic, max_steps, flags, values, action_stats)

@@ -330,3 +330,19 @@ def test_action_stats_read_one_hot_actions():
     out = evaluate(actor, env, episodes=2, action_stats=True)  # always pushes right
     assert out["action_shares"] == [0.0, 1.0]
     assert out["action_switch_rate"] == 0.0 and out["greedy_action_rate"] == 1.0
+
+
+def test_a_fixed_set_of_episodes_is_never_played_twice_in_one_evaluation():
+    from functools import partial
+
+    env = EpisodeWorkers([partial(_Scenarios, 0), partial(_Scenarios, 10)], distinct_episodes=5)
+    policy = _fixed_actor(1, [0.0, 1.0])
+    with pytest.raises(ValueError, match=r"fixed set of 5 episodes.*6 would play 1 of them twice"):
+        evaluate(policy, env, episodes=6)
+    assert env.is_closed  # refused before any process started
+    with pytest.raises(ValueError, match="distinct_episodes must be an integer >= 2"):
+        EpisodeWorkers([partial(_Scenarios, 0), partial(_Scenarios, 10)], distinct_episodes=1)
+    try:
+        assert evaluate(policy, env, episodes=5)["mean_length"] > 0  # the whole set: fine
+    finally:
+        env.close()

@@ -447,3 +447,19 @@ def test_continuous_actions_train_and_evaluate(tmp_path, bounded):
 def test_bounded_needs_continuous_actions():
     with pytest.raises(ValueError, match="add --actions continuous"):
         recipe.config(bounded="beta")
+
+
+def test_evaluations_never_count_a_scenario_twice():
+    # Checked when the config is made, not 125k steps into training.
+    with pytest.raises(ValueError, match=r"--eval-episodes 101: .* Ask for at most 100"):
+        recipe.config(eval_episodes=101)
+    recipe.config(eval_episodes=100)
+
+
+@needs_metadrive
+def test_rl_pg_evaluate_refuses_more_episodes_than_held_out_scenarios():
+    from rl_pg.recipes.metadrive import make_test_env
+
+    for workers in (1, 3):
+        env = make_test_env(recipe.config(workers=workers))
+        assert env.distinct_episodes == 100 and env.is_closed  # nothing started yet

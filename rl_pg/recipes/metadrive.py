@@ -112,6 +112,13 @@ class Config(
 
     def validate(self) -> None:
         super().validate()
+        selection = md.SCENARIO_SETS[md.SELECTION][1]
+        if self.eval_episodes > selection:
+            raise ValueError(
+                f"--eval-episodes {self.eval_episodes}: evaluations play the {selection} "
+                f"selection scenarios in order, each once; more would count some twice. "
+                f"Ask for at most {selection}."
+            )
         if self.bounded != "normal" and self.actions != "continuous":
             raise ValueError(
                 f"--bounded {self.bounded} chooses the distribution of continuous actions, "
@@ -165,12 +172,14 @@ def _in_order(
     own (one engine per process): an evaluation of as many episodes as the set has
     scenarios plays each once."""
     md.require_metadrive()  # here, rather than as a worker's traceback
+    parts = md.split_scenarios(env_id, workers)
     return EpisodeWorkers(
         [
             partial(md.metadrive_env, env_id, actions=actions, order="sequential",
                     horizon=horizon, scenarios=part)
-            for part in md.split_scenarios(env_id, workers)
-        ]
+            for part in parts
+        ],
+        distinct_episodes=sum(len(part) for part in parts),
     )  # fmt: skip
 
 
