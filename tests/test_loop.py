@@ -1171,6 +1171,11 @@ class TestSessions:
         assert latest["frames_at_start"] == first["frames"]
         assert latest["frames_at_end"] == second["frames"] > first["frames"]
         assert latest["changed"] == {"total_updates": [2, 4]}
+        from rl_pg.training.console import format_summary
+
+        printed = format_summary(second)  # what the console prints: counts, not records
+        assert "sessions: 2 (stopped and resumed 1 times)" in printed
+        assert "None" not in printed and "'code'" not in printed
         # a summary that cannot be read does not stop the run; its sessions are lost
         (tmp_path / "run" / "summary.json").write_text("{torn")
         third = _train(_cfg(tmp_path, total_updates=5, resume=True))

@@ -64,6 +64,20 @@ def test_recipe_trains_to_a_complete_run(name, tmp_path):
     assert (run / "logs" / "csv" / "scalars" / "eval" / "mean_return.csv").is_file()
 
 
+@pytest.mark.parametrize("recipe", [cartpole, lunarlander])
+def test_the_envpool_backend_is_used_for_any_number_of_environments(recipe):
+    from rl_pg.envs.vector import EnvPoolEnv
+
+    pytest.importorskip("envpool")
+    for num_envs in (1, 3):
+        env = recipe.make_env(recipe.config(backend="envpool", num_envs=num_envs))
+        try:
+            assert isinstance(env, EnvPoolEnv) and env.batch_size == (num_envs,)
+        finally:
+            env.close()
+    assert not isinstance(recipe.make_env(recipe.config(num_envs=1)), EnvPoolEnv)
+
+
 @pytest.mark.parametrize("backend", ["gymnasium", "envpool"])
 def test_vectorised_cartpole_resumes_exactly(tmp_path, backend):
     """Killed between two environment restarts and resumed, a run ends as the

@@ -50,7 +50,9 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render or cfg.num_envs == 1:
+    # One CartPole is unbatched; EnvPool steps a batch even of one (--backend is never
+    # dropped). A watched episode is always gymnasium's.
+    if render or (cfg.num_envs == 1 and cfg.backend == "gymnasium"):
         return gym_env(cfg.env_id, render=render)
     return gym_env(cfg.env_id, num_envs=cfg.num_envs, backend=cfg.backend)
 

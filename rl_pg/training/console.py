@@ -128,7 +128,18 @@ def format_summary(summary: dict[str, Any]) -> str:
             if solved is not None
             else f"  solved: not yet (threshold {summary['threshold']:g})"
         )
-    extra = {k: v for k, v in summary.items() if k not in _SUMMARY_FIELDS and k not in rates}
+    if summary.get("best_confirmed") is not None:
+        lines.append(
+            f"  best confirmed (lower of greedy and sampled): {summary['best_confirmed']:.2f}"
+        )
+    sessions = summary.get("sessions", [])
+    if len(sessions) > 1:
+        lines.append(f"  sessions: {len(sessions)} (stopped and resumed {len(sessions) - 1} times)")
+    extra = {
+        k: v
+        for k, v in summary.items()
+        if k not in _SUMMARY_FIELDS and k not in rates and v is not None
+    }
     lines.extend(f"  {k.replace('_', ' ')}: {_number(v)}" for k, v in extra.items())
     lines.append(f"  run directory: {summary['run_dir']}")
     return "\n".join(lines)
@@ -171,6 +182,8 @@ _SUMMARY_FIELDS = frozenset(
         "solved_at_frames",
         "best_eval_mean_return",
         "best_at_frames",
+        "best_confirmed",
+        "sessions",
         "interrupted",
     }
 )
