@@ -9,6 +9,8 @@ import torch
 from torch import nn
 from torchrl.modules import PopArtValueNorm, RunningValueNorm, ValueNorm
 
+from rl_pg._checks import check_real
+
 __all__ = ["PopArt", "RunningNorm", "popart_output", "update_running_norms"]
 
 
@@ -58,6 +60,13 @@ class RunningNorm(nn.Module):
         min_std: float = 1e-2,
     ) -> None:
         super().__init__()
+        clip = check_real(
+            "clip", clip, low=0, low_open=True, hint="Values are clipped to [-clip, clip]."
+        )
+        min_std = check_real(
+            "min_std", min_std, low=0, low_open=True,
+            hint="It floors the standard deviation each feature is divided by.",
+        )  # fmt: skip
         self.stats = RunningValueNorm(shape=shape, epsilon=min_std**2)
         self.key = key
         self.clip = clip
@@ -67,8 +76,25 @@ class RunningNorm(nn.Module):
         return torch.where(self.stats.count > 0, normalised, x)
 
     def update(self, x: torch.Tensor) -> None:
-        """Adds the observations ``x`` (``[*batch, *shape]``) to the statistics."""
-        self.stats.update(x.detach().to(self.stats.mean.dtype))
+        """Adds the observations ``x`` (``[*batch, *shape]``) to the statistics.
+
+        Raises:
+            ValueError: ``x`` holds NaN or inf; the statistics are left as they were.
+        """
+        x = x.detach().to(self.stats.mean.dtype)
+        _refuse_non_finite(x, f"RunningNorm({self.key!r})", "observations")
+        self.stats.update(x)
+
+
+def _refuse_non_finite(x: torch.Tensor, who: str, what: str) -> None:
+    """A batch with NaN or inf would poison running statistics for good: refused whole."""
+    if not torch.isfinite(x).all():
+        bad = int((~torch.isfinite(x)).sum())
+        raise ValueError(
+            f"{who} got {bad} non-finite {what} (NaN or inf); its statistics are left as "
+            f"they were. Find where the batch's {what} became non-finite (the environment, "
+            f"a reward or a return) before updating again."
+        )
 
 
 def update_running_norms(module: nn.Module, batch) -> None:
@@ -158,6 +184,7 @@ class PopArt(ValueNorm):
         """Adds the targets ``value_target`` (``[*batch, out_features]``) to the
         statistics and rescales the layer so that its outputs do not change."""
         value_target = value_target.detach().to(self.mean.dtype)
+        _refuse_non_finite(value_target, "PopArt", "value targets")
         old_mean, old_std = self.mean.clone(), self.std.clone()
         self.stats.update(value_target)
         zero = torch.zeros_like(self.mean)

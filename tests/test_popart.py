@@ -207,3 +207,39 @@ class TestValueNormInTheLoss:
     def test_bad_value_norm(self, critic, norm, error, match):
         with pytest.raises(error, match=match):
             ReinforceLoss(make_categorical_actor(), _critic() if critic else None, value_norm=norm)
+
+
+class TestRejectedBatches:
+    """A batch with NaN or inf leaves running statistics as they were."""
+
+    def test_popart_refuses_non_finite_targets_and_keeps_its_state(self):
+        layer = PopArt(nn.Linear(3, 1))
+        layer.update(torch.randn(32, 1) * 50 + 100)
+        before = {k: v.clone() for k, v in layer.state_dict().items()}
+        for bad in (float("nan"), float("inf")):
+            targets = torch.randn(32, 1)
+            targets[5] = bad
+            with pytest.raises(ValueError, match=r"PopArt got 1 non-finite value targets"):
+                layer.update(targets)
+            for key, value in layer.state_dict().items():
+                assert torch.equal(value, before[key]), key
+        layer.update(torch.randn(32, 1))  # and it goes on learning from good batches
+        assert not torch.equal(layer.state_dict()["mean"], before["mean"])
+
+    def test_running_norm_refuses_non_finite_observations_and_bad_arguments(self):
+        from rl_pg.normalization import RunningNorm
+
+        norm = RunningNorm(4)
+        norm.update(torch.randn(16, 4))
+        before = {k: v.clone() for k, v in norm.state_dict().items()}
+        x = torch.randn(16, 4)
+        x[3, 2] = float("-inf")
+        with pytest.raises(ValueError, match=r"RunningNorm\('observation'\) got 1 non-finite"):
+            norm.update(x)
+        for key, value in norm.state_dict().items():
+            assert torch.equal(value, before[key]), key
+        bad = [("clip", 0), ("clip", -1), ("clip", float("nan"))]
+        bad += [("min_std", 0), ("min_std", -1), ("min_std", float("inf"))]
+        for name, value in bad:
+            with pytest.raises(ValueError, match=rf"{name} must be"):
+                RunningNorm(4, **{name: value})
