@@ -825,6 +825,16 @@ class TestNothingIsLost:
             _train(cfg)
         assert len(read_curve(run, "loss/actor")[0]) == 3  # neither touched them
 
+    def test_a_recipe_summary_that_fails_leaves_the_run_s_own_summary(self, tmp_path):
+        def broken(run_dir):
+            raise KeyError("a field the recipe expected")
+
+        with pytest.raises(KeyError, match="a field the recipe expected"):
+            train(_cfg(tmp_path, total_updates=2), recipe="grid", make_env=make_grid,
+                  make_models=make_grid_models, summarise=broken)  # fmt: skip
+        summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+        assert summary["updates"] == 2 and summary["sessions"][0]["frames_at_end"] > 0
+
     def test_stale_temporary_files_are_removed(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
         stale = tmp_path / "run" / ".checkpoint.pt.x1y2.rl_pg-tmp"

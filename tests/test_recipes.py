@@ -347,3 +347,10 @@ def test_play_refuses_to_record_what_does_not_render(tmp_path):
     gridworld.train(gridworld.config(run_dir=tmp_path, total_updates=1, **TINY))
     with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
+
+
+def test_a_run_shorter_than_its_log_interval_ends_with_its_summary(tmp_path):
+    # 5 updates, logged every 10: no training curve, and still a summary
+    summary = bandit.train(bandit.config(run_dir=tmp_path, total_updates=5, progress=False))
+    assert summary["updates"] == 5 and summary["final_running_reward"] is None
+    assert json.loads((tmp_path / "summary.json").read_text())["updates"] == 5

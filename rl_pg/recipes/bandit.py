@@ -85,8 +85,12 @@ def make_models(env: EnvBase, cfg: Config):
 
 
 def running_reward(run_dir, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
-    """r <- 0.99 r + 0.01 reward, per update: the running reward the comparison plots."""
-    frames, rewards = read_curve(run_dir, "train/episode_return")
+    """r <- 0.99 r + 0.01 reward, per update: the running reward the comparison plots
+    (empty for a run shorter than ``log_interval`` updates, which logged none)."""
+    try:
+        frames, rewards = read_curve(run_dir, "train/episode_return")
+    except FileNotFoundError:
+        return np.zeros(0), np.zeros(0)
     running, out = 0.0, []
     for reward in rewards:
         # log_interval updates passed since the last point: apply them all at once.

@@ -178,7 +178,11 @@ def train(
                 hooks.on_end(run)
             finally:
                 run.close()
-        extra = summarise(run_dir) if summarise is not None else None
+        try:
+            extra = summarise(run_dir) if summarise is not None else None
+        except Exception:  # the recipe's own fields failed: the run's summary still stands
+            directory.finish(run.state, interrupted=interrupt.requested)
+            raise
         summary = directory.finish(run.state, interrupted=interrupt.requested, extra=extra)
     if interrupt.requested:
         print(
