@@ -9,6 +9,7 @@ the wrong kind, ``ValueError`` for one of the right kind out of its range.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import inspect
 import math
 import numbers
@@ -30,6 +31,25 @@ __all__ = [
     "check_real",
     "check_tensor",
 ]
+
+
+def require_extra(module: str, extra: str, needed_for: str) -> None:
+    """Raises ``ModuleNotFoundError`` naming the extra to install when ``module`` is
+    missing: one line a user can act on, instead of a traceback from deep inside the
+    package that needed it (which often names another fix).
+
+    Examples:
+        >>> from rl_pg._checks import require_extra
+        >>> require_extra("no_such_module_here", "box2d", "LunarLander")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ModuleNotFoundError: LunarLander needs the box2d extra: pip install -c ...
+    """
+    if importlib.util.find_spec(module) is None:
+        raise ModuleNotFoundError(
+            f"{needed_for} needs the {extra} extra: "
+            f'pip install -c constraints.txt "rl_pg[{extra}]".'
+        )
 
 
 def _received(value: Any) -> str:

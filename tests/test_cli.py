@@ -431,3 +431,33 @@ def test_torn_or_bad_records_cost_only_themselves(tmp_path, capsys):
     (run / "summary.json").write_text("{torn")
     status, _, err = in_process("report", str(run), capsys=capsys)
     assert status == 1 and "is not a run summary" in err
+
+
+@pytest.mark.parametrize(
+    ("hidden", "args", "extra"),
+    [
+        ("Box2D", ["train", "lunarlander"], "box2d"),
+        ("ale_py", ["train", "pong"], "atari"),
+        ("highway_env", ["train", "highway"], "highway"),
+        ("optuna", ["tune", "cartpole", "--params", "lr"], "tune"),
+    ],
+)
+def test_a_missing_extra_is_one_line_naming_it(tmp_path, capsys, monkeypatch, hidden, args, extra):
+    hide_module(monkeypatch, hidden)
+    monkeypatch.chdir(tmp_path)
+    status, _, err = in_process(*args, capsys=capsys)
+    assert status == 1, err
+    assert f'pip install -c constraints.txt "rl_pg[{extra}]"' in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_drawing_classic_control_frames_names_the_classic_extra(tmp_path, capsys, monkeypatch):
+    run = tmp_path / "run"
+    status, _, err = in_process("train", "cartpole", "--run-dir", str(run), *QUICK,
+                                capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    hide_module(monkeypatch, "pygame")
+    status, _, err = in_process("play", str(run), "--gif", str(tmp_path / "x.gif"),
+                                capsys=capsys)  # fmt: skip
+    assert status == 1 and '"rl_pg[classic]"' in err and "CartPole" in err
+    assert "Traceback" not in err

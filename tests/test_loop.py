@@ -132,9 +132,7 @@ class TestTrain:
 
     def test_a_missing_logger_package_names_its_extra(self, tmp_path, monkeypatch):
         hide_module(monkeypatch, "wandb")
-        with pytest.raises(
-            ImportError, match=r'--wandb needs the wandb package: .*"rl_pg\[wandb\]"'
-        ):
+        with pytest.raises(ImportError, match=r'--wandb needs the wandb extra: .*"rl_pg\[wandb\]"'):
             _train(_cfg(tmp_path, wandb=True))
         assert not (tmp_path / "run").exists()
 

@@ -17,6 +17,7 @@ from typing import Literal
 
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
@@ -51,7 +52,9 @@ class Config(
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     # One CartPole is unbatched; EnvPool steps a batch even of one (--backend is never
-    # dropped). A watched episode is always gymnasium's.
+    # dropped). A watched episode is always gymnasium's, drawn with pygame.
+    if render:
+        require_extra("pygame", "classic", "Drawing CartPole's frames")
     if render or (cfg.num_envs == 1 and cfg.backend == "gymnasium"):
         return gym_env(cfg.env_id, render=render)
     return gym_env(cfg.env_id, num_envs=cfg.num_envs, backend=cfg.backend)

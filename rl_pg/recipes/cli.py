@@ -359,7 +359,7 @@ def _play(args: list[str]) -> None:
 
     try:
         play.main(tyro.cli(play.Args, args=args, prog="rl-pg play"))
-    except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
+    except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
         sys.exit(f"rl-pg play: {err}")
 
 
@@ -368,7 +368,7 @@ def _evaluate(args: list[str]) -> None:
 
     try:
         evaluate.main(tyro.cli(evaluate.Args, args=args, prog="rl-pg evaluate"))
-    except ValueError as err:  # a run that cannot be rebuilt: the message says what to do
+    except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
         sys.exit(f"rl-pg evaluate: {err}")
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from torch import nn
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import require_extra
 from rl_pg.envs import driving_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
@@ -50,6 +51,7 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    require_extra("highway_env", "highway", "highway-env")
     import highway_env  # noqa: F401  (registers the environments)
 
     return driving_env(

@@ -18,6 +18,7 @@ from typing import Literal
 
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
@@ -78,6 +79,7 @@ class Config(
 
 def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase:
     """``num_envs`` landers stepped as one batch (one lander: batch size ``[]``)."""
+    require_extra("Box2D", "box2d", "LunarLander")
     return gym_env(
         "LunarLander-v3",
         num_envs=num_envs if num_envs > 1 else None,

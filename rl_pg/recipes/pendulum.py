@@ -17,6 +17,7 @@ from typing import Literal
 
 from torchrl.envs import EnvBase
 
+from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, Positive, TrainConfig
@@ -59,6 +60,8 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    if render:  # gymnasium draws classic-control frames with pygame
+        require_extra("pygame", "classic", "Drawing Pendulum's frames")
     if render or cfg.num_envs == 1:
         return gym_env("Pendulum-v1", render=render)
     return gym_env("Pendulum-v1", num_envs=cfg.num_envs)

@@ -21,6 +21,7 @@ from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
+from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
 from rl_pg.training import Count, TrainConfig
@@ -53,6 +54,7 @@ class Config(
 
 
 def _register_atari() -> None:
+    require_extra("ale_py", "atari", "Pong")
     import ale_py
     import gymnasium
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import os
 import re
 from pathlib import Path
@@ -18,6 +17,7 @@ from torchrl.record.loggers import (
     WandbLogger,
 )
 
+from rl_pg._checks import require_extra
 from rl_pg.checkpoint import write_atomically
 from rl_pg.functional import discounted_return
 from rl_pg.training.config import TrainConfig, config_dict
@@ -99,11 +99,8 @@ class Loggers:
             (cfg.wandb, "wandb", "wandb"),
             (cfg.mlflow, "mlflow", "mlflow"),
         ):
-            if wanted and importlib.util.find_spec(module) is None:
-                raise ImportError(
-                    f"--{extra} needs the {module} package: pip install -c constraints.txt "
-                    f'"rl_pg[{extra}]".'
-                )
+            if wanted:
+                require_extra(module, extra, f"--{extra}")
         log_dir = run_dir / "logs"
         if resume_at is not None:
             _trim_csv_logs(log_dir, resume_at)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import importlib.util
 import json
 import statistics
 import warnings
@@ -24,6 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+from rl_pg._checks import require_extra
 from rl_pg.checkpoint import write_atomically
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig
@@ -140,8 +140,7 @@ def tune(
         ValueError: an unknown or untunable setting, no seeds, fewer than one trial, or
             an unknown objective or seed score.
     """
-    if importlib.util.find_spec("optuna") is None:
-        raise ImportError('rl-pg tune needs Optuna: pip install -c constraints.txt "rl_pg[tune]".')
+    require_extra("optuna", "tune", "rl-pg tune (Optuna)")
     import optuna
 
     fields = {f.name for f in dataclasses.fields(base)}
