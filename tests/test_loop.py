@@ -833,6 +833,23 @@ class TestNothingIsLost:
         summary = json.loads((tmp_path / "run" / "summary.json").read_text())
         assert summary["updates"] == 2 and summary["sessions"][0]["frames_at_end"] > 0
 
+    def test_runs_latest_points_at_the_newest_run(self, tmp_path, monkeypatch):
+        monkeypatch.chdir(tmp_path)
+        first = _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=1))
+        latest = tmp_path / "runs" / "latest"
+        assert latest.is_symlink() and latest.resolve() == Path(first["run_dir"]).resolve()
+        second = _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=2))
+        assert latest.resolve() == Path(second["run_dir"]).resolve()
+        assert read_run(latest)["state"]["updates"] == 1  # commands take it as a run
+        # a run in a directory of its own choosing leaves the link alone
+        _train(_cfg(tmp_path, run_dir=tmp_path / "runs" / "mine", total_updates=1))
+        assert latest.resolve() == Path(second["run_dir"]).resolve()
+        # and so does a real directory called latest
+        latest.unlink()
+        latest.mkdir()
+        _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=3))
+        assert latest.is_dir() and not latest.is_symlink() and not any(latest.iterdir())
+
     def test_stale_temporary_files_are_removed(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))
         stale = tmp_path / "run" / ".checkpoint.pt.x1y2.rl_pg-tmp"

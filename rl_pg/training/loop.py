@@ -54,7 +54,7 @@ from rl_pg.training.optimisation import (
     update,
     warm_up,
 )
-from rl_pg.training.run_dir import RunDirectory, new_run_dir
+from rl_pg.training.run_dir import RunDirectory, link_latest, new_run_dir
 from rl_pg.training.seeds import run_streams, seed_everything
 from rl_pg.training.selection import Confirmation, PolicyAverage, evaluate_run
 from rl_pg.training.threads import torch_threads
@@ -154,6 +154,8 @@ def train(
             for batch in run.collection:
                 hooks.on_batch(run, batch)
                 metrics = run.update(batch)
+                if not directory.kept and cfg.run_dir is None:
+                    link_latest(run_dir)  # runs/latest: the newest run that trained
                 directory.keep()  # it trained: its logs stay, however the run ends
                 hooks.on_update(run, batch, metrics)
                 done = run.budget_spent()

@@ -30,7 +30,15 @@ from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
 from rl_pg.training.curves import plot_run
 from rl_pg.training.provenance import session_record
 
-__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirectory", "locked", "new_run_dir"]
+__all__ = [
+    "LATEST",
+    "LOCK_FILE",
+    "RunDirBusy",
+    "RunDirectory",
+    "link_latest",
+    "locked",
+    "new_run_dir",
+]
 
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
@@ -126,6 +134,11 @@ class RunDirectory:
     def keep(self) -> None:
         """Marks the directory as holding something worth keeping (e.g. a checkpoint)."""
         self._keep = True
+
+    @property
+    def kept(self) -> bool:
+        """Whether [`keep`][rl_pg.training.run_dir.RunDirectory.keep] was called."""
+        return self._keep
 
     def __exit__(self, exc_type, exc, traceback) -> None:
         if self._fd is None:
@@ -234,6 +247,27 @@ def _lock(fd: int, *, wait: bool = False) -> None:
 def new_run_dir(recipe: str, seed: int) -> Path:
     # Time-stamped, so that running a recipe twice never collides with an earlier run.
     return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+LATEST = "latest"
+"""The link beside the time-stamped run directories to the newest of them."""
+
+
+def link_latest(run_dir: Path) -> None:
+    """Points ``run_dir.parent / "latest"`` at ``run_dir`` (a relative symbolic link,
+    replaced atomically), so ``rl-pg play runs/latest`` finds the newest run. A real file
+    or directory named ``latest`` is left alone, and so is a system without symbolic
+    links."""
+    link = run_dir.parent / LATEST
+    if link.exists() and not link.is_symlink():
+        return
+    staged = run_dir.parent / f".{LATEST}.{os.getpid()}"
+    try:
+        staged.unlink(missing_ok=True)
+        staged.symlink_to(run_dir.name, target_is_directory=True)
+        os.replace(staged, link)
+    except OSError:
+        staged.unlink(missing_ok=True)
 
 
 def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
