@@ -461,3 +461,17 @@ def test_drawing_classic_control_frames_names_the_classic_extra(tmp_path, capsys
                                 capsys=capsys)  # fmt: skip
     assert status == 1 and '"rl_pg[classic]"' in err and "CartPole" in err
     assert "Traceback" not in err
+
+
+def test_a_recipe_module_that_fails_to_import_says_why(tmp_path, monkeypatch):
+    from rl_pg.recipes import load
+
+    monkeypatch.syspath_prepend(str(tmp_path))
+    (tmp_path / "needs_more.py").write_text("import no_such_package_here\n")
+    (tmp_path / "raises.py").write_text("raise RuntimeError('bad config file')\n")
+    with pytest.raises(ValueError, match=r"needs 'no_such_package_here', which is not installed"):
+        load("mine", "needs_more")
+    with pytest.raises(ValueError, match=r"failed to import: RuntimeError: bad config file"):
+        load("mine", "raises")
+    with pytest.raises(ValueError, match=r"No recipe called 'mine' \(its module 'gone'"):
+        load("mine", "gone")  # a module that is not there at all

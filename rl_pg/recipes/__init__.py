@@ -59,10 +59,23 @@ def load(name: str, module: str | None = None) -> Recipe:
 
 
 def _find(name: str, module: str) -> Recipe | None:
+    """The recipe ``name`` in ``module``; None when the module is not there (a script's
+    ``__main__``, or a module since removed). A module that is there but fails to import
+    says why: its own error, not "no such recipe"."""
     try:
         namespace = vars(importlib.import_module(module))
-    except ImportError:
+    except ModuleNotFoundError as err:
+        if err.name is not None and module.split(".")[0] != err.name.split(".")[0]:
+            raise ValueError(
+                f"The module {module!r} that defines recipe {name!r} cannot be imported: "
+                f"it needs {err.name!r}, which is not installed ({err})."
+            ) from err
         return None
+    except Exception as err:  # the user's module raised while importing
+        raise ValueError(
+            f"The module {module!r} that defines recipe {name!r} failed to import: "
+            f"{type(err).__name__}: {err}"
+        ) from err
     found = [v for v in namespace.values() if isinstance(v, Recipe) and v.name == name]
     return found[0] if found else None
 
