@@ -243,3 +243,23 @@ class TestRejectedBatches:
         for name, value in bad:
             with pytest.raises(ValueError, match=rf"{name} must be"):
                 RunningNorm(4, **{name: value})
+
+
+@pytest.mark.parametrize("baseline", ["running_mean", "ema"])
+def test_a_rejected_batch_leaves_the_loss_s_baseline_as_it_was(baseline):
+    from rl_pg.envs import GridWorldEnv
+    from rl_pg.models import mlp_actor
+
+    env = GridWorldEnv(batch_size=4)
+    actor = mlp_actor(env)
+    loss = ReinforceLoss(actor, baseline=baseline)
+    batch = env.rollout(6, actor, break_when_any_done=False)
+    loss(batch.clone())
+    before = {k: v.clone() for k, v in loss.state_dict().items() if "baseline" in k}
+    assert before
+    bad = batch.clone()
+    bad["next", "reward"][0, 2] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        loss(bad)
+    for key, value in before.items():
+        assert torch.equal(loss.state_dict()[key], value), key
