@@ -44,14 +44,32 @@ def test_a_study_is_stored_and_continued(tmp_path):
     assert result["best_score"] == pytest.approx(sum(best.user_attrs["scores"]) / 2)
 
     # The same command again: the study already holds its trials.
-    again = tune(gridworld, _base(), params=["lr", "entropy_coeff"], trials=2, study_dir=tmp_path)
+    same = {"params": ["lr", "entropy_coeff"], "seeds": [0, 1], "study_dir": tmp_path}
+    again = tune(gridworld, _base(), trials=2, **same)
     assert again["trials"] == 2 and not (tmp_path / "trial2").exists()
     # More trials: only the missing ones run.
-    more = tune(gridworld, _base(), params=["lr", "entropy_coeff"], trials=3, study_dir=tmp_path)
+    more = tune(gridworld, _base(), trials=3, **same)
     assert more["trials"] == 3 and (tmp_path / "trial2").exists()
     # ... with settings of its own: a search run again does not replay the first one's.
     lrs = [trial.params["lr"] for trial in _study(tmp_path).trials]
     assert len(set(lrs)) == 3
+
+
+def test_a_search_with_other_settings_does_not_join_a_study(tmp_path):
+    first = {"params": ["lr"], "seeds": [0], "study_dir": tmp_path}
+    tune(gridworld, _base(), trials=1, **first)
+    for changed, match in [
+        ({"params": ["gamma"]}, r"params: \['lr'\] -> \['gamma'\]"),
+        ({"seeds": [0, 1]}, r"seeds: \[0\] -> \[0, 1\]"),
+        ({"objective": "best"}, "objective: 'final' -> 'best'"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            tune(gridworld, _base(), trials=2, **{**first, **changed})
+    with pytest.raises(ValueError, match=r"--gamma: 1.0 -> 0.9.*another --run-dir"):
+        tune(gridworld, _base(gamma=0.9), trials=2, **first)  # another discount
+    # what only sets the reference trial, or where the runs are watched, may differ
+    more = tune(gridworld, _base(lr=0.02, threads=2), trials=2, **first)
+    assert more["trials"] == 2
 
 
 def test_the_first_trial_runs_the_given_settings(tmp_path):

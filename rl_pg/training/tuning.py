@@ -26,7 +26,7 @@ from typing import Any, Literal
 from rl_pg._checks import require_extra
 from rl_pg.checkpoint import write_atomically
 from rl_pg.training.checkpoints import read_run
-from rl_pg.training.config import Count, TrainConfig
+from rl_pg.training.config import Count, TrainConfig, config_dict
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import locked
 from rl_pg.training.seeds import replay_seed
@@ -176,6 +176,8 @@ def tune(
         # Each search on the study (a second one beside it, or the same command run
         # again after a kill) draws its own settings: with one seed, its random first
         # trials would repeat the other's.
+        _same_study(study, _study_settings(recipe, base, params, seeds, objective,
+                                           held_out_episodes, seed_score), study_dir)  # fmt: skip
         searches = study.user_attrs.get("searches", 0)
         study.set_user_attr("searches", searches + 1)
         study.sampler = optuna.samplers.TPESampler(seed=sampler_seed + searches)
@@ -248,6 +250,59 @@ def tune(
     }
     write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
     return result
+
+
+UNSCORED_FIELDS = frozenset(
+    {"seed", "run_dir", "resume", "progress", "threads", "tensorboard", "wandb",
+     "wandb_project", "wandb_mode", "mlflow", "mlflow_uri"}
+)  # fmt: skip
+"""Config fields that do not change what a trial scores (where and how it is watched)."""
+
+
+def _study_settings(
+    recipe, base, params, seeds, objective, held_out_episodes, seed_score
+) -> dict[str, Any]:
+    """What makes two trials' scores comparable: the recipe, the searched settings,
+    the seeds, the objective and every other setting of the runs."""
+    fixed = {
+        key: value
+        for key, value in config_dict(base).items()
+        if key not in UNSCORED_FIELDS and key not in params
+    }
+    return {
+        "recipe": recipe.name,
+        "params": sorted(params),
+        "seeds": list(seeds),
+        "objective": objective,
+        "held_out_episodes": held_out_episodes if objective == "held_out" else None,
+        "seed_score": seed_score,
+        "fixed": fixed,
+    }
+
+
+def _same_study(study, settings: dict[str, Any], study_dir: Path) -> None:
+    """Records the settings of a new study; refuses a search that would join a study
+    made with other ones (its trials' scores would not compare)."""
+    stored = study.user_attrs.get("settings")
+    if stored is None:
+        if not study.trials:  # a new study: what every later search must match
+            study.set_user_attr("settings", settings)
+        return
+    changed = [f"{key}: {stored.get(key)!r} -> {settings[key]!r}" for key in
+               ("recipe", "params", "seeds", "objective", "held_out_episodes", "seed_score")
+               if stored.get(key) != settings[key]]  # fmt: skip
+    fixed = stored.get("fixed", {})
+    changed += [
+        f"--{key.replace('_', '-')}: {fixed.get(key)!r} -> {value!r}"
+        for key, value in settings["fixed"].items()
+        if key in fixed and fixed[key] != value
+    ]
+    if changed:
+        raise ValueError(
+            f"{study_dir} holds a study made with other settings ({'; '.join(changed)}): "
+            f"its trials' scores would not compare with this search's. Run it with the "
+            f"study's settings, or give this search another --run-dir."
+        )
 
 
 def _settings(trial, params: Sequence[str], base: TrainConfig) -> dict[str, Any]:
