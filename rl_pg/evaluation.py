@@ -145,7 +145,8 @@ def evaluate(
         0.0
     """
     episodes, max_steps, deterministic = check_playing(episodes, max_steps, deterministic)
-    distinct = getattr(env, "distinct_episodes", None)
+    # (a TorchRL batched env answers attribute lookups only once started: ask players only)
+    distinct = None if isinstance(env, EnvBase) else getattr(env, "distinct_episodes", None)
     if distinct is not None and episodes > distinct:
         raise ValueError(
             f"This evaluation plays a fixed set of {distinct} episodes (scenarios played in "

@@ -307,11 +307,12 @@ def mlp_actor_critic(
     [`mlp_critic`][rl_pg.models.mlp_critic].
 
     Examples:
+        >>> from torchrl.modules import ProbabilisticActor
         >>> from rl_pg.envs import BanditEnv
         >>> from rl_pg.models import mlp_actor_critic
         >>> actor, critic = mlp_actor_critic(BanditEnv(num_arms=3), hidden=(8,))
-        >>> type(actor).__name__, type(critic).__name__
-        ('ProbabilisticActor', 'ValueOperator')
+        >>> isinstance(actor, ProbabilisticActor), type(critic).__name__
+        (True, 'ValueOperator')
     """
     kwargs = {"hidden": hidden, "activation": activation, "observation_key": observation_key}
     actor = mlp_actor(
