@@ -96,13 +96,19 @@ def test_mistakes_get_one_line(tmp_path, args, message, capsys, monkeypatch):
     assert status == 1 and message in err
 
 
-def test_report_tabulates_runs_with_their_best_checkpoints_evaluations(tmp_path, capsys):
+def _gridworld_runs(tmp_path, capsys) -> list[str]:
+    """Two short gridworld runs (seeds 0 and 1) trained through the command line."""
     runs = [str(tmp_path / f"seed{seed}") for seed in (0, 1)]
     for seed, run in enumerate(runs):
         status, _, err = in_process(
             "train", "gridworld", "--seed", str(seed), "--run-dir", run, *QUICK, capsys=capsys
         )
         assert status == 0, err
+    return runs
+
+
+def test_report_tabulates_runs_with_their_best_checkpoints_evaluations(tmp_path, capsys):
+    runs = _gridworld_runs(tmp_path, capsys)
     assert in_process("evaluate", runs[0], "--episodes", "3", capsys=capsys)[0] == 0
     evaluated = json.loads((tmp_path / "seed0" / "evaluations.jsonl").read_text())
 
@@ -313,12 +319,8 @@ def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
 
 
 def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, capsys):
-    runs = [str(tmp_path / f"seed{seed}") for seed in (0, 1)]
-    for seed, run in enumerate(runs):
-        status, _, err = in_process(
-            "train", "gridworld", "--seed", str(seed), "--run-dir", run, *QUICK, capsys=capsys
-        )
-        assert status == 0, err
+    runs = _gridworld_runs(tmp_path, capsys)
+    for run in runs:
         for mode in ((), ("--sample",)):
             assert in_process("evaluate", run, "--episodes", "3", *mode, capsys=capsys)[0] == 0
     # A result on other episodes (--seed) comes after, and does not replace the ones on

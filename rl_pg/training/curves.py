@@ -56,6 +56,15 @@ def read_curve(run_dir: str | Path, metric: str) -> tuple[np.ndarray, np.ndarray
     return data[:, 0], data[:, 1]
 
 
+def _frame_axes(ax, *, ylabel: str, title: str, threshold, ylim) -> None:
+    """Curves by frame: the threshold line, labels, range and a small legend."""
+    _threshold_line(ax, threshold)
+    ax.set(xlabel="frames", ylabel=ylabel, title=title)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
+    ax.legend(loc="best", fontsize="small")
+
+
 def _threshold_line(ax, threshold: float | None) -> None:
     """The target as a dotted grey line, labelled, where there is one."""
     if threshold is not None:
@@ -94,11 +103,7 @@ def plot_runs(
     with png_figure(path) as ax:
         for label, run_dir in runs.items():
             ax.plot(*read_curve(run_dir, metric), marker=".", label=label)
-        _threshold_line(ax, threshold)
-        ax.set(xlabel="frames", ylabel=metric, title=title)
-        if ylim is not None:
-            ax.set_ylim(*ylim)
-        ax.legend(loc="best", fontsize="small")
+        _frame_axes(ax, ylabel=metric, title=title, threshold=threshold, ylim=ylim)
     return path
 
 
@@ -195,11 +200,7 @@ def plot_seeds(
         ax.plot(grids[0], iqm, color="C0", linewidth=2,
                 label=f"interquartile mean of {len(curves)} seeds")  # fmt: skip
         ax.fill_between(grids[0], low, high, color="C0", alpha=0.25, label="95 % bootstrap CI")
-        _threshold_line(ax, threshold)
-        ax.set(xlabel="frames", ylabel=ylabel, title=title)
-        if ylim is not None:
-            ax.set_ylim(*ylim)
-        ax.legend(loc="best", fontsize="small")
+        _frame_axes(ax, ylabel=ylabel, title=title, threshold=threshold, ylim=ylim)
     return path
 
 
