@@ -158,9 +158,18 @@ def read_stored(path: Path) -> tuple[list[dict[str, Any]], list[str]]:
         ValueError: ``path`` is missing, or is not a file ``--store`` wrote (the
             message names the file).
     """
+    runs = _stored_runs(path)
+    return [run["report"] for run in runs], [run["name"] for run in runs]
+
+
+def _stored_runs(path: Path) -> list[dict[str, Any]]:
+    """The runs a file written by ``--store`` holds (each with its name, report and
+    curve), or a ValueError naming the file."""
     try:
         runs = json.loads(Path(path).read_text())["runs"]
-        return [run["report"] for run in runs], [run["name"] for run in runs]
+        if not all({"name", "report"} <= run.keys() and "values" in run["curve"] for run in runs):
+            raise KeyError("a run without its name, report or curve")
+        return runs
     except FileNotFoundError as err:
         raise ValueError(
             f"{path} does not exist: write it with rl-pg report RUN... --store."
@@ -176,7 +185,7 @@ def plot_stored(path: Path, figure: Path, *, ylim: tuple[float, float] | None = 
     """Draws the seeds of a stored report into ``figure``: each run's curve, and their
     interquartile mean with a 95 % bootstrap band (see
     [`plot_seeds`][rl_pg.training.curves.plot_seeds])."""
-    runs = json.loads(Path(path).read_text())["runs"]
+    runs = _stored_runs(path)
     metrics = {run["curve"]["metric"] for run in runs}
     thresholds = {run["report"].get("threshold") for run in runs}
     metric = metrics.pop() if len(metrics) == 1 else "the stored metric"
