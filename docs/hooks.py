@@ -7,13 +7,17 @@ names a dataclass of another module of ``rl_pg.recipes``.
 
 ``$$ ... $$`` blocks of LaTeX, and ``$...$`` inside a line, become MathML when the site
 is built (latex2mathml): browsers render MathML themselves, so the maths needs no script
-and no network.
+and no network. The tutorials (notebooks that mkdocs-jupyter renders to HTML itself) get
+the same in their Markdown cells, and their links to other pages (written as relative
+``.md`` files, which also work in Jupyter) point at the built pages.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import html
 import importlib
+import posixpath
 import re
 import warnings
 from pathlib import Path
@@ -35,6 +39,10 @@ DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
 # $...$ inside a line (no space after the opening or before the closing $), outside code.
 INLINE_MATH = re.compile(r"(?<![\\$\w])\$(?=\S)([^$\n]+?)(?<=\S)\$(?![\w$])")
 CODE = re.compile(r"(^```.*?^```$|`[^`\n]+`)", re.MULTILINE | re.DOTALL)
+# In a notebook's HTML: code, and outputs, are left as they are.
+HTML_CODE = re.compile(r"(<pre[ >].*?</pre>|<code>.*?</code>|<script.*?</script>)", re.DOTALL)
+HTML_DISPLAY_MATH = re.compile(r"<p>\$\$\n(.+?)\n\$\$</p>", re.DOTALL)
+MARKDOWN_LINK = re.compile(r'href="(?![a-z]+:|#)([^"#]+)\.(?:md|py)(#[^"]*)?"')
 
 
 def config_table(recipe: str, name: str | None = None) -> str:
@@ -73,6 +81,36 @@ def inline_maths(markdown: str) -> str:
         part if i % 2 else INLINE_MATH.sub(lambda m: convert(m.group(1)), part)
         for i, part in enumerate(parts)
     )
+
+
+def notebook_html(content: str, page_dir: str) -> str:
+    """A rendered notebook's Markdown cells with their maths as MathML and their links to
+    ``.md`` pages and other notebooks as links to the built pages (``page_dir``: the
+    page's folder in the source, e.g. ``tutorials``)."""
+    from latex2mathml.converter import convert
+
+    def markdown_cells(part: str) -> str:
+        part = HTML_DISPLAY_MATH.sub(lambda m: mathml(html.unescape(m.group(1))), part)
+        return INLINE_MATH.sub(lambda m: convert(html.unescape(m.group(1))), part)
+
+    def link(match: re.Match) -> str:
+        target = posixpath.normpath(posixpath.join(page_dir, match.group(1)))
+        target = "" if target == "index" else target.removesuffix("/index") + "/"
+        # the notebook's page is served one folder deeper (tutorials/name/index.html)
+        depth = page_dir.count("/") + 2 if page_dir else 1
+        return f'href="{"../" * depth}{target}{match.group(2) or ""}"'
+
+    parts = HTML_CODE.split(content)
+    return "".join(
+        part if i % 2 else MARKDOWN_LINK.sub(link, markdown_cells(part))
+        for i, part in enumerate(parts)
+    )
+
+
+def on_page_content(html_text: str, page, **kwargs) -> str:
+    if page.file.src_uri.endswith(".py"):  # a tutorial, rendered by mkdocs-jupyter
+        return notebook_html(html_text, posixpath.dirname(page.file.src_uri))
+    return html_text
 
 
 def on_page_markdown(markdown: str, **kwargs) -> str:

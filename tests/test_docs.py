@@ -96,12 +96,17 @@ def test_page_code_runs(page, tmp_path, monkeypatch):
     gc.collect()
 
 
-def test_maths_becomes_mathml_outside_code_only():
+def _hooks():
     sys.path.insert(0, str(DOCS))
     try:
         import hooks
     finally:
         sys.path.remove(str(DOCS))
+    return hooks
+
+
+def test_maths_becomes_mathml_outside_code_only():
+    hooks = _hooks()
     page = (
         "A policy $\\pi_\\theta(a \\mid s)$ and $G_t$; it costs $5 and $ 3 $.\n\n"
         "`echo $HOME` and `$x$` stay code.\n\n```bash\nexport A=$B$C\n```\n\n"
@@ -117,3 +122,23 @@ def test_maths_becomes_mathml_outside_code_only():
         rendered = hooks.CODE.split(hooks.on_page_markdown(path.read_text()))
         prose = "".join(part for i, part in enumerate(rendered) if i % 2 == 0)
         assert not hooks.INLINE_MATH.search(prose), path.name
+
+
+def test_a_tutorials_html_gets_mathml_and_links_to_built_pages():
+    hooks = _hooks()
+    rendered = (  # what mkdocs-jupyter makes of a Markdown cell, a code cell and an output
+        "<p>$$\nJ(\\theta) = \\sum_a \\pi_a r_a\n$$</p>\n"
+        '<p>see the <a href="../theory.md#the-objective">theory</a>, <a href="other.py">'
+        'notebook 2</a> and <a href="https://example.org/x.md">elsewhere</a>; '
+        "$a &lt; b$ costs $5 and $ 3 $</p>"
+        '<pre><span>x = "$a$"</span></pre><pre>cost: $1 and $2</pre>'
+    )
+    html = hooks.notebook_html(rendered, "tutorials")
+    assert html.count('display="block"') == 1
+    assert html.count('display="inline"') == 1  # a < b, unescaped for latex2mathml
+    assert "<mo>&#x0003C;</mo>" in html
+    assert 'href="../../theory/#the-objective"' in html  # the page is tutorials/name/
+    assert 'href="../../tutorials/other/"' in html
+    assert 'href="https://example.org/x.md"' in html
+    for kept in ("$5 and $ 3 $", 'x = "$a$"', "cost: $1 and $2"):
+        assert kept in html, kept
