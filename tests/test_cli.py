@@ -355,10 +355,33 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert page.read_text() == f"Intro.\n\n{opening}\n{table}\n<!-- end of report -->\n\nAfter.\n"
     status, out, _ = in_process("report", "--refresh", str(page), capsys=capsys)
     assert status == 0 and "current" in out
+    # performance profiles of two stored settings; a page names one, --refresh draws it
+    other = stored.with_name("other.json")
+    saved_runs = json.loads(stored.read_text())
+    for run in saved_runs["runs"]:
+        for mode in ("greedy", "sampled"):
+            run["report"][mode]["mean_return"] += 0.25
+    other.write_text(json.dumps(saved_runs))
+    status, out, err = in_process("report", "--stored", str(stored), str(other), "--profile",
+                                  str(tmp_path / "profile.png"), capsys=capsys)  # fmt: skip
+    assert status == 0 and f"{stored}:" in out and f"{other}:" in out, err
+    assert (tmp_path / "profile.png").is_file()
+    page.write_text("<!-- rl-pg report --stored results/seeds.json results/other.json "
+                    "--profile profile.png -->\n")  # fmt: skip
+    (tmp_path / "profile.png").unlink()
+    status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 0 and "refreshed" in out and (tmp_path / "profile.png").is_file(), err
+    unevaluated = json.loads(stored.read_text())
+    unevaluated["runs"][1]["report"]["sampled"] = None
+    other.write_text(json.dumps(unevaluated))
     # what cannot be done says so
     for args, message in [
         (("report",), "one of the three"),
-        (("report", "--stored", str(stored), runs[0]), "one of the three"),
+        (("report", runs[0], "--stored", str(stored)), "one of the three"),
+        (("report", "--stored", str(tmp_path)), "is not a stored report"),
+        (("report", "--profile", "x.png"), "name them with --stored"),
+        (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
+        (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
         (("report", "--stored", str(page)), "is not a stored report"),
         (("report", "--stored", str(stored), "--store", "x.json"), "leave it out"),
@@ -375,9 +398,8 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
     from rl_pg.recipes.report import (
         STORED_FIGURE,
         STORED_TABLE,
-        figure_ylim,
+        draw_stored,
         format_report,
-        plot_stored,
         read_stored,
     )
 
@@ -393,13 +415,11 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
             )
         for match in STORED_FIGURE.finditer(page.read_text()):
             found += 1
-            drawn = plot_stored(
-                page.parent / match["file"], tmp_path / f"{found}.png", ylim=figure_ylim(match)
-            )
+            drawn = draw_stored(match, page.parent, tmp_path / f"{found}.png")
             # a tolerance for another matplotlib's anti-aliasing, not for other data
             difference = compare_images(str(page.parent / match["figure"]), str(drawn), tol=2)
             assert difference is None, (
-                f"{page.name}: {match['figure']} is not drawn from {match['file']} "
+                f"{page.name}: {match['figure']} is not drawn from {match['files']} "
                 f"({difference}); run rl-pg report --refresh {page.relative_to(REPO)}"
             )
     assert found >= 3

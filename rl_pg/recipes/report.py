@@ -5,6 +5,7 @@ rl-pg report runs/lunarlander-seed* --plot seeds.png   # and the evaluation curv
 rl-pg report runs/lunarlander-seed* --store seeds.json # and keep what the table shows
 rl-pg report --stored seeds.json                       # the same table, from that file
 rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregate curve
+rl-pg report --stored a.json b.json --profile p.png    # settings' performance profiles
 rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
@@ -16,7 +17,8 @@ curve to a JSON file, and a Markdown page shows a stored table between the lines
 ``<!-- rl-pg report --stored FILE -->`` and ``<!-- end of report -->`` (FILE relative to
 the page), which ``--refresh`` rewrites from the file, so the page cannot drift from it.
 A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->``
-names a figure drawn from the file, which ``--refresh`` draws again.
+names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
+FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
 """
 
 from __future__ import annotations
@@ -33,14 +35,16 @@ import tyro
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import plot_runs, plot_seeds, read_curve
+from rl_pg.training.curves import plot_profiles, plot_runs, plot_seeds, read_curve
 from rl_pg.training.run_dir import CONFIG, SUMMARY
 from rl_pg.training.seeds import fresh_seed
 
 __all__ = [
     "Args",
+    "draw_stored",
     "format_report",
     "main",
+    "plot_profile",
     "plot_stored",
     "read_report",
     "read_stored",
@@ -51,8 +55,8 @@ __all__ = [
 SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
 RECORD_KEYS = frozenset({"checkpoint", "frames", "mode", "seed", "mean_return"})
 STORED_FIGURE = re.compile(
-    r"^<!-- rl-pg report --stored (?P<file>\S+) --plot (?P<figure>\S+)"
-    r"(?: --ylim (?P<low>\S+) (?P<high>\S+))? -->$",
+    r"^<!-- rl-pg report --stored (?P<files>\S+(?: \S+)*?) --(?P<kind>plot|profile) "
+    r"(?P<figure>\S+)(?: --ylim (?P<low>\S+) (?P<high>\S+))? -->$",
     re.MULTILINE,
 )
 STORED_TABLE = re.compile(
@@ -70,8 +74,9 @@ class Args:
     store: Path | None = None
     """Also write the table's rows, with every run's config and evaluation curve, to
     this JSON file (read back with --stored)."""
-    stored: Path | None = None
-    """Print the table of a file written by --store instead of reading run directories."""
+    stored: list[Path] | None = None
+    """Print the table of files written by --store instead of reading run directories
+    (one table per file)."""
     refresh: list[Path] | None = None
     """Rewrite every stored table of these Markdown files from its file (see above)."""
     plot: Path | None = None
@@ -82,6 +87,10 @@ class Args:
     .csv), e.g. train/episode_return or eval/mean_route_completion."""
     ylim: tuple[float, float] | None = None
     """With plot: the vertical range (LOW HIGH), when a few early values squash the rest."""
+    profile: Path | None = None
+    """With --stored: draw the files' performance profiles into this PNG file, one curve
+    per file: the share of its runs whose best checkpoint scores above τ both ways (the
+    lower of its greedy and sampled results), with a 95 % bootstrap band."""
 
 
 def read_report(run_dir: Path) -> dict[str, Any]:
@@ -174,7 +183,7 @@ def _stored_runs(path: Path) -> list[dict[str, Any]]:
         raise ValueError(
             f"{path} does not exist: write it with rl-pg report RUN... --store."
         ) from err
-    except (json.JSONDecodeError, KeyError, TypeError) as err:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as err:
         raise ValueError(
             f"{path} is not a stored report ({type(err).__name__}: {err}); write it with "
             f"rl-pg report RUN... --store {path}."
@@ -203,6 +212,51 @@ def plot_stored(path: Path, figure: Path, *, ylim: tuple[float, float] | None = 
     )
 
 
+def plot_profile(paths: list[Path], figure: Path) -> Path:
+    """Draws the performance profile of each stored file's runs into ``figure``: a run's
+    score is its best checkpoint's lower mean return of the greedy and the sampled
+    evaluations (what it holds both ways). Each file is one setting, named by its stem.
+
+    Raises:
+        ValueError: a file that is not a stored report, or a run in it without both
+            evaluations (the message names the file and the run).
+    """
+    scores, thresholds, recipes = {}, set(), set()
+    for path in paths:
+        reports, names = read_stored(path)
+        for report, name in zip(reports, names, strict=True):
+            if report["greedy"] is None or report["sampled"] is None:
+                raise ValueError(
+                    f"{path}: run {name} has no greedy and sampled evaluation of its best "
+                    f"checkpoint (rl-pg evaluate RUN --episodes 100, and with --sample), so "
+                    f"it has no score to profile; evaluate it, then --store again."
+                )
+        scores[Path(path).stem] = np.array(
+            [min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) for r in reports]
+        )
+        thresholds |= {r.get("threshold") for r in reports}
+        recipes |= {r["recipe"] for r in reports}
+    return plot_profiles(
+        scores,
+        Path(figure),
+        xlabel="τ: the best checkpoint's mean return, the lower of greedy and sampled",
+        title=", ".join(sorted(recipes)),
+        threshold=thresholds.pop() if len(thresholds) == 1 else None,
+    )
+
+
+def draw_stored(match: re.Match, folder: Path, figure: Path | None = None) -> Path:
+    """Draws the figure a page's line ``match`` (``STORED_FIGURE``) names, its files
+    relative to ``folder`` (the page's), into ``figure`` (default: the one it names)."""
+    files = [Path(folder) / name for name in match["files"].split()]
+    figure = Path(folder) / match["figure"] if figure is None else figure
+    if match["kind"] == "profile":
+        return plot_profile(files, figure)
+    if len(files) != 1:
+        raise ValueError(f"--plot draws one stored file, got {match['files']!r}.")
+    return plot_stored(files[0], figure, ylim=figure_ylim(match))
+
+
 def refresh(page: Path) -> bool:
     """Rewrites every stored table of the Markdown file ``page`` from its file and draws
     its stored figures again; True if the page or a figure changed."""
@@ -221,7 +275,7 @@ def refresh(page: Path) -> bool:
     for match in STORED_FIGURE.finditer(refreshed):
         figure = page.parent / match["figure"]
         before = figure.read_bytes() if figure.is_file() else None
-        plot_stored(page.parent / match["file"], figure, ylim=figure_ylim(match))
+        draw_stored(match, page.parent)
         changed |= figure.read_bytes() != before
     return changed
 
@@ -293,10 +347,12 @@ def _result(record: dict[str, Any] | None) -> str:
 
 def main(args: Args) -> str:
     """Prints (and returns) the table; draws the figure when ``args.plot`` is set."""
+    if args.profile is not None and args.stored is None:
+        raise ValueError("--profile draws stored files: name them with --stored.")
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
     if sources != 1:
         raise ValueError(
-            "name run directories, or one file with --stored, or pages with --refresh "
+            "name run directories, or files with --stored, or pages with --refresh "
             "(one of the three)."
         )
     if args.refresh is not None:
@@ -307,11 +363,19 @@ def main(args: Args) -> str:
     if args.stored is not None:
         if args.store is not None:
             raise ValueError("--store reads run directories: leave it out with --stored.")
-        reports, names = read_stored(args.stored)
-        table = format_report(reports, names)
+        if args.plot is not None and len(args.stored) != 1:
+            raise ValueError("--plot draws one stored file's seeds; for several, use --profile.")
+        tables = []
+        for path in args.stored:
+            reports, names = read_stored(path)
+            table = format_report(reports, names)
+            tables.append(table if len(args.stored) == 1 else f"{path}:\n\n{table}")
+        table = "\n\n".join(tables)
         print(table)
         if args.plot is not None:
-            print(f"curves: {plot_stored(args.stored, args.plot, ylim=args.ylim)}")
+            print(f"curves: {plot_stored(args.stored[0], args.plot, ylim=args.ylim)}")
+        if args.profile is not None:
+            print(f"performance profiles: {plot_profile(args.stored, args.profile)}")
         return table
     reports = [read_report(run) for run in args.runs]
     names = _names(args.runs)

@@ -174,6 +174,82 @@ def seed_aggregate(
     return interquartile_mean(values), interval.low, interval.high
 
 
+def performance_profile(
+    scores: np.ndarray, taus: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The share of runs scoring above each ``τ`` of ``taus`` (a performance profile, as
+    Agarwal et al. 2021 recommend over a table of means: it shows the whole spread of the
+    runs), with a percentile-bootstrap interval over the runs (scipy's ``bootstrap``, a
+    fixed random state). The ``rliable`` package computes the same; it needs ``arch``,
+    whose releases it accepts (< 8) do not import with pandas 3, so rl_pg uses scipy.
+
+    Returns:
+        ``(share, low, high)``, each of shape ``[len(taus)]``.
+
+    Raises:
+        ValueError: ``scores`` is not one score per run for at least 2 runs.
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.training.curves import performance_profile
+        >>> share, low, high = performance_profile(np.array([1.0, 2.0, 3.0, 4.0]),
+        ...                                        np.array([0.0, 2.5, 5.0]))
+        >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
+        ([1.0, 0.5, 0.0], True)
+    """
+    from scipy.stats import bootstrap
+
+    scores = np.asarray(scores, dtype=np.float64)
+    taus = np.asarray(taus, dtype=np.float64)
+    if scores.ndim != 1 or len(scores) < 2:
+        raise ValueError(
+            f"performance_profile needs one score per run for at least 2 runs, got shape "
+            f"{scores.shape}."
+        )
+
+    def share_above(runs: np.ndarray, axis: int = -1) -> np.ndarray:
+        runs = np.moveaxis(runs, axis, -1)  # [..., runs]
+        return np.moveaxis((runs[..., None] > taus).mean(axis=-2), -1, 0)  # [taus, ...]
+
+    interval = bootstrap(
+        (scores,), share_above, axis=0, vectorized=True, confidence_level=confidence,
+        n_resamples=resamples, method="percentile", random_state=0,
+    ).confidence_interval  # fmt: skip
+    return share_above(scores), interval.low, interval.high
+
+
+def plot_profiles(
+    scores: dict[str, np.ndarray],
+    path: Path,
+    *,
+    xlabel: str,
+    title: str,
+    threshold: float | None = None,
+) -> Path:
+    """Performance profiles of several settings (``{name: one score per run}``) in one
+    figure, each with its 95 % bootstrap band (see
+    [`performance_profile`][rl_pg.training.curves.performance_profile])."""
+    every = np.concatenate([np.asarray(s, dtype=np.float64) for s in scores.values()])
+    margin = 0.05 * (every.max() - every.min() or 1.0)
+    taus = np.linspace(every.min() - margin, every.max() + margin, 400)
+    with png_figure(path) as ax:
+        for i, (name, runs) in enumerate(scores.items()):
+            color = f"C{i}"
+            share, low, high = performance_profile(runs, taus)
+            ax.step(taus, share, where="post", color=color, linewidth=2,
+                    label=f"{name} ({len(runs)} runs)")  # fmt: skip
+            ax.fill_between(taus, low, high, step="post", color=color, alpha=0.2)
+        if threshold is not None:
+            ax.axvline(threshold, color="black", linestyle=":", linewidth=1,
+                       label=f"threshold {threshold:g}")  # fmt: skip
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("share of runs scoring above τ")
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+    return path
+
+
 def plot_seeds(
     curves: dict[str, tuple[np.ndarray, np.ndarray]],
     path: Path,
