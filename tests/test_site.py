@@ -1,0 +1,143 @@
+"""The documentation site in a real browser: every page of a fresh build loads in
+headless Chromium with no console error, no failed request and no broken image, every
+link inside the site reaches a page (and its anchor), and no maths is left as LaTeX.
+
+Chromium is Debian's package (``apt-get install chromium``), driven by playwright through
+``executable_path``. Without it the test is skipped, except under CI, where .ci/run
+installs it and a missing browser is a failure. ``RL_PG_SCREENSHOTS=DIR`` keeps
+screenshots of the main pages there.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from urllib.parse import unquote, urljoin, urlparse
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = os.environ.get("RL_PG_CHROMIUM") or shutil.which("chromium")
+MAIN_PAGES = {  # screenshot name: page
+    "home": "",
+    "theory": "theory/",
+    "tutorial": "tutorials/reward_to_go/",
+    "metadrive": "recipes/metadrive/",
+}
+# Text that is LaTeX the build did not render: $$ blocks, or $...$ inside a line.
+RAW_MATHS = re.compile(r"\$\$|(?<![\w$])\$(?=\S)[^$\n]*\\[a-zA-Z]+[^$\n]*(?<=\S)\$(?![\w$])")
+
+if CHROMIUM is None and os.environ.get("CI"):
+    pytest.fail("CI runs the browser test: install Debian's chromium (.ci/run does).")
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None, reason="no Chromium (apt-get install chromium) for the browser test"
+)
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """A fresh build of the site (notebooks without their outputs: tests/test_tutorials.py
+    runs them), served on a free port of 127.0.0.1."""
+    root = tmp_path_factory.mktemp("site")
+    env = {**os.environ, "RL_PG_DOCS_EXECUTE": "false", "NO_MKDOCS_2_WARNING": "1"}
+    built = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(root)],
+        cwd=REPO, env=env, capture_output=True, text=True,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stderr[-3000:]
+    handler = functools.partial(_QuietHandler, directory=str(root))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield root, f"http://127.0.0.1:{server.server_address[1]}/"
+    server.shutdown()
+    server.server_close()
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args) -> None:  # the test reports what failed itself
+        pass
+
+
+def _pages(root: Path) -> list[str]:
+    """Every page of the build, as a path relative to the site ("" for the home page)."""
+    pages = []
+    for index in sorted(root.rglob("index.html")):
+        relative = index.parent.relative_to(root).as_posix()
+        pages.append("" if relative == "." else relative + "/")
+    return pages
+
+
+def _target_file(root: Path, url: str) -> Path:
+    path = root / unquote(urlparse(url).path).lstrip("/")
+    return path / "index.html" if path.is_dir() or not path.suffix else path
+
+
+def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    root, base = site
+    pages = _pages(root)
+    assert len(pages) >= 30 and "tutorials/reward_to_go/" in pages
+    shots = Path(os.environ.get("RL_PG_SCREENSHOTS") or tmp_path / "screenshots")
+    shots.mkdir(parents=True, exist_ok=True)
+    problems: list[str] = []
+    links: dict[str, set[str]] = {}
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        current = {"name": ""}
+        page.on("console", lambda m: m.type == "error" and problems.append(
+            f"{current['name']}: console error: {m.text}"))  # fmt: skip
+        page.on("pageerror", lambda e: problems.append(f"{current['name']}: script error: {e}"))
+        # (ERR_ABORTED: a request the next navigation cancelled, e.g. the favicon's)
+        page.on("requestfailed", lambda r: "ERR_ABORTED" not in (r.failure or "") and (
+            problems.append(f"{current['name']}: request failed: {r.url} ({r.failure})")))  # fmt: skip
+        page.on("response", lambda r: r.status >= 400 and problems.append(
+            f"{current['name']}: HTTP {r.status}: {r.url}"))  # fmt: skip
+        for name in pages:
+            current["name"] = name or "home"
+            page.goto(urljoin(base, name), wait_until="load")
+            broken = page.evaluate(
+                "Array.from(document.images)"
+                ".filter(i => !i.complete || i.naturalWidth === 0).map(i => i.src)"
+            )
+            problems += [f"{name}: broken image {src}" for src in broken]
+            text = page.evaluate(
+                "(() => { const body = document.querySelector('article') || document.body;"
+                " const copy = body.cloneNode(true);"
+                " copy.querySelectorAll('pre, code, script, style, math')"
+                ".forEach(e => e.remove()); return copy.innerText; })()"
+            )
+            problems += [f"{name}: maths left as LaTeX: {m.group(0)[:60]!r}"
+                         for m in RAW_MATHS.finditer(text)]  # fmt: skip
+            hrefs = page.evaluate(
+                "Array.from(document.querySelectorAll('article a[href]')).map(a => a.href)"
+            )
+            links[name] = {href for href in hrefs if href.startswith(base)}
+            for shot, path in MAIN_PAGES.items():
+                if path == name:
+                    page.screenshot(path=str(shots / f"{shot}.png"), full_page=False)
+        browser.close()
+    for name, hrefs in links.items():
+        for href in hrefs:
+            target = _target_file(root, href)
+            if not target.is_file():
+                problems.append(f"{name}: link to a missing page {href}")
+                continue
+            anchor = urlparse(href).fragment
+            if (
+                anchor
+                and target.suffix == ".html"
+                and f'id="{unquote(anchor)}"' not in (target.read_text(errors="replace"))
+            ):
+                problems.append(f"{name}: link to a missing anchor {href}")
+    assert not problems, "\n".join(sorted(set(problems)))
+    assert {p.stem for p in shots.glob("*.png")} >= set(MAIN_PAGES)
