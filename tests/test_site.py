@@ -94,14 +94,16 @@ def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
         browser = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         current = {"name": ""}
-        page.on("console", lambda m: m.type == "error" and problems.append(
-            f"{current['name']}: console error: {m.text}"))  # fmt: skip
-        page.on("pageerror", lambda e: problems.append(f"{current['name']}: script error: {e}"))
+
+        def report(what: str) -> None:
+            problems.append(f"{current['name']}: {what}")
+
+        page.on("console", lambda m: m.type == "error" and report(f"console error: {m.text}"))
+        page.on("pageerror", lambda error: report(f"script error: {error}"))
         # (ERR_ABORTED: a request the next navigation cancelled, e.g. the favicon's)
-        page.on("requestfailed", lambda r: "ERR_ABORTED" not in (r.failure or "") and (
-            problems.append(f"{current['name']}: request failed: {r.url} ({r.failure})")))  # fmt: skip
-        page.on("response", lambda r: r.status >= 400 and problems.append(
-            f"{current['name']}: HTTP {r.status}: {r.url}"))  # fmt: skip
+        page.on("requestfailed", lambda r: "ERR_ABORTED" not in (r.failure or "")
+                and report(f"request failed: {r.url} ({r.failure})"))  # fmt: skip
+        page.on("response", lambda r: r.status >= 400 and report(f"HTTP {r.status}: {r.url}"))
         for name in pages:
             current["name"] = name or "home"
             page.goto(urljoin(base, name), wait_until="load")
