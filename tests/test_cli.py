@@ -473,6 +473,24 @@ def test_a_missing_extra_is_one_line_naming_it(tmp_path, capsys, monkeypatch, hi
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
+def test_an_mlflow_server_that_does_not_answer_fails_at_once_and_leaves_nothing(tmp_path, capsys):
+    pytest.importorskip("mlflow")
+    import socket
+
+    with socket.socket() as free:  # a port nothing listens on
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    run = tmp_path / "run"
+    unreachable = f"http://127.0.0.1:{port}"
+    train = ("train", "gridworld", "--run-dir", str(run), *QUICK, "--mlflow", "--mlflow-uri")
+    status, _, err = in_process(*train, unreachable, capsys=capsys)
+    assert status == 1 and f"No MLflow server answers at --mlflow-uri {unreachable}" in err
+    assert "sqlite:///mlflow.db" in err and "Traceback" not in err
+    assert not run.exists()  # nothing blocks the retry
+    status, _, err = in_process(*train, f"sqlite:///{tmp_path / 'm.db'}", capsys=capsys)
+    assert status == 0, err
+
+
 def test_drawing_classic_control_frames_names_the_classic_extra(tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
     status, _, err = in_process("train", "cartpole", "--run-dir", str(run), *QUICK,

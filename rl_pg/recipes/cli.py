@@ -260,10 +260,11 @@ def run_checkout_script(path: str) -> None:
 @contextmanager
 def _user_errors() -> Iterator[None]:
     """Errors in what the user asked for (a busy or foreign run directory, a missing
-    package): the message alone, and exit status 1."""
+    package, a tracking server that does not answer): the message alone, and exit
+    status 1."""
     try:
         yield
-    except (CheckpointError, RunDirBusy, ImportError) as err:
+    except (CheckpointError, RunDirBusy, ImportError, ConnectionError) as err:
         sys.exit(f"rl-pg: {err}")
 
 

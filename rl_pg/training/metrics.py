@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import torch
@@ -151,9 +153,33 @@ def _mlflow(cfg: TrainConfig, run_dir: Path, name: str) -> Logger:
     import mlflow
 
     uri = cfg.mlflow_uri or mlflow.get_tracking_uri()
+    _check_tracking_server(uri)
     logger = MLFlowLogger(exp_name=name, tracking_uri=uri)  # starts an MLflow run
     mlflow.set_tags({"mlflow.runName": run_dir.name, "run_dir": str(run_dir.resolve())})
     return logger
+
+
+def _check_tracking_server(uri: str, timeout: float = 5.0) -> None:
+    """Fails at once, naming ``uri``, when no server answers an http(s) tracking URI
+    (MLflow itself retries for minutes, silently, before it gives up).
+
+    Raises:
+        ConnectionError: nothing answered within ``timeout`` seconds.
+    """
+    if not uri.startswith(("http://", "https://")):
+        return  # a file or database store: MLflow opens it itself, and says what is wrong
+    try:
+        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout):
+            pass
+    except urllib.error.HTTPError:
+        return  # a server answered (a proxy may refuse /health): MLflow takes it from here
+    except (OSError, ValueError) as err:  # refused, unknown host, timed out, bad URL
+        reason = getattr(err, "reason", err)
+        raise ConnectionError(
+            f"No MLflow server answers at --mlflow-uri {uri} ({reason}). Start one there "
+            f"(mlflow server --host HOST --port PORT), correct the URI, or log to a local "
+            f"store instead: --mlflow-uri sqlite:///mlflow.db."
+        ) from err
 
 
 def _trim_csv_logs(log_dir: Path, frames: int) -> None:
