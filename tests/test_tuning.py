@@ -197,6 +197,9 @@ def test_the_command(tmp_path, capsys):
             "--run-dir", str(tmp_path)]  # fmt: skip
     main(args)
     out = capsys.readouterr().out
+    # each trial is reported as it ends, before the search's summary
+    assert out.index("trial 0 (1 of 1 complete): score ") < out.index("1 trials in")
+    assert "with lr=0.003, normalize_advantage=False; best so far: trial 0" in out
     assert f"1 trials in {tmp_path}; best: trial 0" in out
     assert "The settings as given (trial 0) scored" in out
     assert "--lr 0.003 --no-normalize-advantage" in out  # as flags of rl-pg train
@@ -207,3 +210,17 @@ def test_the_printed_flags_give_back_the_trial_s_exact_values():
     # Rounded, a sampled learning rate starts a different run from the same seed.
     lr = 0.0020299660450482514
     assert float(_flag("lr", lr).split()[1]) == lr
+
+
+@pytest.mark.parametrize("content", [b"not a database, just text\n" * 100, b""])
+def test_a_study_file_that_is_not_a_study_is_named(tmp_path, capsys, content):
+    (tmp_path / "study.db").write_bytes(content)
+    if not content:  # an empty file is a valid empty SQLite database: a new study
+        assert tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path,
+                    report=None)["trials"] == 1  # fmt: skip
+        return
+    with pytest.raises(ValueError, match=r"study.db is not a study this Optuna can open \(file "
+                       r"is not a database\)\. Move it away"):  # fmt: skip
+        tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
+    with pytest.raises(SystemExit, match=r"rl-pg tune: .*study\.db is not a study"):
+        main(["tune", "gridworld", "--trials", "1", "--params", "lr", "--run-dir", str(tmp_path)])

@@ -101,6 +101,7 @@ def tune(
     seed_score: Literal["mean", "worst"] = "mean",
     study_dir: Path,
     sampler_seed: int = 0,
+    report: Callable[[str], None] | None = print,
 ) -> dict[str, Any]:
     """Searches ``params`` for the settings whose runs score highest.
 
@@ -127,6 +128,9 @@ def tune(
             (``trial<N>/seed<S>``) and ``best.json`` go.
         sampler_seed (int): seed of Optuna's TPE sampler in the study's first search;
             the study's n-th search uses ``sampler_seed + n``. Defaults to ``0``.
+        report (callable, optional): called with one line as each trial ends (its
+            score, its settings and the best so far); ``None`` is silent. Defaults to
+            ``print``.
 
     A new study's first trial runs ``base``'s own values of ``params`` (when they lie in
     the search space): the reference the sampled trials are compared with.
@@ -167,12 +171,7 @@ def tune(
     # One search at a time opens the study: two creating the SQLite tables at once
     # collide, and two would both fail a killed search's trial.
     with locked(study_dir / STUDY_LOCK, wait=True):
-        study = optuna.create_study(
-            study_name=recipe.name,
-            storage=f"sqlite:///{study_dir / 'study.db'}",
-            load_if_exists=True,
-            direction="maximize",
-        )
+        study = _open_study(recipe.name, study_dir / "study.db")
         # Each search on the study (a second one beside it, or the same command run
         # again after a kill) draws its own settings: with one seed, its random first
         # trials would repeat the other's.
@@ -230,7 +229,10 @@ def tune(
     if len(study.get_trials(states=complete)) < trials:
         # Until the study holds `trials` complete ones, counting those of any other
         # search running on the same directory (each finishes the trial it is in).
-        study.optimize(run_trial, callbacks=[optuna.study.MaxTrialsCallback(trials, complete)])
+        done = [optuna.study.MaxTrialsCallback(trials, complete)]
+        if report is not None:
+            done.append(lambda study, trial: report(_trial_line(study, trial, trials)))
+        study.optimize(run_trial, callbacks=done)
     best = study.best_trial
     result = {
         "recipe": recipe.name,
@@ -278,6 +280,42 @@ def _study_settings(
         "seed_score": seed_score,
         "fixed": fixed,
     }
+
+
+def _open_study(name: str, path: Path):
+    """The study stored in ``path`` (created if absent), or a ValueError naming the file
+    when it is not one this Optuna can open (another file, a damaged one, a newer
+    Optuna's)."""
+    import optuna
+    from sqlalchemy.exc import SQLAlchemyError
+
+    try:
+        return optuna.create_study(
+            study_name=name, storage=f"sqlite:///{path}", load_if_exists=True,
+            direction="maximize",
+        )  # fmt: skip
+    except (SQLAlchemyError, RuntimeError) as err:  # RuntimeError: another schema version
+        reason = str(getattr(err, "orig", None) or err).splitlines()[0]
+        raise ValueError(
+            f"{path} is not a study this Optuna can open ({reason}). Move it away to start "
+            f"a new study there, or pass another --study-dir."
+        ) from err
+
+
+def _trial_line(study, trial, trials: int) -> str:
+    """One line when a trial ends: its score and settings, and the best so far."""
+    import optuna
+
+    finished = len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,)))
+    settings = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                         for k, v in trial.user_attrs.get("settings", {}).items())  # fmt: skip
+    if trial.state != optuna.trial.TrialState.COMPLETE:
+        return f"trial {trial.number} {trial.state.name.lower()} ({settings})"
+    best = study.best_trial
+    return (
+        f"trial {trial.number} ({finished} of {trials} complete): score {trial.value:.2f} "
+        f"with {settings}; best so far: trial {best.number}, {best.value:.2f}"
+    )
 
 
 def _same_study(study, settings: dict[str, Any], study_dir: Path) -> None:
