@@ -3,7 +3,8 @@
 ``{{ config_table("cartpole") }}`` in a page becomes the table of every field of the
 cartpole recipe's config (flag, default, description), read from the dataclass and
 its field docstrings, the same text ``--help`` prints; ``config_table("play", "Args")``
-names a dataclass of another module of ``rl_pg.recipes``.
+names a dataclass of another module of ``rl_pg.recipes``. ``{{ shipped_agents() }}``
+becomes the table of the agents shipped with rl_pg and the results their files carry.
 
 ``$$ ... $$`` blocks of LaTeX, and ``$...$`` inside a line, become MathML when the site
 is built (latex2mathml): browsers render MathML themselves, so the maths needs no script
@@ -35,6 +36,7 @@ from rl_pg.recipes.cli import field_docs  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
+AGENTS = re.compile(r"\{\{\s*shipped_agents\(\)\s*\}\}")
 DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
 # $...$ inside a line (no space after the opening or before the closing $), outside code.
 INLINE_MATH = re.compile(r"(?<![\\$\w])\$(?=\S)([^$\n]+?)(?<=\S)\$(?![\w$])")
@@ -63,6 +65,33 @@ def config_table(recipe: str, name: str | None = None) -> str:
         flag = field.name.upper() if positional else "--" + field.name.replace("_", "-")
         text = docs.get(field.name, "").replace("|", "\\|").replace("<", "&lt;")
         rows.append(f"| `{flag}` | `{default!r}` | {text} |")
+    return "\n".join(rows)
+
+
+def shipped_agents() -> str:
+    """The agents shipped with rl_pg, with the results their files carry (what
+    ``rl-pg evaluate`` measured before ``rl-pg export`` wrote them)."""
+    from rl_pg.checkpoint import load_checkpoint
+    from rl_pg.recipes.agents import SHIPPED
+
+    def result(record) -> str:
+        if record is None:
+            return "—"
+        text = f"{record['mean_return']:.2f} ± {record['std_return']:.2f} ({record['episodes']})"
+        if "mean_route_completion" in record:
+            text += f", route completion {record['mean_route_completion']:.3f}"
+        return text
+
+    rows = [
+        "| command | trained for | best checkpoint, greedy | sampled |",
+        "|---|---:|---|---|",
+    ]
+    for path in sorted(SHIPPED.glob("*.pt")):
+        agent = load_checkpoint(path)
+        rows.append(
+            f"| `rl-pg play {path.stem} --pretrained` | {agent['state']['frames']:,} frames | "
+            f"{result(agent['agent'].get('greedy'))} | {result(agent['agent'].get('sampled'))} |"
+        )
     return "\n".join(rows)
 
 
@@ -115,4 +144,5 @@ def on_page_content(html_text: str, page, **kwargs) -> str:
 
 def on_page_markdown(markdown: str, **kwargs) -> str:
     markdown = inline_maths(DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown))
+    markdown = AGENTS.sub(lambda m: shipped_agents(), markdown)
     return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2) or "Config"), markdown)

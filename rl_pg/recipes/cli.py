@@ -202,7 +202,7 @@ def _resumed_run_dir(args: list[str]) -> str | None:
     return None
 
 
-USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report,lab} ...
+USAGE = """usage: rl-pg {list,train,resume,evaluate,play,export,tune,report,lab} ...
 
   rl-pg list                       the recipes and what they train
   rl-pg train RECIPE [FLAGS]       train a recipe (rl-pg train RECIPE --help: its flags)
@@ -210,6 +210,8 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play,tune,report,lab} ...
                                    change what is safe to change (budget, workers, ...)
   rl-pg evaluate RUN_DIR [FLAGS]   evaluate a run's best agent on fresh episodes (--help)
   rl-pg play RUN_DIR [FLAGS]       play, and record, a run's best agent (--help: flags)
+  rl-pg play RECIPE --pretrained   the same with the agent shipped for a recipe
+  rl-pg export RUN_DIR --out FILE  a run's best agent as one file, to share and play
   rl-pg tune RECIPE [FLAGS]        search a recipe's hyperparameters with Optuna (--help)
   rl-pg report RUN_DIR... [FLAGS]  runs side by side: a table, and curves with --plot
   rl-pg lab variance RECIPE [FLAGS]
@@ -233,6 +235,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             _evaluate(rest)
         elif command == "play":
             _play(rest)
+        elif command == "export":
+            _export(rest)
         elif command == "report":
             _report_runs(rest)
         elif command == "tune" and rest and not rest[0].startswith("-"):
@@ -362,6 +366,12 @@ def _play(args: list[str]) -> None:
         play.main(tyro.cli(play.Args, args=args, prog="rl-pg play"))
     except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
         sys.exit(f"rl-pg play: {err}")
+
+
+def _export(args: list[str]) -> None:
+    from rl_pg.recipes import agents
+
+    agents.main(tyro.cli(agents.ExportArgs, args=args, prog="rl-pg export"))
 
 
 def _evaluate(args: list[str]) -> None:

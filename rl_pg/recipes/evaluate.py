@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from rl_pg.recipes import recipe_of
+from rl_pg.recipes.agents import shipped_agent
 from rl_pg.training import Count, Range, read_run
 
 __all__ = ["EVALUATIONS", "Args", "main"]
@@ -37,7 +38,10 @@ class Args:
     """Evaluate a trained agent on the recipe's test environment."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory (or checkpoint file) written by a recipe."""
+    """Run directory (or checkpoint or agent file) written by a recipe; with --pretrained,
+    a recipe's name."""
+    pretrained: bool = False
+    """Evaluate the agent shipped with rl_pg for the recipe RUN names (see rl-pg export)."""
     episodes: Count = 100
     """Episodes to evaluate on."""
     checkpoint: Literal["best", "last"] = "best"
@@ -62,17 +66,18 @@ class Args:
 
 def main(args: Args) -> dict[str, Any]:
     """Evaluates the run's agent; prints and returns the result."""
-    saved = read_run(args.run, which=args.checkpoint)
-    recipe = recipe_of(saved, args.run)
+    run = shipped_agent(str(args.run)) if args.pretrained else args.run
+    saved = read_run(run, which=args.checkpoint)
+    recipe = recipe_of(saved, run)
     result = recipe.evaluate_checkpoint(
         saved, episodes=args.episodes, sample=args.sample, seed=args.seed,
         action_stats=args.action_stats, on=args.on, trained_weights=args.trained_weights,
     )  # fmt: skip
     # A checkpoint file is itself the checkpoint: --checkpoint picks within a run directory.
-    record = {"checkpoint": args.checkpoint if args.run.is_dir() else args.run.name, **result}
+    record = {"checkpoint": args.checkpoint if run.is_dir() else run.name, **result}
     print(_describe(record))
-    if args.run.is_dir():
-        append_record(args.run / EVALUATIONS, record)
+    if run.is_dir():
+        append_record(run / EVALUATIONS, record)
     return record
 
 

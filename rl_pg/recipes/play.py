@@ -3,6 +3,7 @@
 rl-pg play runs/cartpole-seed0 --episodes 5 --gif cartpole.gif
 rl-pg play runs/highway-seed0 --sample          # sample, not greedy
 rl-pg play runs/highway-seed0 --checkpoint last # the last weights, not the best
+rl-pg play lunarlander --pretrained             # the agent shipped with rl_pg
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import torch
 import tyro
 
 from rl_pg.recipes import recipe_of
+from rl_pg.recipes.agents import shipped_agent
 from rl_pg.recording import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
 from rl_pg.training.threads import torch_threads
@@ -27,7 +29,10 @@ class Args:
     """Play a trained agent's episodes and print their returns."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory (or checkpoint file) written by a recipe."""
+    """Run directory (or checkpoint or agent file) written by a recipe; with --pretrained,
+    a recipe's name."""
+    pretrained: bool = False
+    """Play the agent shipped with rl_pg for the recipe RUN names (see rl-pg export)."""
     episodes: Count = 5
     """Episodes to play."""
     checkpoint: Literal["best", "last"] = "best"
@@ -49,8 +54,9 @@ class Args:
 
 def main(args: Args) -> list[float]:
     """Plays ``args.episodes`` episodes of the run's agent; returns their returns."""
-    saved = read_run(args.run, which=args.checkpoint)
-    recipe = recipe_of(saved, args.run)
+    run = shipped_agent(str(args.run)) if args.pretrained else args.run
+    saved = read_run(run, which=args.checkpoint)
+    recipe = recipe_of(saved, run)
     cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch
     with torch_threads(cfg.threads):
         env = recipe.make_env(cfg, render=args.gif is not None)

@@ -1,0 +1,93 @@
+"""Agent files: a run's deployed agent exported without its training state, and the
+agents shipped with rl_pg, played and evaluated without training."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_cli import QUICK, in_process
+
+from rl_pg.checkpoint import load_checkpoint
+from rl_pg.recipes import load
+from rl_pg.recipes.agents import SHIPPED, export_agent, shipped_agent
+from rl_pg.training import load_models, read_run
+
+TRAINING_STATE = {"optimizer", "rng", "collection", "episodes", "callbacks"}
+
+
+def _trained(tmp_path, capsys, *flags: str):
+    run = tmp_path / "run"
+    status, _, err = in_process("train", "gridworld", "--run-dir", str(run), *QUICK, *flags,
+                                capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    return run
+
+
+def test_an_exported_agent_plays_and_evaluates_as_its_run_does(tmp_path, capsys):
+    run = _trained(tmp_path, capsys)
+    for mode in ((), ("--sample",)):
+        assert in_process("evaluate", str(run), "--episodes", "3", *mode, capsys=capsys)[0] == 0
+    status, out, err = in_process("export", str(run), "--out", str(tmp_path / "a.pt"),
+                                  capsys=capsys)  # fmt: skip
+    assert status == 0 and "the gridworld agent of" in out, err
+    agent = load_checkpoint(tmp_path / "a.pt")
+    assert not TRAINING_STATE & agent.keys()  # weights and config only: not resumable
+    assert agent["agent"]["greedy"]["episodes"] == 3 and agent["agent"]["sampled"] is not None
+    best = read_run(run, which="best")
+    assert all(torch.equal(agent["loss"][k], best["loss"][k]) for k in agent["loss"])
+    outputs = {}
+    for source in (str(run), str(tmp_path / "a.pt")):
+        for command in (("play", "--episodes", "2", "--sample"), ("evaluate", "--episodes", "4")):
+            status, out, err = in_process(command[0], source, *command[1:], capsys=capsys)
+            assert status == 0, err
+            outputs.setdefault(command[0], []).append(out.split("return", 1)[1])
+    assert outputs["play"][0] == outputs["play"][1]  # the same episodes, the same returns
+    assert outputs["evaluate"][0] == outputs["evaluate"][1]
+    # the last checkpoint's export carries no results: rl-pg evaluate's are the best one's
+    last = export_agent(run, tmp_path / "last.pt", which="last")
+    assert "greedy" not in last["agent"]
+    assert last["state"]["frames"] == read_run(run)["state"]["frames"] != best["state"]["frames"]
+
+
+def test_an_exported_agent_deploys_the_policy_average(tmp_path, capsys):
+    run = _trained(tmp_path, capsys, "--policy-ema", "0.5")
+    agent = export_agent(run, tmp_path / "a.pt")
+    recipe = load("gridworld")
+    cfg = recipe.config.from_stored(agent["config"])
+    env = recipe.make_env(cfg)
+    deployed, _ = recipe.make_models(env, cfg)
+    load_models(read_run(run, which="best"), deployed)  # the average, as play deploys it
+    exported, _ = recipe.make_models(env, cfg)
+    load_models(load_checkpoint(tmp_path / "a.pt"), exported)
+    trained = read_run(run, which="best")["loss"]
+    for (name, a), b in zip(deployed.state_dict().items(), exported.state_dict().values(),
+                            strict=True):  # fmt: skip
+        assert torch.equal(a, b), name
+    assert any(
+        not torch.equal(v, trained[f"actor_network.{k}"]) for k, v in exported.state_dict().items()
+    )  # the average is not the trained weights
+
+
+def test_pretrained_names_a_recipe_with_a_shipped_agent(tmp_path, capsys):
+    status, _, err = in_process("play", "pong-nothing", "--pretrained", capsys=capsys)
+    assert status == 1 and "No agent is shipped for 'pong-nothing'" in err
+    assert "cartpole" in err  # the message lists the shipped ones
+
+
+@pytest.mark.parametrize("path", sorted(SHIPPED.glob("*.pt")), ids=lambda p: p.stem)
+def test_every_shipped_agent_plays_one_episode_without_training(path, capsys, monkeypatch):
+    agent = load_checkpoint(path)
+    assert agent["recipe"] == path.stem and not TRAINING_STATE & agent.keys()
+    assert agent["agent"]["greedy"] is not None  # its results ship with it (docs show them)
+    assert path.stat().st_size < 1_000_000
+    assert shipped_agent(path.stem) == path
+    status, out, err = in_process("play", path.stem, "--pretrained", "--episodes", "1",
+                                  capsys=capsys)  # fmt: skip
+    assert status == 0 and "mean return" in out, err
+
+
+def test_the_agents_are_shipped_in_the_package():
+    shipped = {p.stem for p in SHIPPED.glob("*.pt")}
+    assert {"bandit", "gridworld", "cartpole", "lunarlander", "metadrive"} <= shipped
+    pyproject = (SHIPPED.parents[2] / "pyproject.toml").read_text()
+    assert '"recipes/agents/*.pt"' in pyproject  # package data of a built wheel
