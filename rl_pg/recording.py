@@ -42,10 +42,11 @@ def play(
         The return of every episode.
 
     Raises:
-        ValueError: for ``episodes < 1``, ``fps <= 0``, or a recording that cannot be
-            made (an extension other than ``.gif`` / ``.mp4``, a folder that cannot be
-            created, an environment that gives no ``"pixels"``), checked before any
-            episode is played.
+        ValueError: for ``episodes < 1``, ``fps <= 0``, an environment that steps
+            several copies at once, or a recording that cannot be made (an extension
+            other than ``.gif`` / ``.mp4``, a folder that cannot be created, an
+            environment that gives no ``"pixels"``), checked before any episode is
+            played.
         ModuleNotFoundError: an ``.mp4`` recording without ``imageio-ffmpeg``
             (``pip install "rl_pg[video]"``).
 
@@ -61,6 +62,12 @@ def play(
         2
     """
     episodes, max_steps, deterministic = check_playing(episodes, max_steps, deterministic)
+    if env.batch_size.numel() > 1:  # one return per episode: not a batch's sum
+        raise ValueError(
+            f"play plays one environment's episodes, one after the other; this one steps "
+            f"{env.batch_size.numel()} copies together (batch size {tuple(env.batch_size)}). "
+            f"Build it with a single copy."
+        )
     if record is not None:
         # Everything that could make the recording fail is checked before playing.
         fps = check_real("fps", fps, low=0, low_open=True)

@@ -91,3 +91,27 @@ def test_the_agents_are_shipped_in_the_package():
     assert {"bandit", "gridworld", "cartpole", "lunarlander", "metadrive"} <= shipped
     pyproject = (SHIPPED.parents[2] / "pyproject.toml").read_text()
     assert '"recipes/agents/*.pt"' in pyproject  # package data of a built wheel
+
+
+def test_every_recipe_plays_one_episode_per_return(tmp_path, capsys):
+    """rl-pg play watches one environment: a gridworld trained on 30 copies returns at
+    most the grid's best (0.5), not a sum over copies (it printed 15.0)."""
+    run = _trained(tmp_path, capsys)
+    status, out, err = in_process("play", str(run), "--episodes", "2", capsys=capsys)
+    assert status == 0, err
+    returns = [
+        float(line.rsplit(" ", 1)[1]) for line in out.splitlines() if line.startswith("episode")
+    ]
+    assert len(returns) == 2 and max(returns) <= 0.5 + 1e-6
+
+
+def test_play_refuses_a_batch_of_environments():
+    from rl_pg.envs import GridWorldEnv
+    from rl_pg.models import mlp_actor
+    from rl_pg.recording import play
+
+    env = GridWorldEnv(batch_size=3)
+    with pytest.raises(ValueError, match=r"steps 3 copies together .* single copy"):
+        play(mlp_actor(env), env, episodes=1)
+    one = GridWorldEnv(batch_size=1)  # a batch of one is one environment
+    assert len(play(mlp_actor(one), one, episodes=1)) == 1

@@ -47,8 +47,8 @@ class Config(
 
     hidden: Count = 32
     """Width of the hidden layer (obs -> hidden -> 4, ReLU)."""
-    envs: Count = 30
-    """Gridworld copies stepped together."""
+    num_envs: Count = 30
+    """Gridworld copies stepped together (1 to watch one: rl-pg play)."""
     max_steps: Count = 100
     """Episode truncation horizon."""
     compare: bool = False
@@ -58,7 +58,7 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    return GridWorldEnv(batch_size=cfg.envs, max_steps=cfg.max_steps)
+    return GridWorldEnv(batch_size=cfg.num_envs, max_steps=cfg.max_steps)
 
 
 def make_eval_env(cfg: Config) -> EnvBase:
