@@ -54,7 +54,10 @@ def export_agent(run: str | Path, out: str | Path, *, which: str = "best") -> di
 
     Raises:
         CheckpointError: ``run`` has no such checkpoint, or it is damaged.
+        ValueError: ``out`` is a directory.
     """
+    if Path(out).is_dir():
+        raise ValueError(f"--out {out} is a directory: name the agent file, e.g. {out}/agent.pt.")
     saved = read_run(run, which=which)
     weights = {
         key: value

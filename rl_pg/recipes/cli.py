@@ -371,7 +371,10 @@ def _play(args: list[str]) -> None:
 def _export(args: list[str]) -> None:
     from rl_pg.recipes import agents
 
-    agents.main(tyro.cli(agents.ExportArgs, args=args, prog="rl-pg export"))
+    try:
+        agents.main(tyro.cli(agents.ExportArgs, args=args, prog="rl-pg export"))
+    except ValueError as err:
+        sys.exit(f"rl-pg export: {err}")
 
 
 def _evaluate(args: list[str]) -> None:
