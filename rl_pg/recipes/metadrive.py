@@ -80,12 +80,13 @@ class Config(
     """The 9-action table as the tutorial fed it to MetaDrive (steering +-1, throttle
     +-0.6), or swapped (steering +-0.6, throttle +-1); or 'continuous': MetaDrive's own
     [steering, throttle] in [-1, 1]^2, from the policy that --bounded names."""
-    bounded: Literal["normal", "beta", "tanh_normal"] = "normal"
-    """With --actions continuous: the policy's distribution on the action bounds. 'normal':
-    a Gaussian whose mean the network outputs, one learned scale per dimension in every
-    state, its samples clipped by the environment (what LunarLanderContinuous learns
-    with); 'beta': a Beta on the bounds (Pendulum's); 'tanh_normal': a Gaussian squashed
-    into them."""
+    bounded: Literal["normal", "beta", "tanh_normal"] | None = None
+    """With --actions continuous: the policy's distribution on the action bounds (None:
+    'beta'). 'beta': a Beta on the bounds (Pendulum's; here it drives far better than the
+    Gaussian, whose throttle mean leaves the bounds: see the MetaDrive page); 'normal': a
+    Gaussian whose mean the network outputs, one learned scale per dimension in every
+    state, its samples clipped by the environment (LunarLanderContinuous's);
+    'tanh_normal': a Gaussian squashed into them."""
     horizon: Count = md.DEFAULT_HORIZON
     """Time limit of an episode, in steps of 0.1 s."""
     hidden: Count = 128
@@ -110,6 +111,11 @@ class Config(
     """Instead of training, evaluate a uniformly random and an always-full-throttle
     driver on the held-out scenarios."""
 
+    @property
+    def distribution(self) -> Literal["normal", "beta", "tanh_normal"]:
+        """The continuous policy's distribution: ``bounded``, or a Beta when unset."""
+        return self.bounded or "beta"
+
     def validate(self) -> None:
         super().validate()
         selection = md.SCENARIO_SETS[md.SELECTION][1]
@@ -119,7 +125,7 @@ class Config(
                 f"selection scenarios in order, each once; more would count some twice. "
                 f"Ask for at most {selection}."
             )
-        if self.bounded != "normal" and self.actions != "continuous":
+        if self.bounded is not None and self.actions != "continuous":
             raise ValueError(
                 f"--bounded {self.bounded} chooses the distribution of continuous actions, "
                 f"but --actions is {self.actions!r}: add --actions continuous, or drop "
@@ -190,8 +196,8 @@ def make_models(env: EnvBase, cfg: Config):
         hidden=hidden,
         activation=nn.ReLU,
         normalize=cfg.normalize_observations,
-        bounded=cfg.bounded,
-        state_independent_scale=cfg.actions == "continuous" and cfg.bounded != "beta",
+        bounded=cfg.distribution,
+        state_independent_scale=cfg.actions == "continuous" and cfg.distribution != "beta",
     )
 
 
