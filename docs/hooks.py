@@ -41,8 +41,12 @@ DISPLAY_MATH = re.compile(r"^\$\$\n(.+?)\n\$\$$", re.MULTILINE | re.DOTALL)
 # $...$ inside a line (no space after the opening or before the closing $), outside code.
 INLINE_MATH = re.compile(r"(?<![\\$\w])\$(?=\S)([^$\n]+?)(?<=\S)\$(?![\w$])")
 CODE = re.compile(r"(^```.*?^```$|`[^`\n]+`)", re.MULTILINE | re.DOTALL)
-# In a notebook's HTML: code, and outputs, are left as they are.
-HTML_CODE = re.compile(r"(<pre[ >].*?</pre>|<code>.*?</code>|<script.*?</script>)", re.DOTALL)
+# In a notebook's HTML: code, outputs and the copy buttons' text are left as they are.
+HTML_CODE = re.compile(
+    r"(<pre[ >].*?</pre>|<code>.*?</code>|<script.*?</script>"
+    r'|<div class="clipboard-copy-txt".*?</div>)',
+    re.DOTALL,
+)
 HTML_DISPLAY_MATH = re.compile(r"<p>\$\$\n(.+?)\n\$\$</p>", re.DOTALL)
 MARKDOWN_LINK = re.compile(r'href="(?![a-z]+:|#)([^"#]+)\.(?:md|py)(#[^"]*)?"')
 
@@ -102,12 +106,14 @@ def mathml(latex: str) -> str:
 
 
 def inline_maths(markdown: str) -> str:
-    """``$...$`` in running text (not in code) as inline MathML."""
+    """``$...$`` in running text (not in code) as inline MathML. Each is wrapped in a
+    ``<span>``: Markdown takes a line that starts with ``<math>`` for a block of HTML,
+    which would cut the paragraph around it."""
     from latex2mathml.converter import convert
 
     parts = CODE.split(markdown)  # code at the odd indices, left as it is
     return "".join(
-        part if i % 2 else INLINE_MATH.sub(lambda m: convert(m.group(1)), part)
+        part if i % 2 else INLINE_MATH.sub(lambda m: f"<span>{convert(m.group(1))}</span>", part)
         for i, part in enumerate(parts)
     )
 

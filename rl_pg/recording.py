@@ -27,7 +27,9 @@ def play(
     record: str | Path | None = None,
     fps: int = 30,
 ) -> list[float]:
-    """Plays ``episodes`` episodes one after the other; optionally records them.
+    """Plays ``episodes`` episodes one after the other; optionally records them. An
+    environment that steps several copies at once plays one episode in each copy per
+    round, each with its own return.
 
     Keyword Args:
         episodes (int): number of episodes.
@@ -42,8 +44,8 @@ def play(
         The return of every episode.
 
     Raises:
-        ValueError: for ``episodes < 1``, ``fps <= 0``, an environment that steps
-            several copies at once, or a recording that cannot be made (an extension
+        ValueError: for ``episodes < 1``, ``fps <= 0``, or a recording that cannot be
+            made (of an environment that steps several copies at once, an extension
             other than ``.gif`` / ``.mp4``, a folder that cannot be created, an
             environment that gives no ``"pixels"``), checked before any episode is
             played.
@@ -62,11 +64,11 @@ def play(
         2
     """
     episodes, max_steps, deterministic = check_playing(episodes, max_steps, deterministic)
-    if env.batch_size.numel() > 1:  # one return per episode: not a batch's sum
+    copies = env.batch_size.numel()
+    if copies > 1 and record is not None:
         raise ValueError(
-            f"play plays one environment's episodes, one after the other; this one steps "
-            f"{env.batch_size.numel()} copies together (batch size {tuple(env.batch_size)}). "
-            f"Build it with a single copy."
+            f"A recording shows one environment; this one steps {copies} copies together "
+            f"(batch size {tuple(env.batch_size)}): build it with a single copy to record."
         )
     if record is not None:
         # Everything that could make the recording fail is checked before playing.
@@ -80,14 +82,28 @@ def play(
     returns, frames = [], []
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with set_exploration_type(exploration), torch.no_grad():
-        for _ in range(episodes):
+        while len(returns) < episodes:
+            if copies > 1:  # each copy plays one episode: its own return, not the sum
+                rollout = env.rollout(max_steps, policy, break_when_all_done=True)
+                returns += _first_episode_returns(rollout)
+                continue
             rollout = env.rollout(max_steps, policy, break_when_any_done=True)
             returns.append(rollout["next", "reward"].sum().item())
             if record is not None:
                 frames.extend(rollout["pixels"].numpy())
+    returns = returns[:episodes]
     if record is not None:
         _write_video(record, frames, fps)
     return returns
+
+
+def _first_episode_returns(rollout) -> list[float]:
+    """The return of each copy's first episode in a batched rollout (``[*B, T]``): its
+    rewards up to and including its first ``done``, whatever follows it."""
+    done = rollout["next", "done"].reshape(-1, rollout.shape[-1]).int()
+    reward = rollout["next", "reward"].reshape(-1, rollout.shape[-1])
+    first = (done.cumsum(-1) - done) == 0  # no done before this step
+    return (reward * first).sum(-1).tolist()
 
 
 _VIDEO_FORMATS = (".gif", ".mp4")

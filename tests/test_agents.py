@@ -107,13 +107,19 @@ def test_every_recipe_plays_one_episode_per_return(tmp_path, capsys):
     assert len(returns) == 2 and max(returns) <= 0.5 + 1e-6
 
 
-def test_play_refuses_a_batch_of_environments():
+def test_play_gives_each_copy_of_a_batch_its_own_return(tmp_path):
     from rl_pg.envs import GridWorldEnv
     from rl_pg.models import mlp_actor
     from rl_pg.recording import play
 
-    env = GridWorldEnv(batch_size=3)
-    with pytest.raises(ValueError, match=r"steps 3 copies together .* single copy"):
-        play(mlp_actor(env), env, episodes=1)
+    torch.manual_seed(0)
+    env = GridWorldEnv(batch_size=3, max_steps=20)
+    returns = play(mlp_actor(env), env, episodes=5, deterministic=False)
+    # 5 episodes from two rounds of 3 copies; each at most the grid's best and at least
+    # 20 steps at -0.1 or the pit (nothing summed over copies or over later episodes)
+    assert len(returns) == 5 and all(-2.0 - 1e-6 <= r <= 0.5 + 1e-6 for r in returns)
+    assert len(set(returns)) > 1  # the copies played their own episodes
+    with pytest.raises(ValueError, match="A recording shows one environment"):
+        play(mlp_actor(env), env, episodes=1, record=tmp_path / "x.gif")
     one = GridWorldEnv(batch_size=1)  # a batch of one is one environment
     assert len(play(mlp_actor(one), one, episodes=1)) == 1

@@ -114,6 +114,11 @@ def test_maths_becomes_mathml_outside_code_only():
     )
     html = hooks.on_page_markdown(page)
     assert html.count('display="inline"') == 2  # the policy and G_t, nothing else
+    # inline maths starting a line stays in its paragraph (a bare <math> there is a block)
+    import markdown
+
+    rendered = markdown.markdown(hooks.on_page_markdown("The policy\n$\\pi$ acts.\n"))
+    assert rendered.startswith("<p>The policy") and rendered.count("<p>") == 1, rendered
     assert html.count('display="block"') == 1
     for kept in ("$5 and $ 3 $", "`echo $HOME`", "`$x$`", "export A=$B$C"):
         assert kept in html, kept
@@ -132,6 +137,7 @@ def test_a_tutorials_html_gets_mathml_and_links_to_built_pages():
         'notebook 2</a> and <a href="https://example.org/x.md">elsewhere</a>; '
         "$a &lt; b$ costs $5 and $ 3 $</p>"
         '<pre><span>x = "$a$"</span></pre><pre>cost: $1 and $2</pre>'
+        '<div class="clipboard-copy-txt" id="cell-4">plt.plot(label=r"$\\sqrt{N}$")</div>'
     )
     html = hooks.notebook_html(rendered, "tutorials")
     assert html.count('display="block"') == 1
@@ -140,5 +146,5 @@ def test_a_tutorials_html_gets_mathml_and_links_to_built_pages():
     assert 'href="../../theory/#the-objective"' in html  # the page is tutorials/name/
     assert 'href="../../tutorials/other/"' in html
     assert 'href="https://example.org/x.md"' in html
-    for kept in ("$5 and $ 3 $", 'x = "$a$"', "cost: $1 and $2"):
+    for kept in ("$5 and $ 3 $", 'x = "$a$"', "cost: $1 and $2", 'label=r"$\\sqrt{N}$"'):
         assert kept in html, kept

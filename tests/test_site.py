@@ -1,6 +1,7 @@
 """The documentation site in a real browser: every page of a fresh build loads in
 headless Chromium with no console error, no failed request and no broken image, every
-link inside the site reaches a page (and its anchor), and no maths is left as LaTeX.
+link inside the site reaches a page (and its anchor), no maths is left as LaTeX, and no
+inline formula stands outside its paragraph.
 
 Chromium is Debian's package (``apt-get install chromium``), driven by playwright through
 ``executable_path``. Without it the test is skipped, except under CI, where .ci/run
@@ -115,11 +116,18 @@ def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
             text = page.evaluate(
                 "(() => { const body = document.querySelector('article') || document.body;"
                 " const copy = body.cloneNode(true);"
-                " copy.querySelectorAll('pre, code, script, style, math')"
+                " copy.querySelectorAll('pre, code, script, style, math, .clipboard-copy-txt')"
                 ".forEach(e => e.remove()); return copy.innerText; })()"
             )
             problems += [f"{name}: maths left as LaTeX: {m.group(0)[:60]!r}"
                          for m in RAW_MATHS.finditer(text)]  # fmt: skip
+            torn = page.evaluate(  # inline maths that Markdown cut out of its paragraph
+                "Array.from(document.querySelectorAll('article math[display=\"inline\"]'))"
+                ".filter(m => !m.closest('p, li, td, th, span, h1, h2, h3, h4, a, em, strong'))"
+                ".length"
+            )
+            if torn:
+                problems.append(f"{name}: {torn} inline formulas stand outside any paragraph")
             hrefs = page.evaluate(
                 "Array.from(document.querySelectorAll('article a[href]')).map(a => a.href)"
             )

@@ -170,7 +170,7 @@ def test_held_out_scores_hold_both_ways_and_worst_takes_the_weakest_seed(tmp_pat
     ("kwargs", "match"),
     [
         ({"params": ["learning_rate"]}, r"Cannot tune \['learning_rate'\].*'lr'"),
-        ({"params": ["num_envs"]}, r"Cannot tune \['num_envs'\]"),  # gridworld has none
+        ({"params": ["backend"]}, r"Cannot tune \['backend'\]"),  # gridworld has none
         ({"params": []}, "Cannot tune nothing"),
         ({"params": ["lr"], "seeds": []}, "at least one seed"),
         ({"params": ["lr"], "trials": 0}, "at least 1"),

@@ -21,7 +21,10 @@ def test_there_are_tutorials_and_the_site_lists_each_one():
 
 
 @pytest.mark.parametrize("path", TUTORIALS, ids=lambda path: path.stem)
-def test_tutorial_runs_top_to_bottom(path: Path):
+def test_tutorial_runs_top_to_bottom(path: Path, monkeypatch):
+    # The kernel inherits this process's environment: a test that imported EnvPool here
+    # left MPLBACKEND=Agg, which would keep the notebooks' figures from being shown.
+    monkeypatch.delenv("MPLBACKEND", raising=False)
     notebook = jupytext.read(path)
     client = NotebookClient(
         notebook,

@@ -111,6 +111,15 @@ class Config(
     """Instead of training, evaluate a uniformly random and an always-full-throttle
     driver on the held-out scenarios."""
 
+    @classmethod
+    def as_run(cls, stored: dict[str, Any]) -> dict[str, Any]:
+        """Runs stored before ``bounded`` defaulted to None kept ``"normal"`` whatever
+        their actions; for the 9-action tables that value meant nothing, and is dropped."""
+        run = super().as_run(stored)
+        if run.get("actions") != "continuous" and run.get("bounded") == "normal":
+            run["bounded"] = None
+        return run
+
     @property
     def distribution(self) -> Literal["normal", "beta", "tanh_normal"]:
         """The continuous policy's distribution: ``bounded``, or a Beta when unset."""
@@ -196,7 +205,7 @@ def make_models(env: EnvBase, cfg: Config):
         hidden=hidden,
         activation=nn.ReLU,
         normalize=cfg.normalize_observations,
-        bounded=cfg.distribution,
+        **({"bounded": cfg.distribution} if cfg.actions == "continuous" else {}),
         state_independent_scale=cfg.actions == "continuous" and cfg.distribution != "beta",
     )
 
