@@ -159,19 +159,26 @@ def seed_aggregate(
     Raises:
         ValueError: fewer than 2 seeds (a single run has no spread to bound).
     """
-    from scipy.stats import bootstrap
-
     values = np.asarray(values, dtype=np.float64)
     if values.ndim != 2 or values.shape[0] < 2:
         raise ValueError(
             f"seed_aggregate needs values of shape [seeds, points] with at least 2 seeds, "
             f"got shape {values.shape}."
         )
+    low, high = _bootstrap_interval(values, interquartile_mean, confidence, resamples)
+    return interquartile_mean(values), low, high
+
+
+def _bootstrap_interval(data, statistic, confidence: float, resamples: int):
+    """The percentile-bootstrap interval of ``statistic`` over ``data``'s first axis
+    (scipy's ``bootstrap``, a fixed random state: the same data give the same band)."""
+    from scipy.stats import bootstrap
+
     interval = bootstrap(
-        (values,), interquartile_mean, axis=0, vectorized=True, confidence_level=confidence,
+        (data,), statistic, axis=0, vectorized=True, confidence_level=confidence,
         n_resamples=resamples, method="percentile", random_state=0,
     ).confidence_interval  # fmt: skip
-    return interquartile_mean(values), interval.low, interval.high
+    return interval.low, interval.high
 
 
 def performance_profile(
@@ -197,8 +204,6 @@ def performance_profile(
         >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
         ([1.0, 0.5, 0.0], True)
     """
-    from scipy.stats import bootstrap
-
     scores = np.asarray(scores, dtype=np.float64)
     taus = np.asarray(taus, dtype=np.float64)
     if scores.ndim != 1 or len(scores) < 2:
@@ -211,11 +216,8 @@ def performance_profile(
         runs = np.moveaxis(runs, axis, -1)  # [..., runs]
         return np.moveaxis((runs[..., None] > taus).mean(axis=-2), -1, 0)  # [taus, ...]
 
-    interval = bootstrap(
-        (scores,), share_above, axis=0, vectorized=True, confidence_level=confidence,
-        n_resamples=resamples, method="percentile", random_state=0,
-    ).confidence_interval  # fmt: skip
-    return share_above(scores), interval.low, interval.high
+    low, high = _bootstrap_interval(scores, share_above, confidence, resamples)
+    return share_above(scores), low, high
 
 
 def plot_profiles(
