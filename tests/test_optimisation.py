@@ -1,13 +1,17 @@
-"""rl_pg.training.optimisation: what one update logs about the policy."""
+"""rl_pg.training.optimisation: what one update does and logs about the policy."""
 
 from __future__ import annotations
+
+import copy
+from dataclasses import replace
 
 import pytest
 import torch
 
 from rl_pg.envs import GridWorldEnv, gym_env
-from rl_pg.models import mlp_actor
-from rl_pg.training.optimisation import means_beyond_bounds
+from rl_pg.models import mlp_actor, mlp_actor_critic
+from rl_pg.training import TrainConfig
+from rl_pg.training.optimisation import make_loss, make_optimizer, means_beyond_bounds, update
 
 
 @pytest.mark.parametrize("bounded", ["normal", "beta", "tanh_normal"])
@@ -44,3 +48,39 @@ def test_means_beyond_bounds_of_batched_environments_in_segments_and_flat():
     batch["loc"] = loc
     assert means_beyond_bounds(actor, batch) == pytest.approx(2 / 12)
     assert means_beyond_bounds(actor, batch.reshape(-1)) == pytest.approx(2 / 12)
+
+
+@pytest.mark.parametrize("scope", ["joint", "per_network"])
+def test_clip_scope_sets_whose_gradient_norm_is_bounded(scope, tmp_path):
+    # SGD at rate 1 moves each weight by its clipped gradient: the step is the gradient.
+    env = gym_env("CartPole-v1")
+    actor, critic = mlp_actor_critic(env)
+    rewards = TrainConfig(run_dir=tmp_path, lr=1.0, optimizer="sgd", gamma=0.99)
+    batch = env.rollout(50, actor, break_when_any_done=False)
+    batch["next", "reward"] = batch["next", "reward"] * 100  # a critic error far above 1
+    cfg = replace(rewards, max_grad_norm=0.5, clip_scope=scope)
+    clipped = _step(cfg, make_loss(cfg, *copy.deepcopy((actor, critic))), batch)
+    unclipped = _step(replace(rewards, max_grad_norm=None), make_loss(cfg, actor, critic), batch)
+    norm = {
+        k: torch.linalg.vector_norm(torch.cat([g.flatten() for g in v]))
+        for k, v in unclipped.items()
+    }
+    assert norm["critic"] > 2 * norm["actor"] > 2  # the case the scope is for
+    for net in ("actor", "critic"):
+        step = torch.linalg.vector_norm(torch.cat([g.flatten() for g in clipped[net]]))
+        if scope == "per_network":  # each bounded by itself
+            torch.testing.assert_close(step, torch.tensor(0.5))
+        else:  # one factor for both, set by their joint norm
+            joint = torch.linalg.vector_norm(torch.stack(list(norm.values())))
+            torch.testing.assert_close(step, 0.5 * norm[net] / joint)
+
+
+def _step(cfg, loss, batch) -> dict[str, list[torch.Tensor]]:
+    """The change of each network's weights in one update."""
+    nets = {"actor": loss.actor_network, "critic": loss.critic_network}
+    before = {k: [p.detach().clone() for p in net.parameters()] for k, net in nets.items()}
+    update(cfg, loss, make_optimizer(cfg, loss), batch, lr=cfg.lr)
+    return {
+        k: [b - p.detach() for b, p in zip(before[k], net.parameters(), strict=True)]
+        for k, net in nets.items()
+    }

@@ -80,7 +80,7 @@ class TrainConfig:
         )),
         "optimiser": ("The optimiser and its step size.", (
             "optimizer", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
-            "weight_decay", "max_grad_norm",
+            "weight_decay", "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
             "eval_interval", "eval_episodes", "eval_greedy", "policy_ema", "confirm_episodes",
@@ -200,6 +200,11 @@ class TrainConfig:
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
     """Gradient-norm clipping (None: no clipping)."""
+    clip_scope: Literal["joint", "per_network"] = "joint"
+    """Whose gradient norm max_grad_norm bounds. 'joint': the actor's and the critic's
+    gradients together; 'per_network': each network's on its own, so that the critic's
+    error (whose gradient can be tens of times the actor's) does not set the actor's
+    step."""
     eval_interval: Count = 10_000
     """Frames between evaluations."""
     eval_episodes: Count = 20

@@ -158,7 +158,12 @@ def update(
     total.backward()
     params = [p for group in optimizer.param_groups for p in group["params"]]
     max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
-    grad_norm = nn.utils.clip_grad_norm_(params, max_norm, foreach=_fused_kernels(params) or None)
+    if cfg.clip_scope == "per_network":
+        grad_norm = _clip_per_network(loss, params, max_norm)
+    else:
+        grad_norm = nn.utils.clip_grad_norm_(
+            params, max_norm, foreach=_fused_kernels(params) or None
+        )
     if not torch.isfinite(grad_norm):
         raise TrainingDiverged(
             f"The gradient norm became {grad_norm.item()}; training stopped and the last "
@@ -274,6 +279,19 @@ def _fit_critic(loss: ReinforceLoss, optimizer, batch, cfg: TrainConfig, max_nor
         optimizer.step()
     with torch.no_grad():
         return loss.value_loss(batch).item()
+
+
+def _clip_per_network(loss: ReinforceLoss, params, max_norm: float) -> torch.Tensor:
+    """Clips the actor's gradient and the rest (the critic's, a trunk they share
+    counted with the actor) each to ``max_norm``; returns the norm of both before."""
+    actor = {id(p) for p in loss.actor_network.parameters()}
+    groups = [[p for p in params if id(p) in actor], [p for p in params if id(p) not in actor]]
+    norms = [
+        nn.utils.clip_grad_norm_(group, max_norm, foreach=_fused_kernels(group) or None)
+        for group in groups
+        if group
+    ]
+    return torch.linalg.vector_norm(torch.stack(norms))
 
 
 def _fused_kernels(params) -> bool:
