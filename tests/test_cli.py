@@ -179,10 +179,37 @@ def test_help_shows_the_flags_in_groups_by_concern(capsys, monkeypatch):
     assert "--continuous, --no-continuous" in out.split("run options")[0]
     # each flag shows its docstring's first sentence, wrapped whole (not cut where the
     # source wrapped it); the docs' tables give the rest
-    assert "available). (default: cpu)" in out
+    assert "live. 'auto': CUDA" not in out
+    assert "Where the models and the optimiser live. (default: cpu)" in out
     assert "Environments step on the CPU" not in out
     assert "\n" not in field_docs(TrainConfig)["device"]
     assert "Environments step on the CPU" in field_docs(TrainConfig)["device"]
+
+
+@pytest.mark.parametrize("recipe", NAMES)
+def test_help_gives_each_flag_one_line(recipe, capsys, monkeypatch):
+    # A flag's help is its docstring's first sentence and default, on one line of a
+    # 120-column terminal: beside the flag, or under a flag too long for the column.
+    monkeypatch.setenv("COLUMNS", "120")
+    status, out, _ = in_process("train", recipe, "--help", capsys=capsys)
+    assert status == 0
+    entries: list[list[str]] = []
+    for line in out.splitlines():
+        body = line.strip("│| ")  # box borders, drawn or not as the terminal allows
+        if re.match(r"--?[a-z]", body):
+            entries.append([body])
+            indent = len(line) - len(line.lstrip("│| "))
+        elif body and not body.startswith("─-") and entries and entries[-1]:
+            # deeper than its flag: the help under it or wrapped; else a box's text
+            inside = len(line) - len(line.lstrip("│| ")) > indent
+            entries[-1].append(body) if inside else entries.append([])
+        else:
+            entries.append([])
+    entries = [entry for entry in entries if entry]
+    assert len(entries) > 50
+    for first, *rest in entries:
+        beside = "  " in first.strip()  # the help starts on the flag's line
+        assert len(rest) == (0 if beside else 1), [first, *rest]
 
 
 def test_every_config_field_is_in_one_group():

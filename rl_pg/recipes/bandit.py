@@ -63,11 +63,11 @@ class Config(
     samples_per_update: Count = 1
     """Arms pulled (one-step episodes) per update."""
     compare: bool = False
-    """Run no baseline vs running-average baseline (no entropy bonus, as the tutorial)
-    on n_seeds seeds and plot them."""
+    """Compare no baseline with a running-average one, and plot. Both without an entropy
+    bonus, as the tutorial, on n_seeds seeds."""
     compare_samples: bool = False
-    """Run 1, 4 and 16 samples per update (with the baseline, no entropy bonus) and plot
-    them."""
+    """Compare 1, 4 and 16 samples per update, and plot. With the baseline and no
+    entropy bonus."""
     n_seeds: Count = 5
     """Seeds per variant for the comparisons."""
 

@@ -44,9 +44,9 @@ class Config(
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
     num_envs: Count = 32
-    """CartPoles stepped together as one batch (1: a single unbatched environment)."""
+    """CartPoles stepped together as one batch. 1: a single unbatched environment."""
     backend: Literal["gymnasium", "envpool"] = "gymnasium"
-    """What steps the training CartPoles: gymnasium in this process, or EnvPool's C++
+    """What steps the training CartPoles. Gymnasium in this process, or EnvPool's C++
     threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
 

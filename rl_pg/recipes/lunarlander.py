@@ -48,18 +48,19 @@ class Config(
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))), with the policy bounded says."""
     bounded: Literal["tanh_normal", "normal", "beta"] = "normal"
-    """With continuous: the policy's distribution on the thrust bounds (see
-    rl_pg.models.mlp_actor)."""
+    """With continuous: the policy's distribution on the thrust. See
+    rl_pg.models.mlp_actor."""
     state_dependent_scale: bool = False
-    """With continuous and a Gaussian policy: the network outputs the scale as it does the
-    mean, instead of one learned scale per thrust dimension, the same in every state (the
-    default, as in Stable-Baselines3 and CleanRL; the docs page has the runs)."""
+    """A Gaussian's scale output by the network, per state. With continuous and a
+    Gaussian policy: the network outputs the scale as it does the mean, instead of one
+    learned scale per thrust dimension, the same in every state (the default, as in
+    Stable-Baselines3 and CleanRL; the docs page has the runs)."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
     """Width of the two hidden layers of the actor and of the critic."""
     backend: Literal["gymnasium", "envpool"] = "gymnasium"
-    """What steps the training landers: gymnasium in this process, or EnvPool's C++
+    """What steps the training landers. Gymnasium in this process, or EnvPool's C++
     threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
     @property

@@ -74,19 +74,20 @@ class Config(
         "MetaDrive-validation-v0", "MetaDrive-10env-v0", "MetaDrive-100envs-v0",
         "MetaDrive-1000envs-v0",
     ] = "MetaDrive-validation-v0"  # fmt: skip
-    """Training scenarios (the best checkpoint is picked on scenarios 10100-10199 and
-    scored on the held-out 10000-10099)."""
+    """Training scenarios. The best checkpoint is picked on scenarios 10100-10199 and
+    scored on the held-out 10000-10099."""
     actions: Literal["tutorial", "swapped", "continuous"] = "tutorial"
-    """The 9-action table as the tutorial fed it to MetaDrive (steering +-1, throttle
-    +-0.6), or swapped (steering +-0.6, throttle +-1); or 'continuous': MetaDrive's own
-    [steering, throttle] in [-1, 1]^2, from the policy that --bounded names."""
+    """A table of 9 actions, or 'continuous'. 'tutorial': the table as the tutorial fed
+    it to MetaDrive (steering +-1, throttle +-0.6); 'swapped': steering +-0.6, throttle
+    +-1; 'continuous': MetaDrive's own [steering, throttle] in [-1, 1]^2, from the
+    policy that --bounded names."""
     bounded: Literal["normal", "beta", "tanh_normal"] | None = None
-    """With --actions continuous: the policy's distribution on the action bounds (None:
-    'beta'). 'beta': a Beta on the bounds (Pendulum's; here it drives far better than the
-    Gaussian, whose throttle mean leaves the bounds: see the MetaDrive page); 'normal': a
-    Gaussian whose mean the network outputs, one learned scale per dimension in every
-    state, its samples clipped by the environment (LunarLanderContinuous's);
-    'tanh_normal': a Gaussian squashed into them."""
+    """With --actions continuous: the policy's distribution. None: 'beta'. 'beta': a
+    Beta on the bounds (Pendulum's; here it drives far better than the Gaussian, whose
+    throttle mean leaves the bounds: see the MetaDrive page); 'normal': a Gaussian whose
+    mean the network outputs, one learned scale per dimension in every state, its
+    samples clipped by the environment (LunarLanderContinuous's); 'tanh_normal': a
+    Gaussian squashed into them."""
     horizon: Count = md.DEFAULT_HORIZON
     """Time limit of an episode, in steps of 0.1 s."""
     hidden: Count = 128
@@ -94,22 +95,22 @@ class Config(
     layers: Count = 1
     """Number of hidden layers of the actor and of the critic."""
     lateral_reward: bool = False
-    """Train on MetaDrive's lane-keeping reward (its ``use_lateral_reward``): progress
-    pays in proportion to how near the car keeps to its lane's centre. Only the
-    training reward changes (its returns, and `rl-pg play` without `--gif`, are the
-    shaped ones); every evaluation scores MetaDrive's default reward."""
+    """Train on MetaDrive's lane-keeping reward. Its ``use_lateral_reward``: progress
+    pays in proportion to how near the car keeps to its lane's centre. Only the training
+    reward changes (its returns, and `rl-pg play` without `--gif`, are the shaped ones);
+    every evaluation scores MetaDrive's default reward."""
     failure_penalty: NonNegative = 50.0
-    """Train with this penalty for leaving the road or crashing into a vehicle or an
-    object (MetaDrive's ``out_of_road_penalty``, ``crash_vehicle_penalty`` and
-    ``crash_object_penalty``; MetaDrive's own is 5, which at gamma 0.99 weighs little
-    beside the driving a failure forfeits). Only the training reward changes, as with
-    `--lateral-reward`; every evaluation scores MetaDrive's default reward."""
+    """Penalty for leaving the road or crashing, in training. MetaDrive's
+    ``out_of_road_penalty``, ``crash_vehicle_penalty`` and ``crash_object_penalty``;
+    MetaDrive's own is 5, which at gamma 0.99 weighs little beside the driving a failure
+    forfeits. Only the training reward changes, as with `--lateral-reward`; every
+    evaluation scores MetaDrive's default reward."""
     normalize_observations: bool = True
-    """Standardise each observation feature with running statistics before the
-    network (the features that steer, heading and lane position, vary by about 0.04)."""
+    """Standardise each observation feature with running statistics. The features that
+    steer, heading and lane position, vary by about 0.04."""
     references: bool = False
-    """Instead of training, evaluate a uniformly random and an always-full-throttle
-    driver on the held-out scenarios."""
+    """Instead of training, score a random and a full-throttle driver. Both play the
+    held-out scenarios."""
 
     @classmethod
     def as_run(cls, stored: dict[str, Any]) -> dict[str, Any]:

@@ -49,14 +49,14 @@ class Config(
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
     bounded: Literal["beta", "normal", "tanh_normal"] = "beta"
-    """The policy's distribution on the torque bounds: a Beta, a Normal the environment
+    """The policy's distribution on the torque bounds. A Beta, a Normal the environment
     clips, or a TanhNormal (the two Gaussians with a state-independent scale; see
     rl_pg.models.mlp_actor)."""
     init_scale: Positive = 1.0
     """The Gaussians' scale at initialisation."""
     normalize_observations: bool = False
-    """Standardise the observations (running mean and variance, shared by actor and
-    critic)."""
+    """Standardise the observations. Running mean and variance, shared by actor and
+    critic."""
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:

@@ -48,7 +48,7 @@ class Config(
     """REINFORCE + learned baseline with bootstrapped 50-step segments on ALE Pong."""
 
     num_envs: Count = 16
-    """Pong games played at once, as one batch (split evenly over the workers)."""
+    """Pong games played at once, as one batch. Split evenly over the workers."""
     hidden: Count = 200
     """Width of the shared trunk."""
 

@@ -106,41 +106,45 @@ class TrainConfig:
     total_updates: Count | None = None
     """Updates to train for (at most; None: no limit)."""
     run_dir: Path | None = None
-    """Where checkpoints, logs and the summary go (default: runs/<recipe>-seed<seed>-<time>)."""
+    """Where checkpoints, logs and the summary go. None:
+    runs/<recipe>-seed<seed>-<time>."""
     resume: bool = False
     """Continue the run in run_dir from its checkpoint."""
     workers: Count = 1
-    """Collector processes; more than 1 uses TorchRL's multi-process collector."""
+    """Collector processes. More than 1 uses TorchRL's multi-process collector."""
     ray: bool = False
-    """Collect with TorchRL's Ray collector (rl_pg[ray]; `workers` actors; segments only)."""
+    """Collect on Ray actors (rl_pg[ray]). TorchRL's Ray collector runs `workers`
+    actors; segments only."""
     device: Literal["auto", "cpu", "cuda"] = "cpu"
-    """Where the models, the loss and the optimiser live ('auto': CUDA when available).
+    """Where the models and the optimiser live. 'auto': CUDA when available.
     Environments step on the CPU. The recipes' small networks train fastest on the CPU,
     next to their environments; a GPU pays for large models (Pong's trunk)."""
     threads: Count | None = 1
-    """torch threads of this process while it trains, and while rl-pg evaluate and
-    rl-pg play run its checkpoints: small models update fastest on one, and a second
-    thread only contends with the environment on a busy machine (None: torch's default)."""
+    """torch threads of this process (None: torch's default). The same while rl-pg
+    evaluate and rl-pg play run its checkpoints: small models update fastest on one, and
+    a second thread only contends with the environment on a busy machine."""
     batch_mode: Literal["episodes", "segments"] = "episodes"
-    """'episodes': whole episodes per update; 'segments': fixed-length segments + bootstrap."""
+    """Whole episodes per update, or fixed-length segments. Segments bootstrap from the
+    critic where they cut an episode."""
     episodes_per_batch: Count = 8
     """Complete episodes per update (batch_mode='episodes')."""
     segment_length: Count = 50
     """Steps per environment per update (batch_mode='segments')."""
     env_restart_interval: Count = 50
-    """Updates between restarts of every environment (segments, one worker): episodes in
-    flight are cut there. A resumed run replays the actions since the last restart, so
-    the results do not depend on when, or how often, the run checkpoints."""
+    """Updates between restarts of every environment. With segments and one worker;
+    episodes in flight are cut there. A resumed run replays the actions since the last
+    restart, so the results do not depend on when, or how often, the run checkpoints."""
     returns: Literal["reward_to_go", "discounted_return", "gae"] = "reward_to_go"
-    """Return that weights log pi: reward-to-go (causality), the whole-episode return,
+    """Return that weights log pi. Reward-to-go (causality), the whole-episode return,
     or TorchRL's generalised advantage estimate (GAE; needs baseline='critic')."""
     gae_lambda: Annotated[float, Range(0, 1)] = 0.95
-    """GAE's lambda (returns='gae'): 1 is reward-to-go minus V, 0 the one-step TD error."""
+    """GAE's lambda, with returns='gae'. At 1 it is reward-to-go minus V, at 0 the
+    one-step TD error."""
     gamma: Annotated[float, Range(0, 1)] = 0.99
     """Discount factor."""
     reward_scale: Positive = 1.0
-    """Rewards are multiplied by this for learning only (returns, advantages, the
-    critic's targets); logged and evaluated returns are the environment's. Below 1 it
+    """Factor on the rewards, for learning only. It scales returns, advantages and the
+    critic's targets; logged and evaluated returns are the environment's. Below 1 it
     keeps a critic's targets, and its share of a clipped gradient, in range where
     returns run into the hundreds. Unless normalize_advantage is set, the policy term
     shrinks with it too: multiply entropy_coeff by the same factor to keep the bonus's
@@ -152,26 +156,27 @@ class TrainConfig:
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
     entropy_schedule: Literal["constant", "linear"] = "constant"
-    """'linear': move the entropy bonus from entropy_coeff at frame 0 (or from
-    entropy_schedule_start on) to entropy_coeff_end at total_frames, as lr_schedule
-    decays the learning rate."""
+    """'linear': move the bonus to entropy_coeff_end by the end. It moves from
+    entropy_coeff at frame 0 (or from entropy_schedule_start on) to entropy_coeff_end at
+    total_frames, as lr_schedule decays the learning rate."""
     entropy_coeff_end: float = 0.0
     """Where the 'linear' entropy schedule ends. Below 0 the bonus turns into a penalty
     on entropy once it crosses 0, which drives a policy that stays stochastic towards
     the deterministic one a greedy evaluation plays (needs entropy_coeff > 0)."""
     entropy_schedule_start: Annotated[float, Range(0, 1, high_open=True)] = 0.0
-    """Fraction of total_frames during which the 'linear' entropy schedule holds at
-    entropy_coeff before it starts moving to entropy_coeff_end (0: it moves from frame
-    0). With lr_schedule 'linear' the learning rate has decayed by then, so a late
-    schedule moves the policy less than the same change early would."""
+    """Share of the run before the entropy schedule starts. During this fraction of
+    total_frames the 'linear' schedule holds at entropy_coeff, then moves to
+    entropy_coeff_end (0: it moves from frame 0). With lr_schedule 'linear' the learning
+    rate has decayed by then, so a late schedule moves the policy less than the same
+    change early would."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
-    """'popart': the critic's output layer learns standardised values and answers at the
-    rewards' scale (rl_pg.normalization.PopArt; statistics from each batch's value targets),
-    and its loss is taken in those units. A critic then fits returns in the hundreds as
-    quickly as returns near one, while the policy's weights stay at the rewards' scale
-    (unlike reward_scale, which scales both)."""
+    """'popart': the critic learns standardised values. Its output layer answers at the
+    rewards' scale (rl_pg.normalization.PopArt; statistics from each batch's value
+    targets), and its loss is taken in those units. A critic then fits returns in the
+    hundreds as quickly as returns near one, while the policy's weights stay at the
+    rewards' scale (unlike reward_scale, which scales both)."""
     critic_steps: Count = 1
     """Gradient steps of the critic on each batch (the policy takes one). The first is
     taken with the policy's; more fit the baseline to the batch's returns, as
@@ -181,21 +186,22 @@ class TrainConfig:
     optimizer: Literal["adam", "sgd"] = "adam"
     """Optimiser of actor and critic."""
     adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
-    """Adam's first-moment decay: each step follows an average of about
-    1 / (1 - adam_beta1) batches' gradients. Where one batch's gradient is mostly noise
-    (gradient noise scale far above the batch: rl-pg lab variance), a longer average
-    keeps the signal and takes out more of the noise."""
+    """Adam's first-moment decay. Each step follows an average of about 1 / (1 -
+    adam_beta1) batches' gradients. Where one batch's gradient is mostly noise (gradient
+    noise scale far above the batch: rl-pg lab variance), a longer average keeps the
+    signal and takes out more of the noise."""
     lr: Positive = 1e-3
     """Learning rate."""
     lr_schedule: Literal["constant", "linear"] = "constant"
-    """'linear': decay the learning rate from lr at frame 0 to 0 at total_frames
-    (set before each update from the frames seen so far, so a resumed run continues the
-    same schedule; raising total_frames on resume stretches what is left of it)."""
+    """'linear': decay the learning rate to 0 by the end. It goes from lr at frame 0 to
+    0 at total_frames (set before each update from the frames seen so far, so a resumed
+    run continues the same schedule; raising total_frames on resume stretches what is
+    left of it)."""
     lr_schedule_start: Annotated[float, Range(0, 1, high_open=True)] = 0.0
-    """Fraction of total_frames during which the 'linear' learning rate holds at lr
-    before it starts decaying to 0 at total_frames (0: it decays from frame 0). A late
-    decay keeps the constant rate's progress and then takes the noise of the last
-    updates out of the weights that are deployed."""
+    """Share of the run before the learning rate decays. During this fraction of
+    total_frames the 'linear' rate holds at lr, then decays to 0 at total_frames (0: it
+    decays from frame 0). A late decay keeps the constant rate's progress and then takes
+    the noise of the last updates out of the weights that are deployed."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -214,17 +220,17 @@ class TrainConfig:
     evaluations draw their own random numbers (the same ones each time, from the run's
     evaluation seed), so they change nothing in the training."""
     policy_ema: Annotated[float, Range(0, 1, high_open=True)] = 0.0
-    """Evaluate, keep as best.pt and deploy an exponential moving average of the
-    actor's weights (torch's AveragedModel), moved towards the trained weights by
-    1 - policy_ema after every update; the environments are still played with the
-    trained weights. 0: evaluate the trained weights themselves."""
+    """Deploy an average of the actor's weights. Evaluations, best.pt and play use an
+    exponential moving average (torch's AveragedModel), moved towards the trained
+    weights by 1 - policy_ema after every update; the environments are still played with
+    the trained weights. 0: evaluate the trained weights themselves."""
     confirm_episodes: Count | None = None
-    """Replay each evaluation that could become best.pt on this many more episodes,
-    greedily and by sampling, and keep as best.pt the checkpoint whose lower mean of the
-    two is highest: the best of many short evaluations is partly the luckiest, and a
-    policy can act well greedily and badly by sampling. Evaluations at or above
-    threshold (when set) and above the best confirmed score are replayed. None: best.pt
-    is the evaluation with the highest mean return."""
+    """Episodes that confirm a new best, greedily and by sampling. Each evaluation that
+    could become best.pt is replayed on this many more episodes both ways, and best.pt
+    is the checkpoint whose lower mean of the two is highest: the best of many short
+    evaluations is partly the luckiest, and a policy can act well greedily and badly by
+    sampling. Evaluations at or above threshold (when set) and above the best confirmed
+    score are replayed. None: best.pt is the evaluation with the highest mean return."""
     threshold: float | None = None
     """Evaluation mean return that counts as solved."""
     stop_when_solved: bool = True
@@ -232,31 +238,33 @@ class TrainConfig:
     checkpoint_interval: Count = 50
     """Updates between checkpoints (one is always written at the end)."""
     keep_every: Count | None = None
-    """Also keep a copy of the checkpoint every N updates, as
-    run_dir/checkpoints/update_<N>.pt (None: only the last and the best)."""
+    """Also keep a checkpoint every N updates (None: never). Kept as
+    run_dir/checkpoints/update_<N>.pt beside the last and the best."""
     log_interval: Count = 1
     """Updates between training-metric log lines."""
     tensorboard: bool = False
-    """Also log to TensorBoard, in run_dir/logs/tensorboard (rl_pg[tensorboard])."""
+    """Also log to TensorBoard (rl_pg[tensorboard]). The events go to
+    run_dir/logs/tensorboard."""
     wandb: bool = False
-    """Also log to Weights & Biases (rl_pg[wandb]); the run is named after run_dir."""
+    """Also log to Weights & Biases (rl_pg[wandb]). The run is named after run_dir."""
     wandb_project: str = "rl_pg"
     """W&B project of the run."""
     wandb_mode: Literal["offline", "online"] = "offline"
-    """'offline': no account needed, files in run_dir/wandb (upload later with `wandb
-    sync`); 'online': stream to the W&B server (after `wandb login`)."""
+    """W&B without an account, or streamed to its server. 'offline': files in
+    run_dir/wandb (upload later with `wandb sync`); 'online': stream to the W&B server
+    (after `wandb login`)."""
     mlflow: bool = False
-    """Also log to MLflow (rl_pg[mlflow]): an MLflow run in the experiment named after
+    """Also log to MLflow (rl_pg[mlflow]). One MLflow run in the experiment named after
     the recipe."""
     mlflow_uri: str | None = None
-    """MLflow tracking URI, e.g. sqlite:///mlflow.db or http://host:5000 (None: MLflow's
-    default, or $MLFLOW_TRACKING_URI)."""
+    """MLflow tracking URI (None: MLflow's default). For example sqlite:///mlflow.db or
+    http://host:5000; None also reads $MLFLOW_TRACKING_URI."""
     progress: bool = True
     """Show a progress bar."""
     grad_stats: Count | None = None
-    """Every N updates, measure the policy gradient's noise (noise scale, SNR, half-batch
-    cosine) for every return estimator on that update's batch and log it as
-    grad/<estimator>/<statistic> (None: never). Changes nothing in the training."""
+    """Measure the gradient's noise every N updates (None: never). The noise scale, SNR
+    and half-batch cosine of every return estimator on that update's batch, logged as
+    grad/<estimator>/<statistic>. Changes nothing in the training."""
 
     def __init_subclass__(cls, **defaults: Any) -> None:
         """``class Config(TrainConfig, lr=5e-3)``: new defaults for inherited fields."""
