@@ -186,17 +186,23 @@ def test_help_shows_the_flags_in_groups_by_concern(capsys, monkeypatch):
     assert "Environments step on the CPU" in field_docs(TrainConfig)["device"]
 
 
-@pytest.mark.parametrize("recipe", NAMES)
-def test_help_gives_each_flag_one_line(recipe, capsys, monkeypatch):
+@pytest.mark.parametrize(
+    "command",
+    [f"train {name}" for name in NAMES]
+    + ["evaluate", "play", "report", "export", "tune cartpole", "lab variance cartpole"],
+)
+def test_help_gives_each_flag_one_line(command, capsys, monkeypatch):
     # A flag's help is its docstring's first sentence and default, on one line of a
     # 120-column terminal: beside the flag, or under a flag too long for the column.
     monkeypatch.setenv("COLUMNS", "120")
-    status, out, _ = in_process("train", recipe, "--help", capsys=capsys)
+    status, out, _ = in_process(*command.split(), "--help", capsys=capsys)
     assert status == 0
     entries: list[list[str]] = []
     for line in out.splitlines():
         body = line.strip("│| ")  # box borders, drawn or not as the terminal allows
-        if re.match(r"--?[a-z]", body):
+        if line[:1] not in "│| ":  # the usage and the description, above the boxes
+            continue
+        if re.match(r"--?[a-z]|[A-Z]+  ", body):  # a flag, or a positional argument
             entries.append([body])
             indent = len(line) - len(line.lstrip("│| "))
         elif body and not body.startswith("─-") and entries and entries[-1]:
@@ -206,7 +212,7 @@ def test_help_gives_each_flag_one_line(recipe, capsys, monkeypatch):
         else:
             entries.append([])
     entries = [entry for entry in entries if entry]
-    assert len(entries) > 50
+    assert len(entries) > (50 if command.startswith("train") else 2)
     for first, *rest in entries:
         beside = "  " in first.strip()  # the help starts on the flag's line
         assert len(rest) == (0 if beside else 1), [first, *rest]

@@ -110,10 +110,10 @@ class ExportArgs:
     run: tyro.conf.Positional[Path]
     """Run directory (or checkpoint file) written by a recipe."""
     out: Path
-    """The agent file to write (.pt); play it with rl-pg play FILE, evaluate it with
+    """The agent file to write (.pt). Play it with rl-pg play FILE, evaluate it with
     rl-pg evaluate FILE."""
     checkpoint: Literal["best", "last"] = "best"
-    """Export the best evaluated checkpoint (what rl-pg play deploys), or the last one."""
+    """Export the best checkpoint (what rl-pg play deploys), or the last."""
 
 
 def main(args: ExportArgs) -> Path:

@@ -99,6 +99,31 @@ def parse_config(
     return tyro.cli(_grouped(config_class, defaults), args=args, prog=prog).config
 
 
+def parse_args(args_class: type, args: Sequence[str], *, prog: str, **kwargs):
+    """``tyro.cli(args_class, args=args, prog=prog, **kwargs)`` whose ``--help`` gives
+    each flag its docstring's first sentence, on one line (the rest is for the docs)."""
+    docs = field_docs(args_class)
+    hints = typing.get_type_hints(args_class, include_extras=True)
+    fields = [f for f in dataclasses.fields(args_class) if f.init]
+    short = dataclasses.make_dataclass(
+        args_class.__name__,
+        [
+            (
+                f.name,
+                Annotated[hints[f.name], tyro.conf.arg(help=first_sentence(docs.get(f.name, "")))],
+                dataclasses.field(default=f.default, default_factory=f.default_factory),
+            )
+            for f in fields
+        ],
+    )
+    paragraphs = re.split(r"\n\s*\n", args_class.__doc__ or "")
+    short.__doc__ = "\n\n".join(" ".join(p.split()) for p in paragraphs)  # unwrapped
+    parsed = tyro.cli(short, args=list(args), prog=prog, **kwargs)
+    value, rest = parsed if kwargs.get("return_unknown_args") else (parsed, None)
+    value = args_class(**{f.name: getattr(value, f.name) for f in fields})
+    return (value, rest) if kwargs.get("return_unknown_args") else value
+
+
 def _grouped(config_class: type[Config], defaults: dict[str, Any] | None) -> type:
     """``config_class`` as tyro should show it: one dataclass per group of
     ``TrainConfig.groups`` (the recipe's own fields first, as a group of their own),
@@ -332,7 +357,7 @@ def _command_over_runs(command: str, name: str, args: list[str], own_args, folde
     except ValueError as err:
         sys.exit(f"rl-pg {command}: {err}")
     prog = f"rl-pg {command} {name}"
-    own, rest = tyro.cli(own_args, args=args, prog=prog, return_unknown_args=True)
+    own, rest = parse_args(own_args, args, prog=prog, return_unknown_args=True)
     base = parse_config(recipe.config, rest, prog=prog)
     root = Path(base.run_dir if base.run_dir is not None else f"runs/{folder}-{name}")
     return recipe, own, base, root
@@ -363,7 +388,7 @@ def _play(args: list[str]) -> None:
     from rl_pg.recipes import play
 
     try:
-        play.main(tyro.cli(play.Args, args=args, prog="rl-pg play"))
+        play.main(parse_args(play.Args, args, prog="rl-pg play"))
     except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
         sys.exit(f"rl-pg play: {err}")
 
@@ -372,7 +397,7 @@ def _export(args: list[str]) -> None:
     from rl_pg.recipes import agents
 
     try:
-        agents.main(tyro.cli(agents.ExportArgs, args=args, prog="rl-pg export"))
+        agents.main(parse_args(agents.ExportArgs, args, prog="rl-pg export"))
     except ValueError as err:
         sys.exit(f"rl-pg export: {err}")
 
@@ -381,7 +406,7 @@ def _evaluate(args: list[str]) -> None:
     from rl_pg.recipes import evaluate
 
     try:
-        evaluate.main(tyro.cli(evaluate.Args, args=args, prog="rl-pg evaluate"))
+        evaluate.main(parse_args(evaluate.Args, args, prog="rl-pg evaluate"))
     except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
         sys.exit(f"rl-pg evaluate: {err}")
 
@@ -390,7 +415,7 @@ def _report_runs(args: list[str]) -> None:
     from rl_pg.recipes import report
 
     try:
-        report.main(tyro.cli(report.Args, args=args, prog="rl-pg report"))
+        report.main(parse_args(report.Args, args, prog="rl-pg report"))
     except (ValueError, FileNotFoundError) as err:  # not a run directory, or no such metric
         sys.exit(f"rl-pg report: {err}")
 

@@ -38,30 +38,29 @@ class Args:
     """Evaluate a trained agent on the recipe's test environment."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory (or checkpoint or agent file) written by a recipe; with --pretrained,
-    a recipe's name."""
+    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name."""
     pretrained: bool = False
-    """Evaluate the agent shipped with rl_pg for the recipe RUN names (see rl-pg export)."""
+    """Evaluate the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
     episodes: Count = 100
     """Episodes to evaluate on."""
     checkpoint: Literal["best", "last"] = "best"
-    """Evaluate the best evaluated checkpoint, or the last one, of a run directory (a
-    checkpoint file is evaluated as it is)."""
+    """Of a run directory, the best checkpoint or the last. A checkpoint file is
+    evaluated as it is."""
     sample: bool = False
     """Sample actions from the policy instead of acting greedily."""
     seed: Annotated[int, Range(low=0, high=2**32 - 1)] | None = None
-    """Seed of the evaluation environment and of sampled actions (default: one that no
-    evaluation during training used, so the episodes are fresh)."""
+    """Seed of the episodes and of sampled actions (None: fresh episodes). None picks a
+    seed that no evaluation during training used."""
     action_stats: bool = False
-    """Also report how a discrete policy acted: the share of steps of each action, how
+    """Also report how a discrete policy acted. The share of steps of each action, how
     often the action changes from one step to the next, how often it is the policy's
     most probable one, and the policy's mean entropy."""
     on: str | None = None
-    """Play on another set of the recipe's environments instead of its test set (MetaDrive:
-    ``training`` or ``selection`` scenarios, to compare with the held-out ones)."""
+    """Play another set of environments than the test set. MetaDrive: ``training`` or
+    ``selection`` scenarios, to compare with the held-out ones."""
     trained_weights: bool = False
-    """Of a run trained with --policy-ema: play the trained weights instead of their
-    average (which the run evaluated, kept as best.pt and deploys), to compare the two."""
+    """With --policy-ema runs: play the trained weights, not their average. The average
+    is what the run evaluated, kept as best.pt and deploys; this compares the two."""
 
 
 def main(args: Args) -> dict[str, Any]:

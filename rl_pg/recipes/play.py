@@ -29,10 +29,9 @@ class Args:
     """Play a trained agent's episodes and print their returns."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory (or checkpoint or agent file) written by a recipe; with --pretrained,
-    a recipe's name."""
+    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name."""
     pretrained: bool = False
-    """Play the agent shipped with rl_pg for the recipe RUN names (see rl-pg export)."""
+    """Play the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
     episodes: Count = 5
     """Episodes to play."""
     checkpoint: Literal["best", "last"] = "best"

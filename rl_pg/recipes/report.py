@@ -72,24 +72,26 @@ class Args:
     runs: tyro.conf.Positional[list[Path]] = field(default_factory=list)
     """Run directories written by a recipe (a shell glob works)."""
     store: Path | None = None
-    """Also write the table's rows, with every run's config and evaluation curve, to
-    this JSON file (read back with --stored)."""
+    """Also store the table in this JSON file (read by --stored). Its rows, with every
+    run's config and evaluation curve."""
     stored: list[Path] | None = None
-    """Print the table of files written by --store instead of reading run directories
-    (one table per file)."""
+    """Print the tables of files written by --store. One table per file, instead of
+    reading run directories."""
     refresh: list[Path] | None = None
-    """Rewrite every stored table of these Markdown files from its file (see above)."""
+    """Rewrite the stored tables of these Markdown files. Each from its file (see
+    --stored)."""
     plot: Path | None = None
-    """Also draw every run's ``metric`` by frame into this PNG file (with --stored: each
-    stored curve, and their interquartile mean with a 95 % bootstrap band)."""
+    """Also draw every run's ``metric`` into this PNG file. By frame; with --stored,
+    each stored curve and their interquartile mean with a 95 % bootstrap band."""
     metric: str = "eval/mean_return"
-    """With plot: the logged scalar to draw (a CSV under RUN/logs/csv/scalars, without
-    .csv), e.g. train/episode_return or eval/mean_route_completion."""
+    """With plot: the logged scalar to draw. A CSV under RUN/logs/csv/scalars, without
+    .csv, e.g. train/episode_return or eval/mean_route_completion."""
     ylim: tuple[float, float] | None = None
-    """With plot: the vertical range (LOW HIGH), when a few early values squash the rest."""
+    """With plot: the vertical range, LOW HIGH. For when a few early values squash the
+    rest."""
     profile: Path | None = None
-    """With --stored: draw the files' performance profiles into this PNG file, one curve
-    per file: the share of its runs whose best checkpoint scores above τ both ways (the
+    """With --stored: draw the files' performance profiles into this PNG. One curve per
+    file: the share of its runs whose best checkpoint scores above τ both ways (the
     lower of its greedy and sampled results), with a 95 % bootstrap band."""
 
 

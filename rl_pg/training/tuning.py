@@ -79,14 +79,14 @@ class TuneArgs:
     tune_seeds: list[int] = dataclasses.field(default_factory=lambda: [0])
     """Seeds each trial trains on."""
     objective: Literal["final", "best", "held_out"] = "final"
-    """Score each run by its last evaluation, by its best, or by its best checkpoint
-    replayed on held_out_episodes fresh episodes, greedily and by sampling (the lower
-    of the two means: a checkpoint that holds both ways)."""
+    """Score a run by its last evaluation, its best, or held out. 'held_out': its best
+    checkpoint replayed on held_out_episodes fresh episodes, greedily and by sampling
+    (the lower of the two means: a checkpoint that holds both ways)."""
     held_out_episodes: Count = 100
     """Episodes of each replay (objective held_out)."""
     seed_score: Literal["mean", "worst"] = "mean"
-    """A trial's score: the mean of its runs' scores, or the worst (settings that work
-    on every seed)."""
+    """A trial's score: the mean of its runs' scores, or the worst. The worst favours
+    settings that work on every seed."""
 
 
 def tune(
