@@ -404,6 +404,27 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     (tmp_path / "profile.png").unlink()
     status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
     assert status == 0 and "refreshed" in out and (tmp_path / "profile.png").is_file(), err
+    # one row per stored setting: the flags its runs share beyond the recipe's defaults
+    for run in saved_runs["runs"]:
+        run["config"]["lr"] = 0.5
+    saved_runs["runs"][1]["config"]["gamma"] = 0.9  # a flag the runs disagree on
+    other.write_text(json.dumps(saved_runs))
+    status, out, err = in_process("report", "--stored", str(stored), str(other), "--settings",
+                                  capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    first, second = out.strip().splitlines()[2:]
+    assert first.startswith("| `--total-updates 2` `--eval-interval 100` | 0 1 |")
+    assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
+    reports = [run["report"] for run in saved_runs["runs"]]
+    held = sum(
+        min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]
+        for r in reports
+    )
+    assert f"| {held}/2 |" in second
+    page.write_text("<!-- rl-pg report --stored results/seeds.json results/other.json "
+                    "--settings -->\n| stale |\n<!-- end of report -->\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert out.strip() in page.read_text()
     unevaluated = json.loads(stored.read_text())
     unevaluated["runs"][1]["report"]["sampled"] = None
     other.write_text(json.dumps(unevaluated))
@@ -413,6 +434,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", runs[0], "--stored", str(stored)), "one of the three"),
         (("report", "--stored", str(tmp_path)), "is not a stored report"),
         (("report", "--profile", "x.png"), "name them with --stored"),
+        (("report", runs[0], "--settings"), "compares stored files"),
         (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
         (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
@@ -432,8 +454,7 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
         STORED_FIGURE,
         STORED_TABLE,
         draw_stored,
-        format_report,
-        read_stored,
+        stored_table,
     )
 
     pages = [REPO / "README.md", REPO / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
@@ -441,9 +462,9 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
     for page in pages:
         for match in STORED_TABLE.finditer(page.read_text()):
             found += 1
-            expected = format_report(*read_stored(page.parent / match["file"]))
+            expected = stored_table(match, page.parent)
             assert match["table"].strip() == expected, (
-                f"{page.name}: the table of {match['file']} is not what the file holds; "
+                f"{page.name}: the table of {match['files']} is not what the file holds; "
                 f"run rl-pg report --refresh {page.relative_to(REPO)}"
             )
         for match in STORED_FIGURE.finditer(page.read_text()):

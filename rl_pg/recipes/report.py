@@ -6,6 +6,7 @@ rl-pg report runs/lunarlander-seed* --store seeds.json # and keep what the table
 rl-pg report --stored seeds.json                       # the same table, from that file
 rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregate curve
 rl-pg report --stored a.json b.json --profile p.png    # settings' performance profiles
+rl-pg report --stored a.json b.json --settings         # one row per setting
 rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
@@ -19,6 +20,7 @@ the page), which ``--refresh`` rewrites from the file, so the page cannot drift 
 A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->``
 names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
+``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ __all__ = [
     "Args",
     "draw_stored",
     "format_report",
+    "format_settings",
     "main",
     "plot_profile",
     "plot_stored",
@@ -50,6 +53,7 @@ __all__ = [
     "read_stored",
     "refresh",
     "store_report",
+    "stored_table",
 ]
 
 SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
@@ -60,9 +64,12 @@ STORED_FIGURE = re.compile(
     re.MULTILINE,
 )
 STORED_TABLE = re.compile(
-    r"^<!-- rl-pg report --stored (?P<file>\S+) -->\n(?P<table>.*?)^<!-- end of report -->$",
+    r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)(?P<settings> --settings)? "
+    r"-->\n(?P<table>.*?)^<!-- end of report -->$",
     re.MULTILINE | re.DOTALL,
 )
+# What a setting's flags leave out: where a run went, which seed, how it was watched.
+NOT_SETTINGS = frozenset({"seed", "run_dir", "resume", "progress", "threads", "device"})
 
 
 @dataclass
@@ -89,6 +96,10 @@ class Args:
     ylim: tuple[float, float] | None = None
     """With plot: the vertical range, LOW HIGH. For when a few early values squash the
     rest."""
+    settings: bool = False
+    """With --stored: one row per file, the setting its runs share. The flags that differ
+    from the recipe's defaults, how many runs reached the threshold and when (median),
+    how many best checkpoints hold it greedily and by sampling, and their median scores."""
     profile: Path | None = None
     """With --stored: draw the files' performance profiles into this PNG. One curve per
     file: the share of its runs whose best checkpoint scores above τ both ways (the
@@ -267,8 +278,7 @@ def refresh(page: Path) -> bool:
 
     def table(match: re.Match) -> str:
         opening = match.group(0).splitlines()[0]
-        reports, names = read_stored(page.parent / match["file"])
-        return f"{opening}\n{format_report(reports, names)}\n<!-- end of report -->"
+        return f"{opening}\n{stored_table(match, page.parent)}\n<!-- end of report -->"
 
     refreshed = STORED_TABLE.sub(table, text)
     changed = refreshed != text
@@ -280,6 +290,108 @@ def refresh(page: Path) -> bool:
         draw_stored(match, page.parent)
         changed |= figure.read_bytes() != before
     return changed
+
+
+def stored_table(match: re.Match, folder: Path) -> str:
+    """The table a page's ``STORED_TABLE`` match ``match`` shows, its files relative to
+    ``folder`` (the page's): one row per run, or with ``--settings`` one per file."""
+    files = [Path(folder) / name for name in match["files"].split()]
+    if match["settings"]:
+        return format_settings(files)
+    if len(files) != 1:
+        raise ValueError(f"a table of runs reads one stored file, got {match['files']!r}.")
+    return format_report(*read_stored(files[0]))
+
+
+def format_settings(paths: list[Path]) -> str:
+    """One Markdown row per stored file: the setting its runs share, how many reached
+    the threshold and when, and how their best checkpoints score both ways.
+
+    A run that never reached the threshold counts as later than any that did (so the
+    median is "—" when half of them never did). "held" counts the best checkpoints whose
+    greedy and sampled means both reach the threshold.
+    """
+    head = (
+        "| setting | seeds | reached | median frames to threshold | held both ways "
+        "| greedy, median | sampled, median |"
+    )
+    lines = [head, "|---|---:|---:|---:|---:|---:|---:|"]
+    for path in paths:
+        runs = _stored_runs(path)
+        reports = [run["report"] for run in runs]
+        reached = [r.get("solved_at_frames") for r in reports]
+        median = float(np.median([np.inf if at is None else at for at in reached]))
+        scores = {
+            mode: [r[mode]["mean_return"] for r in reports if r.get(mode) is not None]
+            for mode in ("greedy", "sampled")
+        }
+        evaluated = all(len(values) == len(reports) for values in scores.values())
+        threshold = reports[0].get("threshold")
+        held = (
+            f"{sum(min(g, s) >= threshold for g, s in zip(*scores.values(), strict=True))}"
+            f"/{len(reports)}"
+            if evaluated and threshold is not None
+            else "—"
+        )
+        lines.append(
+            f"| {_setting(runs)} | {_seeds([r['seed'] for r in reports])} | "
+            f"{sum(at is not None for at in reached)}/{len(reports)} | "
+            + ("—" if not np.isfinite(median) else f"{median:,.0f}")
+            + f" | {held} | "
+            + " | ".join(
+                f"{np.median(values):.1f}" if values and evaluated else "—"
+                for values in scores.values()
+            )
+            + " |"
+        )
+    return "\n".join(lines)
+
+
+def _seeds(seeds: list[int]) -> str:
+    """Seeds as a short list: runs of three or more consecutive ones as a range.
+
+    Examples:
+        >>> from rl_pg.recipes.report import _seeds
+        >>> _seeds([0, 1, 2, 3, 4, 5, 6, 7, 8, 9]), _seeds([0, 1, 2, 4, 5, 8, 9]), _seeds([4])
+        ('0–9', '0–2 4 5 8 9', '4')
+    """
+    parts, run = [], []
+    for seed in sorted(set(seeds)):
+        if run and seed != run[-1] + 1:
+            parts.append(run)
+            run = []
+        run.append(seed)
+    parts.append(run)
+    return " ".join(
+        f"{r[0]}–{r[-1]}" if len(r) >= 3 else " ".join(map(str, r)) for r in parts if r
+    )
+
+
+def _setting(runs: list[dict[str, Any]]) -> str:
+    """The flags every run shares that differ from its recipe's defaults ("defaults"
+    when none do), as rl-pg train would take them; a flag the runs disagree on is
+    listed with all its values."""
+    from rl_pg.recipes import load
+    from rl_pg.recipes.cli import _flag
+    from rl_pg.training import TrainConfig
+
+    recipes = {run["report"]["recipe"] for run in runs}
+    if len(recipes) != 1:
+        raise ValueError(f"a setting's runs come from one recipe, got {sorted(recipes)}.")
+    recipe = load(recipes.pop())
+    config = recipe.config() if recipe.prepare is None else recipe.prepare(recipe.config())
+    defaults = json.loads(json.dumps(vars(config), default=str))
+    quiet = NOT_SETTINGS | set(TrainConfig.groups["logging"][1])
+    flags = []
+    for name in defaults:
+        if name in quiet:
+            continue
+        values = [run["config"].get(name, defaults[name]) for run in runs]
+        distinct = [v for i, v in enumerate(values) if v not in values[:i]]
+        if distinct != [defaults[name]]:
+            shown = [_flag(name, v) for v in distinct]
+            flags.append(shown[0] if len(shown) == 1 else " / ".join(shown))
+    return " ".join(f"`{flag}`" for flag in flags) or "defaults"
 
 
 def figure_ylim(match: re.Match) -> tuple[float, float] | None:
@@ -349,6 +461,8 @@ def _result(record: dict[str, Any] | None) -> str:
 
 def main(args: Args) -> str:
     """Prints (and returns) the table; draws the figure when ``args.plot`` is set."""
+    if args.settings and args.stored is None:
+        raise ValueError("--settings compares stored files: name them with --stored.")
     if args.profile is not None and args.stored is None:
         raise ValueError("--profile draws stored files: name them with --stored.")
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
@@ -367,6 +481,10 @@ def main(args: Args) -> str:
             raise ValueError("--store reads run directories: leave it out with --stored.")
         if args.plot is not None and len(args.stored) != 1:
             raise ValueError("--plot draws one stored file's seeds; for several, use --profile.")
+        if args.settings:
+            table = format_settings(args.stored)
+            print(table)
+            return table
         tables = []
         for path in args.stored:
             reports, names = read_stored(path)
