@@ -3,13 +3,16 @@ agents shipped with rl_pg, played and evaluated without training."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
-from test_cli import QUICK, in_process
+from conftest import hide_module
+from test_cli import QUICK, in_process, rl_pg
 
 from rl_pg.checkpoint import load_checkpoint
 from rl_pg.recipes import load
-from rl_pg.recipes.agents import SHIPPED, export_agent, shipped_agent
+from rl_pg.recipes.agents import HUB_FILE, SHIPPED, export_agent, model_card, shipped_agent
 from rl_pg.training import load_models, read_run
 
 TRAINING_STATE = {"optimizer", "rng", "collection", "episodes", "callbacks"}
@@ -123,3 +126,63 @@ def test_play_gives_each_copy_of_a_batch_its_own_return(tmp_path):
         play(mlp_actor(env), env, episodes=1, record=tmp_path / "x.gif")
     one = GridWorldEnv(batch_size=1)  # a batch of one is one environment
     assert len(play(mlp_actor(one), one, episodes=1)) == 1
+
+
+def _hub_cache(cache, repo_id: str, agent_file) -> None:
+    """Lays ``agent_file`` out in a Hugging Face cache as ``repo_id``'s agent.pt at a
+    commit, where a download would have put it."""
+    commit = "0123456789abcdef0123456789abcdef01234567"
+    repo = cache / f"models--{repo_id.replace('/', '--')}"
+    (repo / "snapshots" / commit).mkdir(parents=True)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text(commit)
+    (repo / "snapshots" / commit / HUB_FILE).write_bytes(agent_file.read_bytes())
+
+
+def test_an_agent_shared_on_the_hub_plays_from_its_cache_offline(tmp_path, capsys):
+    run = _trained(tmp_path, capsys)
+    agent_file = tmp_path / "a.pt"
+    export_agent(run, agent_file)
+    _hub_cache(tmp_path / "hub", "me/gridworld", agent_file)
+    offline = {**os.environ, "HF_HUB_CACHE": str(tmp_path / "hub"), "HF_HUB_OFFLINE": "1"}
+    done = rl_pg("evaluate", "me/gridworld", "--hub", "--episodes", "4", cwd=tmp_path,
+                 env=offline)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    status, out, err = in_process("evaluate", str(agent_file), "--episodes", "4", capsys=capsys)
+    assert status == 0 and done.stdout.split("return", 1)[1] == out.split("return", 1)[1], err
+    done = rl_pg("play", "me/absent", "--hub", cwd=tmp_path, env=offline)
+    assert done.returncode == 1 and "is not in the Hugging Face cache" in done.stderr
+    assert done.stderr.count("\n") == 1  # one line, no traceback
+    # pushing needs the network: said in one line, and the agent file is kept
+    done = rl_pg("export", str(run), "--out", str(tmp_path / "b.pt"), "--push-to-hub",
+                 "me/gridworld", cwd=tmp_path, env=offline)  # fmt: skip
+    assert done.returncode == 1 and "HF_HUB_OFFLINE is set" in done.stderr
+    assert done.stderr.count("\n") == 1 and (tmp_path / "b.pt").is_file()
+
+
+def test_the_hub_model_card_carries_the_agents_results_and_how_to_play_it(tmp_path, capsys):
+    from huggingface_hub import ModelCard
+
+    run = _trained(tmp_path, capsys)
+    for mode in ((), ("--sample",)):
+        assert in_process("evaluate", str(run), "--episodes", "3", *mode, capsys=capsys)[0] == 0
+    agent = export_agent(run, tmp_path / "a.pt")
+    card = ModelCard(model_card(agent, "me/gridworld"))
+    assert card.data.library_name == "rl_pg" and "reinforcement-learning" in card.data.tags
+    values = [result.metric_value for result in card.data.eval_results]
+    expected = [agent["agent"][mode] for mode in ("greedy", "sampled")]
+    assert values == [f"{r['mean_return']:.2f} +/- {r['std_return']:.2f}" for r in expected]
+    assert "rl-pg play me/gridworld --hub" in card.text
+    # an agent without results (a last checkpoint) gets a card without them
+    last = export_agent(run, tmp_path / "last.pt", which="last")
+    assert ModelCard(model_card(last, "me/gridworld")).data.eval_results is None
+
+
+def test_hub_sharing_without_its_extra_or_with_two_sources_says_so(tmp_path, capsys, monkeypatch):
+    status, _, err = in_process("play", "cartpole", "--pretrained", "--hub", capsys=capsys)
+    assert status == 1 and "use one" in err
+    hide_module(monkeypatch, "huggingface_hub")
+    for args in (("play", "me/x", "--hub"), ("evaluate", "me/x", "--hub"),
+                 ("export", str(tmp_path), "--out", "a.pt", "--push-to-hub", "me/x")):  # fmt: skip
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status == 1 and "rl_pg[hub]" in err and err.count("\n") == 1, (args, err)

@@ -5,6 +5,8 @@ rl-pg export runs/cartpole-seed0 --out cartpole.pt   # the run's best agent, as 
 rl-pg play cartpole.pt --gif cartpole.gif            # an agent file plays like a run
 rl-pg play lunarlander --pretrained                  # the agent shipped for a recipe
 rl-pg evaluate metadrive --pretrained --episodes 10
+rl-pg export runs/cartpole-seed0 --out cartpole.pt --push-to-hub me/rl_pg-cartpole
+rl-pg play me/rl_pg-cartpole --hub                   # an agent shared on the Hub
 
 An agent file is a checkpoint (same format and checksum) that keeps only what rebuilds
 and runs the models: the recipe, its config, the weights (the policy average's, for a
@@ -12,21 +14,43 @@ run trained with ``--policy-ema``: the ones its evaluations played) and where it
 from (the run, its frames, its last greedy and sampled ``rl-pg evaluate`` results, the
 sessions that trained it). No optimiser state, random states or collector state: it
 cannot be resumed, only deployed.
+
+Sharing goes through the Hugging Face Hub (``pip install "rl_pg[hub]"``): a model
+repository holds the agent file as ``agent.pt`` and a model card (``README.md``) with
+its results and the command that plays it. ``--hub`` downloads it once into the Hub's
+cache (``HF_HUB_OFFLINE=1`` reads only that cache, as on a machine without a network).
 """
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import tyro
 
-from rl_pg.checkpoint import save_checkpoint
+from rl_pg._checks import require_extra
+from rl_pg.checkpoint import load_checkpoint, save_checkpoint
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
 
-__all__ = ["SHIPPED", "ExportArgs", "export_agent", "main", "shipped_agent"]
+__all__ = [
+    "HUB_FILE",
+    "SHIPPED",
+    "ExportArgs",
+    "agent_path",
+    "export_agent",
+    "hub_agent",
+    "main",
+    "model_card",
+    "push_agent",
+    "shipped_agent",
+]
+
+HUB_FILE = "agent.pt"
+"""The agent file's name in a Hugging Face Hub model repository."""
 
 SHIPPED = Path(__file__).resolve().parent / "agents"
 """The folder of the agents shipped with rl_pg, one ``<recipe>.pt`` each."""
@@ -46,6 +70,149 @@ def shipped_agent(recipe: str) -> Path:
             f"Train one (rl-pg train {recipe}), or play an agent file: rl-pg play FILE.pt."
         )
     return path
+
+
+def hub_agent(repo_id: str) -> Path:
+    """The agent file of the Hugging Face Hub model repository ``repo_id``
+    (``owner/name``), downloaded once into the Hub's cache and read from there after.
+
+    Raises:
+        ModuleNotFoundError: huggingface_hub is not installed (names the extra).
+        ValueError: not a repository id, no such repository (or a private one without a
+            login), no agent in it, or not in the cache while the Hub cannot be reached.
+    """
+    require_extra("huggingface_hub", "hub", "Sharing agents on the Hugging Face Hub")
+    from huggingface_hub import hf_hub_download
+    from huggingface_hub.errors import (
+        EntryNotFoundError,
+        HfHubHTTPError,
+        HFValidationError,
+        LocalEntryNotFoundError,
+        RepositoryNotFoundError,
+    )
+
+    try:
+        return Path(hf_hub_download(repo_id, HUB_FILE, library_name="rl_pg"))
+    except HFValidationError as err:
+        raise ValueError(
+            f"--hub takes a Hub repository id, owner/name; {repo_id!r} is not one."
+        ) from err
+    except LocalEntryNotFoundError as err:
+        raise ValueError(
+            f"{repo_id}'s {HUB_FILE} is not in the Hugging Face cache and the Hub cannot be "
+            "reached (no network, or HF_HUB_OFFLINE=1): play it once online, then offline."
+        ) from err
+    except RepositoryNotFoundError as err:
+        raise ValueError(
+            f"No Hugging Face Hub model {repo_id!r} (or a private one: log in with "
+            "`hf auth login`)."
+        ) from err
+    except EntryNotFoundError as err:
+        raise ValueError(
+            f"The Hub model {repo_id} has no {HUB_FILE}: it holds no agent that "
+            "rl-pg export --push-to-hub wrote."
+        ) from err
+    except HfHubHTTPError as err:
+        raise ValueError(f"The Hub did not give {repo_id}'s agent: {err}") from err
+
+
+def agent_path(run: str | Path, *, pretrained: bool = False, hub: bool = False) -> Path:
+    """What ``rl-pg play RUN`` and ``rl-pg evaluate RUN`` load: the run directory or
+    file itself, the agent shipped for the recipe RUN names (``pretrained``), or the
+    agent of the Hub repository RUN names (``hub``)."""
+    if pretrained and hub:
+        raise ValueError("--pretrained and --hub name two sources of an agent: use one.")
+    if pretrained:
+        return shipped_agent(str(run))
+    if hub:
+        return hub_agent(str(run))
+    return Path(run)
+
+
+def model_card(agent: dict[str, Any], repo_id: str) -> str:
+    """The Hub model card of an agent file's contents ``agent``: the metadata the Hub
+    indexes (library, tags, its ``rl-pg evaluate`` results) and how to play it."""
+    require_extra("huggingface_hub", "hub", "Sharing agents on the Hugging Face Hub")
+    from huggingface_hub import EvalResult, ModelCardData
+
+    recipe, config, info = agent["recipe"], agent["config"], agent.get("agent", {})
+    env = config.get("env_id", recipe)
+    evaluated = {
+        mode: result for mode in ("greedy", "sampled") if (result := info.get(mode)) is not None
+    }
+    data = ModelCardData(
+        library_name="rl_pg",
+        tags=["reinforcement-learning", "rl_pg", "torchrl", "reinforce", recipe],
+        model_name=f"REINFORCE on {env}",
+        eval_results=[
+            EvalResult(
+                task_type="reinforcement-learning",
+                dataset_type=env,
+                dataset_name=env,
+                metric_type="mean_reward",
+                metric_name=f"mean return, {mode}",
+                metric_value=f"{r['mean_return']:.2f} +/- {r['std_return']:.2f}",
+            )
+            for mode, r in evaluated.items()
+        ]
+        or None,
+    )
+    frames = agent.get("state", {}).get("frames")
+    results = "".join(
+        f"| {mode} | {r['mean_return']:.2f} ± {r['std_return']:.2f} ({r['episodes']}) |\n"
+        for mode, r in evaluated.items()
+    )
+    return (
+        f"---\n{data.to_yaml()}\n---\n\n"
+        f"# REINFORCE on {env}, trained with rl_pg\n\n"
+        f"The `{recipe}` recipe's agent from run `{info.get('exported_from')}`"
+        + (f", after {frames:,} frames" if frames is not None else "")
+        + " (weights and config, no training state).\n\n"
+        "```bash\n"
+        'pip install "rl_pg[hub]"\n'
+        f"rl-pg play {repo_id} --hub\n"
+        f"rl-pg evaluate {repo_id} --hub --episodes 100\n"
+        "```\n"
+        + (
+            "\n`rl-pg evaluate` of this checkpoint, mean return (episodes):\n\n"
+            f"| actions | return |\n|---|---|\n{results}"
+            if evaluated
+            else ""
+        )
+    )
+
+
+def push_agent(agent_file: str | Path, repo_id: str, *, private: bool = False) -> str:
+    """Uploads an agent file to the Hub model repository ``repo_id`` (created if
+    needed) as ``agent.pt`` with its model card; returns the commit's URL. Needs a
+    login (``hf auth login`` or ``HF_TOKEN``)."""
+    require_extra("huggingface_hub", "hub", "Sharing agents on the Hugging Face Hub")
+    from huggingface_hub import HfApi
+    from huggingface_hub.errors import HfHubHTTPError, OfflineModeIsEnabled
+
+    agent = load_checkpoint(agent_file)
+    with tempfile.TemporaryDirectory() as folder:
+        shutil.copyfile(agent_file, Path(folder) / HUB_FILE)
+        (Path(folder) / "README.md").write_text(model_card(agent, repo_id))
+        api = HfApi(library_name="rl_pg")
+        try:
+            api.create_repo(repo_id, exist_ok=True, private=private)
+            commit = api.upload_folder(
+                repo_id=repo_id,
+                folder_path=folder,
+                commit_message=f"rl-pg export of {agent.get('agent', {}).get('exported_from')}",
+            )
+        except OfflineModeIsEnabled as err:
+            raise ValueError(
+                f"Cannot push to {repo_id}: HF_HUB_OFFLINE is set. The agent file "
+                f"{agent_file} is written; push it later with --push-to-hub."
+            ) from err
+        except (HfHubHTTPError, OSError) as err:
+            raise ValueError(
+                f"Cannot push to {repo_id} ({type(err).__name__}: {err}); log in with "
+                f"`hf auth login` (or set HF_TOKEN). The agent file {agent_file} is written."
+            ) from err
+    return str(commit.commit_url)
 
 
 def export_agent(run: str | Path, out: str | Path, *, which: str = "best") -> dict[str, Any]:
@@ -114,14 +281,24 @@ class ExportArgs:
     rl-pg evaluate FILE."""
     checkpoint: Literal["best", "last"] = "best"
     """Export the best checkpoint (what rl-pg play deploys), or the last."""
+    push_to_hub: str | None = None
+    """Also upload the agent to this Hugging Face Hub model repository, owner/name.
+    Created if needed, with a model card; needs rl_pg[hub] and a login (`hf auth
+    login`). Others play it with rl-pg play owner/name --hub."""
+    private: bool = False
+    """With --push-to-hub: create the repository private."""
 
 
 def main(args: ExportArgs) -> Path:
-    """Exports the agent; prints what was written."""
+    """Exports the agent (and pushes it); prints what was written."""
+    if args.push_to_hub is not None:  # before the export: name a missing extra first
+        require_extra("huggingface_hub", "hub", "Sharing agents on the Hugging Face Hub")
     agent = export_agent(args.run, args.out, which=args.checkpoint)
     size = Path(args.out).stat().st_size
     print(
         f"{args.out}: the {agent['recipe']} agent of {args.run} ({args.checkpoint} checkpoint, "
         f"{agent['state']['frames']:,} frames), {size / 1024:.0f} KiB"
     )
+    if args.push_to_hub is not None:
+        print(f"pushed to the Hub: {push_agent(args.out, args.push_to_hub, private=args.private)}")
     return Path(args.out)

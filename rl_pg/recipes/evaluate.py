@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from rl_pg.recipes import recipe_of
-from rl_pg.recipes.agents import shipped_agent
+from rl_pg.recipes.agents import agent_path
 from rl_pg.training import Count, Range, read_run
 
 __all__ = ["EVALUATIONS", "Args", "main"]
@@ -38,9 +38,13 @@ class Args:
     """Evaluate a trained agent on the recipe's test environment."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name."""
+    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name; with
+    --hub, a Hugging Face Hub repository, owner/name."""
     pretrained: bool = False
     """Evaluate the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
+    hub: bool = False
+    """Evaluate the agent of the Hugging Face Hub repository RUN names. Downloaded once
+    into the Hub's cache; needs rl_pg[hub]."""
     episodes: Count = 100
     """Episodes to evaluate on."""
     checkpoint: Literal["best", "last"] = "best"
@@ -65,7 +69,7 @@ class Args:
 
 def main(args: Args) -> dict[str, Any]:
     """Evaluates the run's agent; prints and returns the result."""
-    run = shipped_agent(str(args.run)) if args.pretrained else args.run
+    run = agent_path(args.run, pretrained=args.pretrained, hub=args.hub)
     saved = read_run(run, which=args.checkpoint)
     recipe = recipe_of(saved, run)
     result = recipe.evaluate_checkpoint(

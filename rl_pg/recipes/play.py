@@ -16,7 +16,7 @@ import torch
 import tyro
 
 from rl_pg.recipes import recipe_of
-from rl_pg.recipes.agents import shipped_agent
+from rl_pg.recipes.agents import agent_path
 from rl_pg.recording import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
 from rl_pg.training.threads import torch_threads
@@ -29,9 +29,13 @@ class Args:
     """Play a trained agent's episodes and print their returns."""
 
     run: tyro.conf.Positional[Path]
-    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name."""
+    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name; with
+    --hub, a Hugging Face Hub repository, owner/name."""
     pretrained: bool = False
     """Play the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
+    hub: bool = False
+    """Play the agent of the Hugging Face Hub repository RUN names. Downloaded once
+    into the Hub's cache; needs rl_pg[hub]."""
     episodes: Count = 5
     """Episodes to play."""
     checkpoint: Literal["best", "last"] = "best"
@@ -53,7 +57,7 @@ class Args:
 
 def main(args: Args) -> list[float]:
     """Plays ``args.episodes`` episodes of the run's agent; returns their returns."""
-    run = shipped_agent(str(args.run)) if args.pretrained else args.run
+    run = agent_path(args.run, pretrained=args.pretrained, hub=args.hub)
     saved = read_run(run, which=args.checkpoint)
     recipe = recipe_of(saved, run)
     cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch

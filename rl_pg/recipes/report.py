@@ -362,9 +362,7 @@ def _seeds(seeds: list[int]) -> str:
             run = []
         run.append(seed)
     parts.append(run)
-    return " ".join(
-        f"{r[0]}–{r[-1]}" if len(r) >= 3 else " ".join(map(str, r)) for r in parts if r
-    )
+    return " ".join(f"{r[0]}–{r[-1]}" if len(r) >= 3 else " ".join(map(str, r)) for r in parts if r)
 
 
 def _setting(runs: list[dict[str, Any]]) -> str:
