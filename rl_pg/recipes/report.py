@@ -411,7 +411,7 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
         | run | recipe | seed | frames | training (s) | first
         >>> for line in table.splitlines()[2:]:
         ...     print(line)
-        | s0 | cartpole | 0 | 20,224 | 1 | 20,224 | 500.00 at 20,224 | 500.00 ± 0.00 (100) | — |
+        | s0 | cartpole | 0 | 20,224 | 1.2 | 20,224 | 500.00 at 20,224 | 500.00 ± 0.00 (100) | — |
         <BLANKLINE>
         1/1 runs reached their threshold.
     """
@@ -431,7 +431,7 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
             f"| {name} | {r['recipe']} | {r['seed']} | {r['frames']:,}"
             + (" (interrupted)" if r.get("interrupted") else "")
             + " | "
-            f"{r['train_wall_s']:.0f} | {solved} | {best} | {_result(r['greedy'])} | "
+            f"{_seconds(r['train_wall_s'])} | {solved} | {best} | {_result(r['greedy'])} | "
             f"{_result(r['sampled'])} |"
         )
     with_threshold = [r for r in reports if r.get("threshold") is not None]
@@ -449,6 +449,11 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
                 "threshold both greedily and by sampling."
             )
     return "\n".join(lines)
+
+
+def _seconds(seconds: float) -> str:
+    """A training time: tenths of a second below 10 s (a CartPole run takes one or two)."""
+    return f"{seconds:.1f}" if seconds < 10 else f"{seconds:.0f}"
 
 
 def _result(record: dict[str, Any] | None) -> str:
