@@ -425,6 +425,12 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
                     "--settings -->\n| stale |\n<!-- end of report -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     assert out.strip() in page.read_text()
+    # a figure in a sentence: the stored value at a JSON pointer, written by --refresh
+    page.write_text("Seed 1 took <!-- value results/seeds.json /runs/1/report/frames "
+                    "{:,} --> 12<!-- /value --> frames.\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    frames = saved_runs["runs"][1]["report"]["frames"]
+    assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
     unevaluated = json.loads(stored.read_text())
     unevaluated["runs"][1]["report"]["sampled"] = None
     other.write_text(json.dumps(unevaluated))
@@ -453,8 +459,10 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
     from rl_pg.recipes.report import (
         STORED_FIGURE,
         STORED_TABLE,
+        STORED_VALUE,
         draw_stored,
         stored_table,
+        stored_value,
     )
 
     pages = [REPO / "README.md", REPO / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
@@ -466,6 +474,12 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
             assert match["table"].strip() == expected, (
                 f"{page.name}: the table of {match['files']} is not what the file holds; "
                 f"run rl-pg report --refresh {page.relative_to(REPO)}"
+            )
+        for match in STORED_VALUE.finditer(page.read_text()):
+            found += 1
+            assert match["value"] == stored_value(match, page.parent), (
+                f"{page.name}: {match['value']!r} is not {match['file']}'s "
+                f"{match['pointer']}; run rl-pg report --refresh {page.relative_to(REPO)}"
             )
         for match in STORED_FIGURE.finditer(page.read_text()):
             found += 1

@@ -21,6 +21,9 @@ A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->
 names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
 ``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file.
+A figure in a sentence is written ``<!-- value FILE /JSON/POINTER FORMAT -->0.75×<!--
+/value -->``: the value at that JSON pointer (RFC 6901) of FILE, through the Python
+format FORMAT (e.g. ``{:.2f}×``), which ``--refresh`` writes again.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ __all__ = [
     "refresh",
     "store_report",
     "stored_table",
+    "stored_value",
 ]
 
 SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
@@ -67,6 +71,10 @@ STORED_TABLE = re.compile(
     r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)(?P<settings> --settings)? "
     r"-->\n(?P<table>.*?)^<!-- end of report -->$",
     re.MULTILINE | re.DOTALL,
+)
+STORED_VALUE = re.compile(
+    r"<!-- value (?P<file>\S+) (?P<pointer>/.*?) (?P<format>\S*\{[^}]*\}\S*) -->"
+    r"(?P<value>[^<]*)<!-- /value -->"
 )
 # What a setting's flags leave out: where a run went, which seed, how it was watched.
 NOT_SETTINGS = frozenset({"seed", "run_dir", "resume", "progress", "threads", "device"})
@@ -281,6 +289,12 @@ def refresh(page: Path) -> bool:
         return f"{opening}\n{stored_table(match, page.parent)}\n<!-- end of report -->"
 
     refreshed = STORED_TABLE.sub(table, text)
+    refreshed = STORED_VALUE.sub(
+        lambda m: m.group(0).replace(
+            f"-->{m['value']}<!-- /value", f"-->{stored_value(m, page.parent)}<!-- /value"
+        ),
+        refreshed,
+    )
     changed = refreshed != text
     if changed:
         write_atomically(page, refreshed)
@@ -301,6 +315,34 @@ def stored_table(match: re.Match, folder: Path) -> str:
     if len(files) != 1:
         raise ValueError(f"a table of runs reads one stored file, got {match['files']!r}.")
     return format_report(*read_stored(files[0]))
+
+
+def stored_value(match: re.Match, folder: Path) -> str:
+    """The figure a page's ``STORED_VALUE`` match ``match`` shows: its file's value at
+    its JSON pointer (the file relative to ``folder``, the page's), formatted.
+
+    Examples:
+        >>> import json, tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.recipes.report import STORED_VALUE, stored_value
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> _ = (folder / "b.json").write_text(json.dumps({"ratios": {"a/b": 0.7526}}))
+        >>> line = "runs at <!-- value b.json /ratios/a~1b {:.2f}× -->?<!-- /value --> the speed"
+        >>> stored_value(STORED_VALUE.search(line), folder)
+        '0.75×'
+    """
+    path = Path(folder) / match["file"]
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not a JSON file ({err}).") from err
+    for part in match["pointer"].split("/")[1:]:
+        key = part.replace("~1", "/").replace("~0", "~")
+        try:
+            value = value[int(key)] if isinstance(value, list) else value[key]
+        except (KeyError, IndexError, ValueError, TypeError) as err:
+            raise ValueError(f"{path} has nothing at {match['pointer']} (no {key!r}).") from err
+    return match["format"].format(value)
 
 
 def format_settings(paths: list[Path]) -> str:
