@@ -412,8 +412,9 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     status, out, err = in_process("report", "--stored", str(stored), str(other), "--settings",
                                   capsys=capsys)  # fmt: skip
     assert status == 0, err
-    first, second = out.strip().splitlines()[2:]
-    assert first.startswith("| `--total-updates 2` `--eval-interval 100` | 0 1 |")
+    first, second, _, shared = out.strip().splitlines()[2:]
+    assert first.startswith("| defaults | 0 1 |")  # what both share is said once, below
+    assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
     assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
     reports = [run["report"] for run in saved_runs["runs"]]
     held = sum(

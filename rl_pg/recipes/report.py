@@ -358,8 +358,11 @@ def format_settings(paths: list[Path]) -> str:
         "| greedy, median | sampled, median |"
     )
     lines = [head, "|---|---:|---:|---:|---:|---:|---:|"]
-    for path in paths:
-        runs = _stored_runs(path)
+    stored = [_stored_runs(path) for path in paths]
+    settings = [_setting(runs) for runs in stored]
+    # flags every row shares (a budget, say) are said once, under the table
+    shared = set.intersection(*map(set, settings)) if len(settings) > 1 else set()
+    for runs, setting in zip(stored, settings, strict=True):
         reports = [run["report"] for run in runs]
         reached = [r.get("solved_at_frames") for r in reports]
         median = float(np.median([np.inf if at is None else at for at in reached]))
@@ -376,7 +379,8 @@ def format_settings(paths: list[Path]) -> str:
             else "—"
         )
         lines.append(
-            f"| {_setting(runs)} | {_seeds([r['seed'] for r in reports])} | "
+            f"| {' '.join(f'`{f}`' for f in setting if f not in shared) or 'defaults'} | "
+            f"{_seeds([r['seed'] for r in reports])} | "
             f"{sum(at is not None for at in reached)}/{len(reports)} | "
             + ("—" if not np.isfinite(median) else f"{median:,.0f}")
             + f" | {held} | "
@@ -386,6 +390,9 @@ def format_settings(paths: list[Path]) -> str:
             )
             + " |"
         )
+    if shared:
+        common = " ".join(f"`{flag}`" for flag in settings[0] if flag in shared)
+        lines += ["", f"Every row: {common}."]
     return "\n".join(lines)
 
 
@@ -407,10 +414,9 @@ def _seeds(seeds: list[int]) -> str:
     return " ".join(f"{r[0]}–{r[-1]}" if len(r) >= 3 else " ".join(map(str, r)) for r in parts if r)
 
 
-def _setting(runs: list[dict[str, Any]]) -> str:
-    """The flags every run shares that differ from its recipe's defaults ("defaults"
-    when none do), as rl-pg train would take them; a flag the runs disagree on is
-    listed with all its values."""
+def _setting(runs: list[dict[str, Any]]) -> list[str]:
+    """The flags every run shares that differ from its recipe's defaults, as rl-pg
+    train would take them; a flag the runs disagree on is listed with all its values."""
     from rl_pg.recipes import load
     from rl_pg.recipes.cli import _flag
     from rl_pg.training import TrainConfig
@@ -431,7 +437,7 @@ def _setting(runs: list[dict[str, Any]]) -> str:
         if distinct != [defaults[name]]:
             shown = [_flag(name, v) for v in distinct]
             flags.append(shown[0] if len(shown) == 1 else " / ".join(shown))
-    return " ".join(f"`{flag}`" for flag in flags) or "defaults"
+    return flags
 
 
 def figure_ylim(match: re.Match) -> tuple[float, float] | None:
