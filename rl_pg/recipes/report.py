@@ -40,7 +40,7 @@ import tyro
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import plot_profiles, plot_runs, plot_seeds, read_curve
+from rl_pg.training.curves import plot_profiles, plot_runs, plot_seeds, plot_solved, read_curve
 from rl_pg.training.run_dir import CONFIG, SUMMARY
 from rl_pg.training.seeds import fresh_seed
 
@@ -214,8 +214,17 @@ def _stored_runs(path: Path) -> list[dict[str, Any]]:
 def plot_stored(path: Path, figure: Path, *, ylim: tuple[float, float] | None = None) -> Path:
     """Draws the seeds of a stored report into ``figure``: each run's curve, and their
     interquartile mean with a 95 % bootstrap band (see
-    [`plot_seeds`][rl_pg.training.curves.plot_seeds])."""
+    [`plot_seeds`][rl_pg.training.curves.plot_seeds]); for runs that stopped when
+    solved (their curves end where each passed), the share of them solved by each
+    frame (see [`plot_solved`][rl_pg.training.curves.plot_solved])."""
     runs = _stored_runs(path)
+    if all(run["config"].get("stop_when_solved") for run in runs):
+        return plot_solved(
+            {run["name"]: run["report"].get("solved_at_frames") for run in runs},
+            Path(figure),
+            budget=max(run["config"]["total_frames"] for run in runs),
+            title=", ".join(sorted({run["report"]["recipe"] for run in runs})),
+        )
     metrics = {run["curve"]["metric"] for run in runs}
     thresholds = {run["report"].get("threshold") for run in runs}
     metric = metrics.pop() if len(metrics) == 1 else "the stored metric"

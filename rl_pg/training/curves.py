@@ -252,6 +252,62 @@ def plot_profiles(
     return path
 
 
+def solved_share(
+    reached: np.ndarray, frames: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The share of runs that reached their threshold by each of ``frames`` (``reached``:
+    each run's frames to the threshold, ``inf`` for one that never did), with a
+    percentile-bootstrap interval over the runs: the aggregate of runs that stop when
+    solved, whose evaluation curves end at different frames.
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.training.curves import solved_share
+        >>> share, low, high = solved_share(np.array([10.0, 20.0, 40.0, np.inf]),
+        ...                                 np.array([0.0, 20.0, 100.0]))
+        >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
+        ([0.0, 0.5, 0.75], True)
+    """
+    reached = np.asarray(reached, dtype=np.float64)
+    frames = np.asarray(frames, dtype=np.float64)
+    if reached.ndim != 1 or len(reached) < 2:
+        raise ValueError(
+            f"solved_share needs the frames to the threshold of at least 2 runs, got shape "
+            f"{reached.shape}."
+        )
+
+    def share_by(runs: np.ndarray, axis: int = -1) -> np.ndarray:
+        runs = np.moveaxis(runs, axis, -1)  # [..., runs]
+        return np.moveaxis((runs[..., None] <= frames).mean(axis=-2), -1, 0)  # [frames, ...]
+
+    low, high = _bootstrap_interval(reached, share_by, confidence, resamples)
+    return share_by(reached), low, high
+
+
+def plot_solved(reached: dict[str, float | None], path: Path, *, budget: int, title: str) -> Path:
+    """Runs that stop when solved (``{name: frames to the threshold, or None}``): the
+    share of them solved by each frame up to ``budget``, with its 95 % bootstrap band
+    (see [`solved_share`][rl_pg.training.curves.solved_share]), and a tick per run."""
+    at = np.array([np.inf if f is None else f for f in reached.values()], dtype=np.float64)
+    frames = np.linspace(0, budget, 500)
+    share, low, high = solved_share(at, frames)
+    with png_figure(path) as ax:
+        ax.step(frames, share, where="post", color="C0", linewidth=2,
+                label=f"share of {len(at)} seeds solved")  # fmt: skip
+        ax.fill_between(frames, low, high, step="post", color="C0", alpha=0.25,
+                        label="95 % bootstrap CI")  # fmt: skip
+        solved = at[np.isfinite(at)]
+        ax.plot(solved, np.zeros_like(solved), "|", color="black", markersize=12,
+                label="a seed's first evaluation at the threshold")  # fmt: skip
+        ax.set_xlabel("frames")
+        ax.set_ylabel("share of seeds solved")
+        ax.set_xlim(0, budget)
+        ax.set_ylim(-0.04, 1.02)
+        ax.set_title(title)
+        ax.legend(fontsize=8, loc="lower right")
+    return path
+
+
 def plot_seeds(
     curves: dict[str, tuple[np.ndarray, np.ndarray]],
     path: Path,
