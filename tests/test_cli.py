@@ -432,6 +432,15 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     frames = saved_runs["runs"][1]["report"]["frames"]
     assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
+    # runs that stopped when solved: the share of them solved by each frame
+    status, out, err = in_process("report", "--stored", str(stored), "--plot",
+                                  str(tmp_path / "solved.png"), capsys=capsys)  # fmt: skip
+    assert status == 0 and (tmp_path / "solved.png").is_file(), err
+    trained_on = tmp_path / "trained_on.json"
+    runs_on = json.loads(stored.read_text())
+    for run in runs_on["runs"]:
+        run["config"]["stop_when_solved"] = False
+    trained_on.write_text(json.dumps(runs_on))
     unevaluated = json.loads(stored.read_text())
     unevaluated["runs"][1]["report"]["sampled"] = None
     other.write_text(json.dumps(unevaluated))
@@ -447,8 +456,11 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
         (("report", "--stored", str(page)), "is not a stored report"),
         (("report", "--stored", str(stored), "--store", "x.json"), "leave it out"),
-        # these two runs of whole episodes were evaluated at different frames
-        (("report", "--stored", str(stored), "--plot", "x.png"), "evaluated at the same frames"),
+        # these two runs were evaluated at different frames, and did not stop when solved
+        (
+            ("report", "--stored", str(trained_on), "--plot", "x.png"),
+            "evaluated at the same frames",
+        ),
     ]:
         status, _, err = in_process(*args, capsys=capsys)
         assert status == 1 and message in err, (args, err)
