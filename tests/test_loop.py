@@ -167,6 +167,35 @@ class TestTrain:
         after = float(fitted.read_text().split(",")[-1])
         assert after < 0.5 * before
 
+    def test_late_segments_join_into_one_longer_segment(self, tmp_path):
+        # From segments_late_start on, each update joins segments_late consecutive
+        # segments collected with one policy: from frame 0, that is the update of one
+        # segment that many times longer, to the last weight and frame.
+        joined, longer = tmp_path / "joined", tmp_path / "longer"
+        common = {"batch_mode": "segments", "total_updates": 4, "eval_interval": 10**9}
+        late = {"segments_late": 3, "segments_late_start": 0.0}
+        summaries = {
+            "joined": _train(_cfg(tmp_path, run_dir=joined, segment_length=5, **late, **common)),
+            "longer": _train(_cfg(tmp_path, run_dir=longer, segment_length=15, **common)),
+        }
+        assert summaries["joined"]["frames"] == summaries["longer"]["frames"] == 4 * 15 * 8
+        assert summaries["joined"]["updates"] == 4
+        a, b = run_weights(joined), run_weights(longer)
+        assert a.keys() == b.keys()
+        for key in a:
+            torch.testing.assert_close(a[key], b[key], msg=key)
+        # from half the budget on: 2 short updates, then joined ones
+        _train(_cfg(tmp_path, run_dir=tmp_path / "late", segment_length=5, segments_late=3,
+                    segments_late_start=0.5, batch_mode="segments", total_frames=400,
+                    total_updates=None, eval_interval=10**9))  # fmt: skip
+        frames = [int(row.split(",")[0]) for row in (
+            tmp_path / "late" / "logs" / "csv" / "scalars" / "train" / "episode_return.csv"
+        ).read_text().split()]  # fmt: skip
+        # rows: updates that finished an episode; 40 frames an update up to 200 (half the
+        # budget), 120 after (the last update passes the budget, as any batch may)
+        steps = np.diff([0, *frames])
+        assert frames[-3:] == [200, 320, 440] and all(step % 40 == 0 for step in steps), steps
+
     def test_gae_with_lambda_one_is_reward_to_go_minus_v(self, tmp_path):
         # On whole episodes (truncations bootstrapped from V by both), GAE(lambda=1) is
         # the Monte-Carlo reward-to-go minus V: the same update; a lambda below 1 is not.
@@ -579,6 +608,9 @@ class TestTrain:
             ({"ray": True}, "use --batch-mode segments with --ray"),
             ({"critic_steps": 0}, r"critic_steps \(--critic-steps\) must be an integer >= 1"),
             ({"critic_steps": 5, "baseline": "ema"}, "--critic-steps 5 fits a critic, but"),
+            ({"segments_late": 2}, "--segments-late 2 joins segments .* use --batch-mode seg"),
+            ({"segments_late": 0}, r"segments_late \(--segments-late\) must be an integer >= 1"),
+            ({"segments_late_start": 1.0}, "segments_late_start .* must be"),
             ({"returns": "gae", "baseline": "running_mean"}, "--returns gae estimates"),
             ({"gae_lambda": 1.5}, r"gae_lambda \(--gae-lambda\) must be a finite number"),
             ({"resume": True, "run_dir": None}, "--resume needs --run-dir"),

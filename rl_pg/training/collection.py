@@ -32,7 +32,7 @@ from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.seeds import training_seed
 
-__all__ = ["Collection"]
+__all__ = ["Collection", "segments_per_update"]
 
 
 class Collection:
@@ -143,6 +143,15 @@ class Collection:
     def __iter__(self) -> Iterator[TensorDictBase]:
         return self._batches
 
+    def join(self, first: TensorDictBase, count: int) -> TensorDictBase:
+        """``first`` and the ``count - 1`` segments collected after it, joined along
+        time: one longer segment of every environment, collected with the same policy
+        (no update comes between them)."""
+        if count == 1:
+            return first
+        parts = [first, *(next(self._batches) for _ in range(count - 1))]
+        return torch.cat(parts, dim=first.ndim - 1)  # time is the last batch dimension
+
     def _record(self, batches: Iterator[TensorDictBase]) -> Iterator[TensorDictBase]:
         for batch in batches:
             if self.replaying:  # time first: [T, *environments, *action]
@@ -223,3 +232,10 @@ class _ReplayingPolicy(TensorDictModuleBase):
         if self.queue:
             tensordict.set(self.action_key, self.queue.popleft())
         return tensordict
+
+
+def segments_per_update(cfg: TrainConfig, frames: int) -> int:
+    """Segments the update that follows ``frames`` environment steps joins: 1, then
+    ``segments_late`` from ``segments_late_start`` of the run on."""
+    late = frames >= cfg.segments_late_start * cfg.total_frames
+    return cfg.segments_late if late and cfg.batch_mode == "segments" else 1

@@ -68,7 +68,7 @@ class TrainConfig:
         )),
         "collection": ("How the batches are collected.", (
             "workers", "ray", "batch_mode", "episodes_per_batch", "segment_length",
-            "env_restart_interval",
+            "segments_late", "segments_late_start", "env_restart_interval",
         )),
         "returns": ("What weights log pi: the return, its discount, the baseline.", (
             "returns", "gae_lambda", "gamma", "reward_scale", "baseline", "baseline_rate",
@@ -130,6 +130,12 @@ class TrainConfig:
     """Complete episodes per update (batch_mode='episodes')."""
     segment_length: Count = 50
     """Steps per environment per update (batch_mode='segments')."""
+    segments_late: Count = 1
+    """Segments per update from segments_late_start on. Each update then joins this many
+    consecutive segments collected with the same policy: a batch that grows late in the
+    run, strictly on-policy (1: one segment per update throughout)."""
+    segments_late_start: Annotated[float, Range(0, 1, high_open=True)] = 0.5
+    """Share of total_frames after which each update takes segments_late segments."""
     env_restart_interval: Count = 50
     """Updates between restarts of every environment. With segments and one worker;
     episodes in flight are cut there. A resumed run replays the actions since the last
@@ -353,6 +359,12 @@ class TrainConfig:
         check_fields(self)
         if self.resume and self.run_dir is None:
             raise ValueError("--resume needs --run-dir: the directory of the run to continue.")
+        if self.segments_late > 1 and self.batch_mode != "segments":
+            raise ValueError(
+                f"--segments-late {self.segments_late} joins segments into one update, but "
+                f"--batch-mode is {self.batch_mode!r}: use --batch-mode segments, or "
+                "--episodes-per-batch for more whole episodes per update."
+            )
         if self.critic_steps > 1 and self.baseline != "critic":
             raise ValueError(
                 f"--critic-steps {self.critic_steps} fits a critic, but --baseline is "

@@ -41,7 +41,7 @@ from rl_pg.training.callbacks import (
     StopWhenSolved,
 )
 from rl_pg.training.checkpoints import RunState, callback_states, restore, restore_rng
-from rl_pg.training.collection import Collection
+from rl_pg.training.collection import Collection, segments_per_update
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import Console
 from rl_pg.training.interrupt import InterruptRequest
@@ -152,6 +152,7 @@ def train(
         run = Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries, hooks)
         try:
             for batch in run.collection:
+                batch = run.collection.join(batch, segments_per_update(cfg, run.state.frames))
                 hooks.on_batch(run, batch)
                 metrics = run.update(batch)
                 if not directory.kept and cfg.run_dir is None:
