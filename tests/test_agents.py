@@ -163,6 +163,10 @@ def test_an_agent_shared_on_the_hub_plays_from_its_cache_offline(tmp_path, capsy
                  "me/gridworld", cwd=tmp_path, env=offline)  # fmt: skip
     assert done.returncode == 1 and "HF_HUB_OFFLINE is set" in done.stderr
     assert done.stderr.count("\n") == 1 and (tmp_path / "b.pt").is_file()
+    # a name the Hub refuses is refused before anything is written
+    status, _, err = in_process("export", str(run), "--out", str(tmp_path / "c.pt"),
+                                "--push-to-hub", "not a repo id", capsys=capsys)  # fmt: skip
+    assert status == 1 and "is not one" in err and not (tmp_path / "c.pt").exists()
 
 
 def test_the_hub_model_card_carries_the_agents_results_and_how_to_play_it(tmp_path, capsys):

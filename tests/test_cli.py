@@ -422,6 +422,14 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         for r in reports
     )
     assert f"| {held}/2 |" in second
+    # settings of two recipes: each row names its recipe
+    mixed = json.loads(other.read_text())
+    for run in mixed["runs"]:
+        run["report"]["recipe"] = "bandit"
+    (tmp_path / "bandit.json").write_text(json.dumps(mixed))
+    status, two, err = in_process("report", "--stored", str(stored), str(tmp_path / "bandit.json"),
+                                  "--settings", capsys=capsys)  # fmt: skip
+    assert status == 0 and "| gridworld: " in two and "| bandit: " in two, err
     page.write_text("<!-- rl-pg report --stored results/seeds.json results/other.json "
                     "--settings -->\n| stale |\n<!-- end of report -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
@@ -432,6 +440,15 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     frames = saved_runs["runs"][1]["report"]["frames"]
     assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
+    # a marker that cannot be written names what is wrong with it
+    for marker, message in [
+        ("results/none.json /a {}", "none.json does not exist"),
+        ("results/seeds.json /runs/7/report/frames {}", "has nothing at /runs/7/report/frames"),
+        ("results/seeds.json /runs/1/report/frames {:.2q}", "cannot write"),
+    ]:
+        page.write_text(f"A <!-- value {marker} -->1<!-- /value -->.\n")
+        status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+        assert status == 1 and message in err and err.count("\n") == 1, (marker, err)
     # runs that stopped when solved: the share of them solved by each frame
     status, out, err = in_process("report", "--stored", str(stored), "--plot",
                                   str(tmp_path / "solved.png"), capsys=capsys)  # fmt: skip

@@ -291,8 +291,18 @@ class ExportArgs:
 
 def main(args: ExportArgs) -> Path:
     """Exports the agent (and pushes it); prints what was written."""
-    if args.push_to_hub is not None:  # before the export: name a missing extra first
+    if args.push_to_hub is not None:  # before the export: a missing extra, a bad name
         require_extra("huggingface_hub", "hub", "Sharing agents on the Hugging Face Hub")
+        from huggingface_hub.errors import HFValidationError
+        from huggingface_hub.utils import validate_repo_id
+
+        try:
+            validate_repo_id(args.push_to_hub)
+        except HFValidationError as err:
+            raise ValueError(
+                f"--push-to-hub takes a Hub repository id, owner/name; "
+                f"{args.push_to_hub!r} is not one ({err})."
+            ) from err
     agent = export_agent(args.run, args.out, which=args.checkpoint)
     size = Path(args.out).stat().st_size
     print(

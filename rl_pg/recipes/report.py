@@ -341,6 +341,8 @@ def stored_value(match: re.Match, folder: Path) -> str:
         '0.75×'
     """
     path = Path(folder) / match["file"]
+    if not path.is_file():
+        raise ValueError(f"{path} does not exist (named by {match.group(0)!r}).")
     try:
         value = json.loads(path.read_text())
     except (OSError, ValueError) as err:
@@ -351,7 +353,13 @@ def stored_value(match: re.Match, folder: Path) -> str:
             value = value[int(key)] if isinstance(value, list) else value[key]
         except (KeyError, IndexError, ValueError, TypeError) as err:
             raise ValueError(f"{path} has nothing at {match['pointer']} (no {key!r}).") from err
-    return match["format"].format(value)
+    try:
+        return match["format"].format(value)
+    except (ValueError, TypeError, IndexError, KeyError) as err:
+        raise ValueError(
+            f"The format {match['format']!r} cannot write {value!r} ({path}, "
+            f"{match['pointer']}): {err}."
+        ) from err
 
 
 def format_settings(paths: list[Path]) -> str:
@@ -369,9 +377,11 @@ def format_settings(paths: list[Path]) -> str:
     lines = [head, "|---|---:|---:|---:|---:|---:|---:|"]
     stored = [_stored_runs(path) for path in paths]
     settings = [_setting(runs) for runs in stored]
+    recipes = [runs[0]["report"]["recipe"] for runs in stored]
+    mixed = len(set(recipes)) > 1  # settings of several recipes: say which is which
     # flags every row shares (a budget, say) are said once, under the table
     shared = set.intersection(*map(set, settings)) if len(settings) > 1 else set()
-    for runs, setting in zip(stored, settings, strict=True):
+    for runs, setting, recipe in zip(stored, settings, recipes, strict=True):
         reports = [run["report"] for run in runs]
         reached = [r.get("solved_at_frames") for r in reports]
         median = float(np.median([np.inf if at is None else at for at in reached]))
@@ -388,7 +398,8 @@ def format_settings(paths: list[Path]) -> str:
             else "—"
         )
         lines.append(
-            f"| {' '.join(f'`{f}`' for f in setting if f not in shared) or 'defaults'} | "
+            f"| {recipe + ': ' if mixed else ''}"
+            f"{' '.join(f'`{f}`' for f in setting if f not in shared) or 'defaults'} | "
             f"{_seeds([r['seed'] for r in reports])} | "
             f"{sum(at is not None for at in reached)}/{len(reports)} | "
             + ("—" if not np.isfinite(median) else f"{median:,.0f}")
