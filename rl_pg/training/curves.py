@@ -204,20 +204,26 @@ def performance_profile(
         >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
         ([1.0, 0.5, 0.0], True)
     """
-    scores = np.asarray(scores, dtype=np.float64)
-    taus = np.asarray(taus, dtype=np.float64)
-    if scores.ndim != 1 or len(scores) < 2:
-        raise ValueError(
-            f"performance_profile needs one score per run for at least 2 runs, got shape "
-            f"{scores.shape}."
-        )
+    return _share_of_runs(
+        scores, taus, np.greater, confidence, resamples, "performance_profile needs one score"
+    )
 
-    def share_above(runs: np.ndarray, axis: int = -1) -> np.ndarray:
+
+def _share_of_runs(values, points, compare, confidence: float, resamples: int, needs: str):
+    """The share of runs whose value ``compare``s each of ``points``, with a
+    percentile-bootstrap interval over the runs: ``(share, low, high)``, each
+    ``[len(points)]``. ``needs`` opens the error for fewer than 2 runs."""
+    values = np.asarray(values, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    if values.ndim != 1 or len(values) < 2:
+        raise ValueError(f"{needs} per run for at least 2 runs, got shape {values.shape}.")
+
+    def share(runs: np.ndarray, axis: int = -1) -> np.ndarray:
         runs = np.moveaxis(runs, axis, -1)  # [..., runs]
-        return np.moveaxis((runs[..., None] > taus).mean(axis=-2), -1, 0)  # [taus, ...]
+        return np.moveaxis(compare(runs[..., None], points).mean(axis=-2), -1, 0)
 
-    low, high = _bootstrap_interval(scores, share_above, confidence, resamples)
-    return share_above(scores), low, high
+    low, high = _bootstrap_interval(values, share, confidence, resamples)
+    return share(values), low, high
 
 
 def plot_profiles(
@@ -268,20 +274,10 @@ def solved_share(
         >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
         ([0.0, 0.5, 0.75], True)
     """
-    reached = np.asarray(reached, dtype=np.float64)
-    frames = np.asarray(frames, dtype=np.float64)
-    if reached.ndim != 1 or len(reached) < 2:
-        raise ValueError(
-            f"solved_share needs the frames to the threshold of at least 2 runs, got shape "
-            f"{reached.shape}."
-        )
-
-    def share_by(runs: np.ndarray, axis: int = -1) -> np.ndarray:
-        runs = np.moveaxis(runs, axis, -1)  # [..., runs]
-        return np.moveaxis((runs[..., None] <= frames).mean(axis=-2), -1, 0)  # [frames, ...]
-
-    low, high = _bootstrap_interval(reached, share_by, confidence, resamples)
-    return share_by(reached), low, high
+    return _share_of_runs(
+        reached, frames, np.less_equal, confidence, resamples,
+        "solved_share needs the frames to the threshold",
+    )  # fmt: skip
 
 
 def plot_solved(reached: dict[str, float | None], path: Path, *, budget: int, title: str) -> Path:
