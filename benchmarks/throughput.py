@@ -11,6 +11,8 @@ run at the same number of environments:
   CartPole: plain gymnasium ``SyncVectorEnv`` (or EnvPool) stepped by the recipe's
   MLP policy (sampled actions, no TensorDict); LunarLander: the vectorised landers
   stepped with uniformly random actions.
+* rl_pg's loop with ``--overlap`` (EnvPool, two halves of the pool stepping in turn
+  while the policy acts on the other half), against the same floors and the plain loop.
 * For context: TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` (collection only,
   same MLP policy) and Stable-Baselines3 A2C's training loop (8 environments).
 
@@ -255,9 +257,18 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                     floor = f"{task} x{n} floor: {backend}, random actions"
                     runs[floor] = random_floor("LunarLander-v3", n, backend)
                 pairs.append((loop, floor))
+            plain = f"{task} x{n} the same algorithm in plain PyTorch (gymnasium)"
             if "envpool" in backends:  # the other backend's floor, from the default loop
                 pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", floor))
-            plain = f"{task} x{n} the same algorithm in plain PyTorch (gymnasium)"
+                # Double-buffered: one half of the pool steps while the policy acts on
+                # the other (--overlap).
+                overlapped = f"{task} x{n} rl_pg training loop (envpool, overlapped)"
+                runs[overlapped] = recipe_training(
+                    recipe, num_envs=n, backend="envpool", overlap=True
+                )
+                pairs.append((overlapped, floor))
+                pairs.append((overlapped, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
+                pairs.append((overlapped, plain))
             runs[plain] = plain_pytorch_training(recipe, n)
             pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", plain))
             pairs.append((plain, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))

@@ -45,7 +45,9 @@ def gym_env(
         backend (str): ``"gymnasium"``, or ``"envpool"`` to step ``num_envs`` copies in
             EnvPool's C++ threads instead (an [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv];
             ``pip install "rl_pg[envpool]"``). Defaults to ``"gymnasium"``.
-        **kwargs: passed to ``gymnasium.make`` (``envpool.make_gymnasium`` with EnvPool).
+        **kwargs: passed to ``gymnasium.make``; with EnvPool, to
+            [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv] (e.g. ``groups=2``) and
+            ``envpool.make_gymnasium``.
 
     Examples:
         >>> from rl_pg.envs import gym_env

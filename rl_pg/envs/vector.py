@@ -137,15 +137,20 @@ class VectorGymEnv(EnvBase):
         if len(self._obs_keys) == 1 and not isinstance(obs, dict):
             obs = {self._obs_keys[0]: obs}
         return {
-            key: torch.from_numpy(np.asarray(obs[key])).to(dtype).reshape(shape)
+            key: torch.from_numpy(np.asarray(obs[key])).to(dtype).reshape(-1, *shape[1:])
             for key, (dtype, shape) in self._formats.items()
         }
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
-        obs, reward, terminated, truncated = self._env_step(action.detach().cpu().numpy())
+        return self._transition(*self._env_step(action.detach().cpu().numpy()))
+
+    def _transition(self, obs, reward, terminated, truncated) -> TensorDictBase:
+        """The ``next`` entries of a step, from what the vector environment returned
+        (of every environment, or of one group's)."""
         out = self._observations(obs)
-        shape = (self._n, 1)
+        n = len(reward)
+        shape = (n, 1)
         out["reward"] = torch.from_numpy(np.asarray(reward, dtype=np.float32)).view(shape)
         terminated = torch.from_numpy(np.asarray(terminated, dtype=bool)).view(shape)
         truncated = torch.from_numpy(np.asarray(truncated, dtype=bool)).view(shape)
@@ -153,7 +158,7 @@ class VectorGymEnv(EnvBase):
         out["done"] = terminated | truncated
         if self.device is not None and self.device.type != "cpu":
             out = {key: value.to(self.device, non_blocking=True) for key, value in out.items()}
-        return TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
+        return TensorDict._new_unsafe(out, batch_size=torch.Size([n]), device=self.device)
 
     def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         # `_step` already writes every done entry and the reward in their spec's shape:
@@ -173,14 +178,19 @@ class VectorGymEnv(EnvBase):
         next_root = self._step_mdp(tensordict)
         if self._post_step_mdp_hooks is not None:
             tensordict, next_root = self._post_step_mdp_hooks(tensordict, next_root)
+        self._reset_finished(next_root, self._env_reset_some)
+        return tensordict, next_root
+
+    def _reset_finished(self, next_root: TensorDictBase, reset_some) -> None:
+        """Resets, by ``reset_some(mask)``, the environments ``next_root`` says are done,
+        and writes their first observations and cleared done flags into it."""
         done = next_root.get("done")
         if done.any():
-            obs = self._env_reset_some(done.reshape(self._n).cpu().numpy())
+            obs = reset_some(done.reshape(-1).cpu().numpy())
             for key, value in self._observations(obs).items():
                 next_root.set(key, value.to(done.device))
             for key in ("done", "terminated", "truncated"):
                 next_root.set(key, torch.zeros_like(done))
-        return tensordict, next_root
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
@@ -211,20 +221,42 @@ class EnvPoolEnv(VectorGymEnv):
     Same data layout and reset rules: a finished environment is reset at once (EnvPool's
     ``reset(env_ids)``), so its final observation is kept and no step is spent on
     EnvPool's own next-step reset. EnvPool seeds its environments when it builds them:
-    ``set_seed(s)`` rebuilds the pool with seed ``s``. Specs come from gymnasium's
-    registration of ``task_id`` when there is one (EnvPool declares some observation
-    bounds wrongly, e.g. LunarLander's), else from EnvPool.
+    ``set_seed(s)`` rebuilds the pool with seed ``s`` (environment ``i`` gets ``s + i``).
+    Specs come from gymnasium's registration of ``task_id`` when there is one (EnvPool
+    declares some observation bounds wrongly, e.g. LunarLander's), else from EnvPool.
+
+    With ``groups=2`` the environments are two pools (the first ``ceil(num_envs / 2)``
+    environments, then the rest), seeded as the one pool would be (so ``step`` gives the
+    same trajectories), and each group can be stepped on its own without waiting for it:
+    ``step_send(tensordict, group)`` hands the group's actions to EnvPool's threads and
+    returns at once, ``step_recv(group)`` waits for that step. A
+    [`DoubleBufferedCollector`][rl_pg.collectors.DoubleBufferedCollector] acts on one
+    group while the other steps.
 
     Args:
         task_id (str): an EnvPool task, e.g. ``"CartPole-v1"``.
-        num_envs (int): environments in the pool.
+        num_envs (int): environments in all.
 
     Keyword Args:
+        groups (int): 1, or 2 for two separately steppable halves (``num_envs`` >= 2).
+            Defaults to 1.
         device (torch.device, optional): where the tensors are put. Defaults to the CPU.
         **kwargs: passed to ``envpool.make_gymnasium`` (e.g. ``num_threads``).
 
     Raises:
         ImportError: EnvPool is not installed (``pip install "rl_pg[envpool]"``).
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.envs import EnvPoolEnv
+        >>> env = EnvPoolEnv("CartPole-v1", num_envs=4, groups=2)
+        >>> root = env.reset()
+        >>> first = root[:2].set("action", torch.zeros(2, dtype=torch.long))
+        >>> env.step_send(first, 0)           # group 0 steps in EnvPool's threads...
+        >>> step, next_root = env.step_recv(0)  # ...until this returns its step
+        >>> step["next", "reward"].shape, next_root.batch_size
+        (torch.Size([2, 1]), torch.Size([2]))
+        >>> env.close()
     """
 
     def __init__(
@@ -232,6 +264,7 @@ class EnvPoolEnv(VectorGymEnv):
         task_id: str,
         num_envs: int,
         *,
+        groups: int = 1,
         device: torch.device | str | None = None,
         **kwargs: Any,
     ) -> None:
@@ -247,12 +280,28 @@ class EnvPoolEnv(VectorGymEnv):
                 f"EnvPool has no task {task_id!r}; among its classic tasks: "
                 f"{[t for t in envpool.list_all_envs() if '/' not in t][:12]}..."
             )
+        if groups not in (1, 2) or num_envs < groups:
+            raise ValueError(
+                f"groups must be 1, or 2 with at least 2 environments (two halves), got "
+                f"groups={groups!r} for num_envs={num_envs}."
+            )
         self._task_id = task_id
-        self._make = lambda seed: envpool.make_gymnasium(
-            task_id, num_envs=num_envs, seed=seed, **kwargs
+        self.group_sizes = [(num_envs + g) // groups for g in reversed(range(groups))]
+        """Environments in each group, in order (the larger first)."""
+        firsts = [sum(self.group_sizes[:g]) for g in range(groups)]
+        self._make = lambda seed: _Pools(
+            [
+                envpool.make_gymnasium(task_id, num_envs=size, seed=seed + first, **kwargs)
+                for size, first in zip(self.group_sizes, firsts, strict=True)
+            ]
         )
-        self._last_obs = None
+        self._sent: list[TensorDictBase | None] = [None] * groups
         super().__init__(self._make(0), device=device)
+
+    @property
+    def groups(self) -> int:
+        """Number of separately steppable groups of environments."""
+        return len(self._env.pools)
 
     @staticmethod
     def _check_autoreset(env) -> None:
@@ -268,21 +317,92 @@ class EnvPoolEnv(VectorGymEnv):
         return env.single_observation_space, env.single_action_space
 
     def _env_step(self, actions: np.ndarray):
-        obs, reward, terminated, truncated, _ = self._env.step(actions)
-        self._last_obs = obs
-        return obs, reward, terminated, truncated
+        return self._env.step(actions)
 
     def _env_reset(self, seed: int | None):
         if seed is not None:
             self._env.close()
             self._env = self._make(seed)
-        self._last_obs = self._env.reset()[0]
-        return self._last_obs
+            self._sent = [None] * self.groups
+        return self._env.reset()
 
     def _env_reset_some(self, mask: np.ndarray):
-        ids = np.flatnonzero(mask)
-        fresh = self._env.reset(ids)[0]
-        obs = self._last_obs.copy()
-        obs[ids] = fresh
-        self._last_obs = obs
-        return obs
+        return self._env.reset_some(mask)
+
+    def step_send(self, tensordict: TensorDictBase, group: int) -> None:
+        """Hands ``tensordict``'s actions (of group ``group``'s environments, batch size
+        ``[num_envs / groups]``) to EnvPool and returns while they step."""
+        if self._sent[group] is not None:
+            raise RuntimeError(
+                f"Group {group} is already stepping: call step_recv({group}) before "
+                f"sending it another action."
+            )
+        actions = tensordict.get(self.action_key).detach().cpu().numpy()
+        self._env.send(group, actions)
+        self._sent[group] = tensordict
+
+    def step_recv(self, group: int) -> tuple[TensorDictBase, TensorDictBase]:
+        """Waits for group ``group``'s step; returns what ``step_and_maybe_reset`` returns
+        for that group: the tensordict sent with its ``"next"`` entries, and the next
+        root, where the environments that finished are already reset."""
+        sent, self._sent[group] = self._sent[group], None
+        if sent is None:
+            raise RuntimeError(f"Group {group} is not stepping: call step_send first.")
+        next_td = self._transition(*self._env.recv(group))
+        sent.set("next", next_td)
+        next_root = next_td.exclude("reward")
+        self._reset_finished(next_root, lambda mask: self._env.reset_some(mask, group))
+        return sent, next_root
+
+
+class _Pools(gym.vector.VectorEnv):
+    """One or more EnvPool pools as one vector environment (the groups of an
+    [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv]), remembering each pool's last observations so
+    that a partial reset can return every environment's."""
+
+    def __init__(self, pools: list) -> None:
+        self.pools = pools
+        self.sizes = [pool.config["num_envs"] for pool in pools]
+        self.num_envs = sum(self.sizes)
+        self.single_observation_space = pools[0].single_observation_space
+        self.single_action_space = pools[0].single_action_space
+        self.metadata = {}
+        self._ids = [np.arange(size, dtype=np.int32) for size in self.sizes]
+        self._bounds = np.cumsum(self.sizes)[:-1]
+        self._last: list[np.ndarray | None] = [None] * len(pools)
+
+    def send(self, group: int, actions: np.ndarray) -> None:
+        self.pools[group].send(actions, self._ids[group])
+
+    def recv(self, group: int):
+        obs, reward, terminated, truncated, _ = self.pools[group].recv()
+        self._last[group] = obs
+        return obs, reward, terminated, truncated
+
+    def step(self, actions: np.ndarray):
+        parts = np.split(actions, self._bounds)
+        for group, part in enumerate(parts):
+            self.send(group, part)
+        steps = [self.recv(group) for group in range(len(self.pools))]
+        return tuple(np.concatenate(field) for field in zip(*steps, strict=True))
+
+    def reset(self):
+        self._last = [pool.reset()[0] for pool in self.pools]
+        return np.concatenate(self._last)
+
+    def reset_some(self, mask: np.ndarray, group: int | None = None) -> np.ndarray:
+        """Resets the environments where ``mask`` (of all groups, or of ``group``'s);
+        returns the observations of the same environments as ``mask``."""
+        groups = range(len(self.pools)) if group is None else [group]
+        masks = [mask] if group is not None else np.split(mask, self._bounds)
+        for g, part in zip(groups, masks, strict=True):
+            ids = np.flatnonzero(part).astype(np.int32)
+            if len(ids):
+                obs = self._last[g].copy()
+                obs[ids] = self.pools[g].reset(ids)[0]
+                self._last[g] = obs
+        return np.concatenate([self._last[g] for g in groups])
+
+    def close(self, **kwargs) -> None:
+        for pool in self.pools:
+            pool.close()

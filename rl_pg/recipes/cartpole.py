@@ -57,7 +57,9 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
         require_extra("pygame", "classic", "Drawing CartPole's frames")
     if render or (cfg.num_envs == 1 and cfg.backend == "gymnasium"):
         return gym_env(cfg.env_id, render=render)
-    return gym_env(cfg.env_id, num_envs=cfg.num_envs, backend=cfg.backend)
+    if cfg.backend == "envpool":  # two halves that step in turn with --overlap
+        return gym_env(cfg.env_id, num_envs=cfg.num_envs, backend="envpool", groups=1 + cfg.overlap)
+    return gym_env(cfg.env_id, num_envs=cfg.num_envs)
 
 
 def make_eval_env(cfg: Config) -> EnvBase:

@@ -92,7 +92,8 @@ def make_landers(cfg: Config, num_envs: int, *, render: bool = False) -> EnvBase
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if cfg.backend == "envpool" and not render:  # a batch even of one: never dropped
         task = "LunarLanderContinuous-v3" if cfg.continuous else "LunarLander-v3"
-        return gym_env(task, num_envs=cfg.num_envs, backend="envpool")
+        # Two halves that step in turn with --overlap.
+        return gym_env(task, num_envs=cfg.num_envs, backend="envpool", groups=1 + cfg.overlap)
     return make_landers(cfg, 1 if render else cfg.num_envs, render=render)
 
 

@@ -27,6 +27,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
+from rl_pg.collectors import DoubleBufferedCollector
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
@@ -88,7 +89,10 @@ class Collection:
             actor = lean_policy(actor)
             if resumed and resumed["actions"]:  # only a resumed run replays: no cost otherwise
                 actor = _ReplayingPolicy(actor, self._action_key)
-            self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
+            if cfg.overlap:
+                self.collector = _overlapped(env, actor, kwargs["frames_per_batch"], device)
+            else:
+                self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._batches = self._record(iter(self.collector))
             self._restart(resumed["restarted_at"] if resumed else updates)
             if resumed:
@@ -170,8 +174,12 @@ class Collection:
             return 0
         recorded, self._actions = self._actions, []
         policy = self.collector.policy
+        # The policy is called once per step of the environments, or once per group
+        # and step in turn when they are overlapped.
+        sizes = self.collector.env.group_sizes if self.cfg.overlap else None
         for actions in recorded:
-            policy.queue.extend(actions.unbind(0))
+            for step in actions.unbind(0):
+                policy.queue.extend(step.split(sizes) if sizes else [step])
             next(self._batches)
         self._frames_counted = self.collector.state_dict()["frames"]
         return len(recorded)
@@ -232,6 +240,19 @@ class _ReplayingPolicy(TensorDictModuleBase):
         if self.queue:
             tensordict.set(self.action_key, self.queue.popleft())
         return tensordict
+
+
+def _overlapped(
+    env: EnvBase, actor: TensorDictModuleBase, frames_per_batch: int, device
+) -> DoubleBufferedCollector:
+    if getattr(env, "groups", 1) != 2:
+        raise ValueError(
+            f"--overlap steps the environments in two groups, but this recipe's training "
+            f"environment ({type(env).__name__}) is one: use --backend envpool (the "
+            f"CartPole and LunarLander recipes build it in two groups with --overlap), "
+            f"or leave --overlap out."
+        )
+    return DoubleBufferedCollector(env, actor, frames_per_batch, device=device)
 
 
 def segments_per_update(cfg: TrainConfig, frames: int) -> int:

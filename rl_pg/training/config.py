@@ -67,7 +67,7 @@ class TrainConfig:
             "threads", "progress",
         )),
         "collection": ("How the batches are collected.", (
-            "workers", "ray", "batch_mode", "episodes_per_batch", "segment_length",
+            "workers", "ray", "overlap", "batch_mode", "episodes_per_batch", "segment_length",
             "segments_late", "segments_late_start", "env_restart_interval",
         )),
         "returns": ("What weights log pi: the return, its discount, the baseline.", (
@@ -115,6 +115,10 @@ class TrainConfig:
     ray: bool = False
     """Collect on Ray actors (rl_pg[ray]). TorchRL's Ray collector runs `workers`
     actors; segments only."""
+    overlap: bool = False
+    """Step half the environments while the policy acts on the other half. Segments
+    from one local collector, on environments built in two groups (the EnvPool backend);
+    strictly on-policy."""
     device: Literal["auto", "cpu", "cuda"] = "cpu"
     """Where the models and the optimiser live. 'auto': CUDA when available.
     Environments step on the CPU. The recipes' small networks train fastest on the CPU,
@@ -364,6 +368,19 @@ class TrainConfig:
                 f"--segments-late {self.segments_late} joins segments into one update, but "
                 f"--batch-mode is {self.batch_mode!r}: use --batch-mode segments, or "
                 "--episodes-per-batch for more whole episodes per update."
+            )
+        if self.overlap and (self.batch_mode != "segments" or self.workers > 1 or self.ray):
+            raise ValueError(
+                "--overlap steps the two halves of this process's environments in turn, "
+                "segment by segment: use it with --batch-mode segments and one local "
+                f"collector (got --batch-mode {self.batch_mode}, --workers {self.workers}"
+                f"{', --ray' if self.ray else ''})."
+            )
+        if self.overlap and getattr(self, "backend", None) != "envpool":
+            raise ValueError(
+                "--overlap needs environments that step without holding Python: use "
+                "--backend envpool with it"
+                + ("." if hasattr(self, "backend") else " (this recipe has no EnvPool backend).")
             )
         if self.critic_steps > 1 and self.baseline != "critic":
             raise ValueError(

@@ -1,0 +1,151 @@
+"""Double-buffered collection: the batches of the synchronous collector, on-policy, resumable."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import assert_same_run
+from scipy import stats
+from torchrl.collectors import Collector
+from torchrl.envs.utils import ExplorationType
+
+from rl_pg.collectors import DoubleBufferedCollector
+from rl_pg.envs import EnvPoolEnv, gym_env
+from rl_pg.models import mlp_actor
+from rl_pg.recipes import load
+
+pytest.importorskip("envpool")
+
+
+def _same(a, b) -> bool:
+    """Equal entries, except the policy's logits: a matrix product over a group's rows
+    may round differently from the same product over every environment's."""
+    torch.testing.assert_close(a.get("logits", None), b.get("logits", None))
+    keys = set(a.keys(True, True)) - {"logits"}
+    return keys == set(b.keys(True, True)) - {"logits"} and all(
+        torch.equal(a[key], b[key]) for key in keys
+    )
+
+
+@pytest.mark.parametrize(
+    ("task", "num_envs", "steps"),
+    [("CartPole-v1", 8, 40), ("CartPole-v1", 5, 30), ("LunarLander-v3", 4, 150)],
+)
+def test_greedy_batches_are_those_of_torchrls_collector(task, num_envs, steps):
+    """Same seeds and a deterministic policy: the same batches, episode ends included."""
+    torch.manual_seed(0)
+    one, two = EnvPoolEnv(task, num_envs), EnvPoolEnv(task, num_envs, groups=2)
+    actor = mlp_actor(one, hidden=(16,))
+    kwargs = {
+        "frames_per_batch": num_envs * steps,
+        "total_frames": num_envs * steps * 4,
+        "exploration_type": ExplorationType.DETERMINISTIC,
+    }
+    one.set_seed(3)
+    two.set_seed(3)
+    reference = Collector(one, actor, track_traj_ids=False, **kwargs)
+    overlapped = DoubleBufferedCollector(two, actor, **kwargs)
+    ends = 0
+    for expected, batch in zip(reference, overlapped, strict=True):
+        assert batch.batch_size == (num_envs, steps)
+        assert _same(expected, batch)
+        ends += int(batch["next", "done"].sum())
+    assert ends > 0  # the comparison crossed episode ends and resets
+    reference.shutdown()
+    overlapped.shutdown()
+
+
+def test_two_groups_step_as_one_pool():
+    """The grouped environment's ordinary step is the single pool's, step for step."""
+    one, two = (gym_env("CartPole-v1", num_envs=7, backend="envpool", groups=g) for g in (1, 2))
+    assert two.group_sizes == [4, 3]
+    one.set_seed(11)
+    two.set_seed(11)
+    actions = torch.randint(0, 2, (60, 7))
+    roots = [one.reset(), two.reset()]
+    for action in actions:
+        steps = []
+        for i, env in enumerate((one, two)):
+            step, roots[i] = env.step_and_maybe_reset(roots[i].set("action", action))
+            steps.append(step)
+        assert _same(*steps)
+
+
+def test_every_action_is_sampled_from_the_current_policy():
+    """Strictly on-policy: after the policy changes, the next batch's actions all come
+    from the new policy (stored logits are the policy's on the stored observations), and
+    they are distributed as its probabilities say."""
+    torch.manual_seed(1)
+    env = EnvPoolEnv("CartPole-v1", 6, groups=2)
+    actor = mlp_actor(env, hidden=(16,))
+    collector = DoubleBufferedCollector(env, actor, frames_per_batch=6 * 200, total_frames=-1)
+    counts, expected = np.zeros(2), np.zeros(2)
+    for _ in range(3):
+        batch = next(iter(collector))
+        with torch.no_grad():
+            logits = actor[0](batch["observation"])  # the network, without sampling
+        torch.testing.assert_close(batch["logits"], logits)
+        probs = logits.softmax(-1)
+        counts += np.bincount(batch["action"].flatten().numpy(), minlength=2)
+        expected += probs.reshape(-1, 2).sum(0).numpy()
+        with torch.no_grad():  # a new policy before the next batch
+            for p in actor.parameters():
+                p.add_(torch.randn_like(p))
+    assert stats.chisquare(counts, expected).pvalue > 1e-4
+    collector.shutdown()
+
+
+def test_an_environment_in_one_group_is_refused():
+    env = EnvPoolEnv("CartPole-v1", 4)
+    with pytest.raises(TypeError, match="groups=2"):
+        DoubleBufferedCollector(env, mlp_actor(env, hidden=(4,)), frames_per_batch=8)
+    two = EnvPoolEnv("CartPole-v1", 4, groups=2)
+    with pytest.raises(ValueError, match="multiple of the 4"):
+        DoubleBufferedCollector(two, mlp_actor(two, hidden=(4,)), frames_per_batch=10)
+    with pytest.raises(ValueError, match="at least 2"):
+        EnvPoolEnv("CartPole-v1", 1, groups=2)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"backend": "gymnasium"}, "--backend envpool"),
+        ({"batch_mode": "episodes"}, "--batch-mode segments"),
+        ({"workers": 2}, "one local"),
+    ],
+)
+def test_overlap_flags_that_cannot_work_are_refused(overrides, match):
+    recipe = load("cartpole")
+    with pytest.raises(ValueError, match=match):
+        recipe.config(**{"backend": "envpool", "overlap": True, **overrides})
+
+
+def test_a_recipe_without_envpool_refuses_overlap():
+    with pytest.raises(ValueError, match="no EnvPool backend"):
+        load("gridworld").config(overlap=True, batch_mode="segments")
+
+
+def test_an_overlapped_run_resumes_exactly(tmp_path):
+    """Stopped between two restarts of the environments, resumed: the same final
+    weights as the run that was never stopped (the recorded actions are replayed group
+    by group)."""
+    recipe = load("cartpole")
+    common = {
+        "backend": "envpool",
+        "overlap": True,
+        "num_envs": 5,
+        "segment_length": 8,
+        "env_restart_interval": 4,
+        "threshold": None,
+        "eval_interval": 10**9,
+        "eval_episodes": 1,
+        "checkpoint_interval": 1000,
+        "progress": False,
+    }
+    recipe.train(recipe.config(run_dir=tmp_path / "straight", total_updates=7, **common))
+    recipe.train(recipe.config(run_dir=tmp_path / "split", total_updates=6, **common))
+    resumed = recipe.train(
+        recipe.config(run_dir=tmp_path / "split", total_updates=7, resume=True, **common)
+    )
+    assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
