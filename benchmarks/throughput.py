@@ -266,6 +266,8 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                 runs[overlapped] = recipe_training(
                     recipe, num_envs=n, backend="envpool", overlap=True
                 )
+                pairs.append((overlapped, f"{task} x{n} rl_pg training loop (envpool)"))
+                pairs.append((overlapped, f"{task} x{n} rl_pg training loop (gymnasium)"))
                 pairs.append((overlapped, floor))
                 pairs.append((overlapped, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
                 pairs.append((overlapped, plain))

@@ -440,6 +440,15 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     frames = saved_runs["runs"][1]["report"]["frames"]
     assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
+    # a table of a JSON object's entries, one row each
+    page.write_text("<!-- table results/seeds.json /runs/1/report {} | entry | value -->\n"
+                    "| stale |\n<!-- end of table -->\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert f"| frames | {frames} |" in page.read_text() and "stale" not in page.read_text()
+    page.write_text("<!-- table results/seeds.json /runs/1/report/frames {} | a | b -->\n"
+                    "<!-- end of table -->\n")  # fmt: skip
+    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 1 and "not an object of rows" in err, err
     # a marker that cannot be written names what is wrong with it
     for marker, message in [
         ("results/none.json /a {}", "none.json does not exist"),
@@ -488,14 +497,21 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
 
     from rl_pg.recipes.report import (
         STORED_FIGURE,
+        STORED_MAP,
         STORED_TABLE,
         STORED_VALUE,
         draw_stored,
+        stored_map,
         stored_table,
         stored_value,
     )
 
-    pages = [REPO / "README.md", REPO / "RESULTS.md", *sorted((REPO / "docs").rglob("*.md"))]
+    pages = [
+        REPO / "README.md",
+        REPO / "RESULTS.md",
+        REPO / "benchmarks" / "README.md",
+        *sorted((REPO / "docs").rglob("*.md")),
+    ]
     found = 0
     for page in pages:
         for match in STORED_TABLE.finditer(page.read_text()):
@@ -504,6 +520,12 @@ def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
             assert match["table"].strip() == expected, (
                 f"{page.name}: the table of {match['files']} is not what the file holds; "
                 f"run rl-pg report --refresh {page.relative_to(REPO)}"
+            )
+        for match in STORED_MAP.finditer(page.read_text()):
+            found += 1
+            assert match["table"].strip() == stored_map(match, page.parent), (
+                f"{page.name}: the table of {match['file']}'s {match['pointer']} is not what "
+                f"the file holds; run rl-pg report --refresh {page.relative_to(REPO)}"
             )
         for match in STORED_VALUE.finditer(page.read_text()):
             found += 1

@@ -21,6 +21,9 @@ A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->
 names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
 ``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file.
+A table of a JSON object's entries, one row each (a benchmark's results), is written
+between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER -->`` and
+``<!-- end of table -->``.
 A figure in a sentence is written ``<!-- value FILE /JSON/POINTER FORMAT -->0.75×<!--
 /value -->``: the value at that JSON pointer (RFC 6901) of FILE, through the Python
 format FORMAT (e.g. ``{:.2f}×``), which ``--refresh`` writes again.
@@ -56,6 +59,7 @@ __all__ = [
     "read_stored",
     "refresh",
     "store_report",
+    "stored_map",
     "stored_table",
     "stored_value",
 ]
@@ -70,6 +74,11 @@ STORED_FIGURE = re.compile(
 STORED_TABLE = re.compile(
     r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)(?P<settings> --settings)? "
     r"-->\n(?P<table>.*?)^<!-- end of report -->$",
+    re.MULTILINE | re.DOTALL,
+)
+STORED_MAP = re.compile(
+    r"^<!-- table (?P<file>\S+) (?P<pointer>/\S*) (?P<format>\S*\{[^}]*\}\S*) "
+    r"\| (?P<key>[^|]+?) \| (?P<column>[^|]+?) -->\n(?P<table>.*?)^<!-- end of table -->$",
     re.MULTILINE | re.DOTALL,
 )
 STORED_VALUE = re.compile(
@@ -298,6 +307,12 @@ def refresh(page: Path) -> bool:
         return f"{opening}\n{stored_table(match, page.parent)}\n<!-- end of report -->"
 
     refreshed = STORED_TABLE.sub(table, text)
+    refreshed = STORED_MAP.sub(
+        lambda m: (
+            f"{m.group(0).splitlines()[0]}\n{stored_map(m, page.parent)}\n<!-- end of table -->"
+        ),
+        refreshed,
+    )
     refreshed = STORED_VALUE.sub(
         lambda m: m.group(0).replace(
             f"-->{m['value']}<!-- /value", f"-->{stored_value(m, page.parent)}<!-- /value"
@@ -340,9 +355,45 @@ def stored_value(match: re.Match, folder: Path) -> str:
         >>> stored_value(STORED_VALUE.search(line), folder)
         '0.75×'
     """
+    value, path = _stored_json(match, folder)
+    return _formatted(match["format"], value, path, match["pointer"])
+
+
+def stored_map(match: re.Match, folder: Path) -> str:
+    r"""The table a page's ``STORED_MAP`` match ``match`` shows: one row per entry of the
+    JSON object at its pointer (the file relative to ``folder``, the page's), its key,
+    then its value formatted.
+
+    Examples:
+        >>> import json, tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.recipes.report import STORED_MAP, stored_map
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> _ = (folder / "b.json").write_text(json.dumps({"rates": {"a": 1234.5, "b": 99}}))
+        >>> page = "<!-- table b.json /rates {:,.0f} | loop | frames/s -->\n<!-- end of table -->"
+        >>> print(stored_map(STORED_MAP.search(page), folder))
+        | loop | frames/s |
+        |---|---:|
+        | a | 1,234 |
+        | b | 99 |
+    """
+    value, path = _stored_json(match, folder)
+    if not isinstance(value, dict):
+        raise ValueError(
+            f"{path} holds {type(value).__name__} at {match['pointer']}, not an object of "
+            f"rows: point the table at an object (name -> value)."
+        )
+    rows = [f"| {match['key']} | {match['column']} |", "|---|---:|"]
+    for key, item in value.items():
+        rows.append(f"| {key} | {_formatted(match['format'], item, path, match['pointer'])} |")
+    return "\n".join(rows)
+
+
+def _stored_json(match: re.Match, folder: Path) -> tuple[Any, Path]:
+    """The value at a marker's JSON pointer in its file, and the file."""
     path = Path(folder) / match["file"]
     if not path.is_file():
-        raise ValueError(f"{path} does not exist (named by {match.group(0)!r}).")
+        raise ValueError(f"{path} does not exist (named by {match.group(0).splitlines()[0]!r}).")
     try:
         value = json.loads(path.read_text())
     except (OSError, ValueError) as err:
@@ -353,12 +404,15 @@ def stored_value(match: re.Match, folder: Path) -> str:
             value = value[int(key)] if isinstance(value, list) else value[key]
         except (KeyError, IndexError, ValueError, TypeError) as err:
             raise ValueError(f"{path} has nothing at {match['pointer']} (no {key!r}).") from err
+    return value, path
+
+
+def _formatted(form: str, value: Any, path: Path, pointer: str) -> str:
     try:
-        return match["format"].format(value)
+        return form.format(value)
     except (ValueError, TypeError, IndexError, KeyError) as err:
         raise ValueError(
-            f"The format {match['format']!r} cannot write {value!r} ({path}, "
-            f"{match['pointer']}): {err}."
+            f"The format {form!r} cannot write {value!r} ({path}, {pointer}): {err}."
         ) from err
 
 
