@@ -16,6 +16,7 @@ import hashlib
 import io
 import os
 import pickle
+import stat
 import tempfile
 import warnings
 import zipfile
@@ -65,6 +66,8 @@ def write_atomically(path: str | Path, data: bytes | str) -> Path:
         data = data.encode()
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=_TEMPORARY_SUFFIX)
     try:
+        if hasattr(os, "fchmod"):  # mkstemp's 0600 would make the file private
+            os.fchmod(fd, _mode_for(path))
         with os.fdopen(fd, "wb") as file:
             file.write(data)
             file.flush()
@@ -80,6 +83,17 @@ def write_atomically(path: str | Path, data: bytes | str) -> Path:
         finally:
             os.close(directory)
     return path
+
+
+def _mode_for(path: Path) -> int:
+    """The permissions a file written to ``path`` gets: those of the file it replaces,
+    else those ``open`` would give a new file (0666 less the umask)."""
+    try:
+        return stat.S_IMODE(path.stat().st_mode)
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def clean_temporary_files(directory: str | Path) -> list[Path]:

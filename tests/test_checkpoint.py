@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import stat
+
 import pytest
 import torch
 
@@ -120,3 +123,12 @@ class TestTemporaryFiles:
         write_atomically(path, b"second")
         assert path.read_bytes() == b"second"
         assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+    @pytest.mark.skipif(not hasattr(os, "fchmod"), reason="POSIX permissions")
+    def test_an_atomic_write_gets_the_permissions_of_an_ordinary_one(self, tmp_path):
+        (tmp_path / "plain.txt").write_text("x")  # what open() gives under this umask
+        written = write_atomically(tmp_path / "written.txt", "x")
+        assert written.stat().st_mode == (tmp_path / "plain.txt").stat().st_mode
+        written.chmod(0o640)  # a replaced file keeps its own
+        write_atomically(written, "y")
+        assert stat.S_IMODE(written.stat().st_mode) == 0o640
