@@ -66,6 +66,7 @@ class Collection:
         resumed: dict | None = None,
     ) -> None:
         self.cfg = cfg
+        self._owns_ray = False  # set when this run starts a Ray instance of its own
         self.local = cfg.workers == 1 and not cfg.ray
         """One collector in this process: strictly on-policy, exactly resumable."""
         self.replaying = self.local and cfg.batch_mode == "segments"
@@ -100,15 +101,8 @@ class Collection:
             return
         env.close()
         if cfg.ray:
-            backend_options = {
-                "ray_init_config": {
-                    "num_cpus": cfg.workers,
-                    "include_dashboard": False,
-                    # Actors import the recipe's make_env the way this process does.
-                    "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
-                },
-                "collector_kwargs": inner,
-            }
+            self._owns_ray = _start_ray(cfg.workers)
+            backend_options = {"collector_kwargs": inner}
             # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
             kwargs["total_frames"] = 2**62
         else:
@@ -221,8 +215,12 @@ class Collection:
         self._restarted_at, self._actions = updates, []
 
     def shutdown(self) -> None:
-        """Stops the collector and its workers."""
+        """Stops the collector and its workers (and the Ray instance it started)."""
         self.collector.shutdown()
+        if self._owns_ray:
+            import ray
+
+            ray.shutdown()
 
 
 class _ReplayingPolicy(TensorDictModuleBase):
@@ -240,6 +238,36 @@ class _ReplayingPolicy(TensorDictModuleBase):
         if self.queue:
             tensordict.set(self.action_key, self.queue.popleft())
         return tensordict
+
+
+def _start_ray(workers: int) -> bool:
+    """Connects to the Ray cluster ``RAY_ADDRESS`` names, which brings its own resources,
+    or else starts a Ray instance of ``workers`` CPUs in this process (never another
+    instance found running on this machine); True if it started one."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    options = {
+        # Actors import the recipe's make_env the way this process does.
+        "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
+        # Their output stays in Ray's logs: Ray would prefix every line of it with the
+        # collector's repr, dozens of lines each (an actor's error still reaches here).
+        "log_to_driver": False,
+    }
+    address = os.environ.get("RAY_ADDRESS", "")
+    if not address:
+        ray.init(address="local", num_cpus=workers, include_dashboard=False, **options)
+        return True
+    ray.init(address=address, **options)
+    nodes = [node for node in ray.nodes() if node["Alive"]]
+    cpus = sum(node["Resources"].get("CPU", 0) for node in nodes)
+    print(
+        f"Ray: collecting on the cluster at {address} ({len(nodes)} nodes, {cpus:g} CPUs; "
+        f"each worker takes one CPU).",
+        file=sys.stderr,
+    )
+    return False
 
 
 def _overlapped(

@@ -1,0 +1,101 @@
+"""Training with Ray workers on a two-node cluster (both nodes on this host)."""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ray_node(args: list[str], env: dict) -> subprocess.Popen:
+    """A Ray node that lives as long as its process (``ray start --block``)."""
+    ray = shutil.which("ray", path=os.path.dirname(sys.executable)) or "ray"
+    return subprocess.Popen(
+        [ray, "start", "--block", "--disable-usage-stats", *args],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # stopped as a group, its own processes included
+    )
+
+
+def _stop(node: subprocess.Popen) -> None:
+    if node.poll() is None:
+        os.killpg(node.pid, signal.SIGTERM)
+        try:
+            node.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(node.pid, signal.SIGKILL)
+            node.wait()
+
+
+def _nodes(address: str, env: dict) -> int:
+    code = "import ray; ray.init(address=%r); print(len([n for n in ray.nodes() if n['Alive']]))"
+    out = subprocess.run(
+        [sys.executable, "-c", code % address], env=env, capture_output=True, text=True,
+        timeout=60,
+    )  # fmt: skip
+    return int(out.stdout.strip() or 0)
+
+
+def test_training_spreads_its_workers_over_two_nodes(tmp_path):
+    # Short: Ray's sockets live under the temporary directory (a path limit of ~100).
+    temp_dir = Path(tempfile.mkdtemp(prefix="rl"))
+    port = _free_port()
+    address = f"127.0.0.1:{port}"
+    # Ray 2.60 joins a second node only with token authentication and a shared token.
+    env = {
+        **os.environ,
+        "RAY_AUTH_MODE": "token",
+        "RAY_AUTH_TOKEN": secrets.token_hex(16),
+        "RAY_ADDRESS": "",
+    }
+    head = _ray_node(
+        ["--head", f"--port={port}", "--num-cpus=1", "--include-dashboard=false",
+         f"--temp-dir={temp_dir}"],
+        env,
+    )  # fmt: skip
+    nodes = [head]
+    try:
+        deadline = time.monotonic() + 60
+        while _nodes(address, env) < 1:
+            assert head.poll() is None and time.monotonic() < deadline, "the head did not start"
+            time.sleep(1)
+        nodes.append(_ray_node([f"--address={address}", "--num-cpus=1"], env))
+        while _nodes(address, env) < 2:
+            assert nodes[1].poll() is None and time.monotonic() < deadline, "no second node"
+            time.sleep(1)
+        # Each worker takes one CPU and each node has one: one worker on each node.
+        run = tmp_path / "run"
+        result = subprocess.run(
+            [sys.executable, "-m", "rl_pg.recipes", "train", "cartpole", "--ray",
+             "--workers", "2", "--total-frames", "3000", "--eval-episodes", "2",
+             "--run-dir", str(run), "--no-progress"],
+            env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert "(2 nodes, 2 CPUs" in result.stderr, result.stderr[-3000:]
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["frames"] >= 3000
+    finally:
+        for node in reversed(nodes):
+            _stop(node)
+        shutil.rmtree(temp_dir, ignore_errors=True)
