@@ -173,3 +173,27 @@ def test_grad_stats(tmp_path):
     }
     assert all(v > 0 for v in out["time_over_time_without"].values())
     assert all(0 < v < 1 for v in out["measurement_share_of_training"].values())
+
+
+def test_distributed(tmp_path):
+    """Ray against worker processes, the measured costs and the model they make."""
+    pytest.importorskip("ray")
+    module = _script("distributed")
+    cfg = module.Config(
+        recipe="cartpole", frames=1_024, repeats=1, cost_segments=2, predict=[8],
+        json_path=tmp_path / "d.json",
+    )  # fmt: skip
+    out = module.main(cfg)
+    assert set(out["median_frames_per_s"]) == {
+        "1 worker, in the training process", "2 worker processes", "2 Ray workers",
+        "1 Ray worker",
+    }  # fmt: skip
+    assert out["ratios"]["2 Ray workers / 2 worker processes"] > 0
+    cost = out["costs"]
+    assert cost["collect_s_per_segment"] > 0 and cost["learn_s_per_frame"] > 0
+    # the model reproduces the run it was fitted on, and predicts the others
+    assert out["predicted_frames_per_s"]["1"] == pytest.approx(
+        out["median_frames_per_s"]["1 Ray worker"]
+    )
+    assert set(out["predicted_speedup"]) == {"1", "8"}
+    assert out["model_checks"]["2 Ray workers"]["predicted"] > 0
