@@ -30,7 +30,6 @@ not grow with them (gathering more segments does, a little: an upper bound).
 from __future__ import annotations
 
 import statistics
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ from pathlib import Path
 import torch
 import tyro
 from common import REPO, table, write_json
+from throughput import recipe_training
 from torchrl.collectors import Collector
 
 from rl_pg.lean import lean_policy
@@ -65,24 +65,6 @@ class Config:
     """torch threads of the training process."""
     json_path: Path = REPO / "benchmarks/results/distributed.json"
     """Where the results are written."""
-
-
-def training(recipe, frames: int, **overrides) -> float:
-    """Training frames/s of the recipe with ``overrides``."""
-    with tempfile.TemporaryDirectory() as run_dir:
-        summary = recipe.train(
-            recipe.config(
-                run_dir=Path(run_dir),
-                total_frames=frames,
-                threshold=None,
-                eval_interval=10**12,  # one evaluation, at the end, outside the timer
-                eval_episodes=1,
-                checkpoint_interval=10**12,
-                progress=False,
-                **overrides,
-            )
-        )
-    return summary["frames"] / summary["train_wall_s"]
 
 
 def costs(recipe, segments: int, largest: int) -> dict[str, float]:
@@ -149,7 +131,7 @@ def main(cfg: Config) -> dict:
     rates: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(cfg.repeats):
         for name, overrides in runs.items():
-            rates[name].append(training(recipe, cfg.frames, **overrides))
+            rates[name].append(recipe_training(recipe, **overrides)(cfg.frames))
     median = {name: statistics.median(r) for name, r in rates.items()}
     cost = costs(recipe, cfg.cost_segments, max(cfg.workers))
 
