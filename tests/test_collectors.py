@@ -113,6 +113,7 @@ def test_an_environment_in_one_group_is_refused():
         ({"backend": "gymnasium"}, "--backend envpool"),
         ({"batch_mode": "episodes"}, "--batch-mode segments"),
         ({"workers": 2}, "one local"),
+        ({"num_envs": 1}, "--num-envs 2 or more"),
     ],
 )
 def test_overlap_flags_that_cannot_work_are_refused(overrides, match):

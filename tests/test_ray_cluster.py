@@ -99,3 +99,15 @@ def test_training_spreads_its_workers_over_two_nodes(tmp_path):
         for node in reversed(nodes):
             _stop(node)
         shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def test_a_cluster_address_where_nothing_answers_is_named_in_one_line(tmp_path):
+    address = f"127.0.0.1:{_free_port()}"  # nothing listens there
+    result = subprocess.run(
+        [sys.executable, "-m", "rl_pg.recipes", "train", "cartpole", "--ray", "--workers", "2",
+         "--total-frames", "2000", "--run-dir", str(tmp_path / "run"), "--no-progress"],
+        env={**os.environ, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert f"RAY_ADDRESS={address}: nothing answers there" in result.stderr, result.stderr
+    assert "Traceback" not in result.stderr

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import sys
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -259,6 +260,7 @@ def _start_ray(workers: int) -> bool:
     if not address:
         ray.init(address="local", num_cpus=workers, include_dashboard=False, **options)
         return True
+    _check_reachable(address)
     ray.init(address=address, **options)
     nodes = [node for node in ray.nodes() if node["Alive"]]
     cpus = sum(node["Resources"].get("CPU", 0) for node in nodes)
@@ -268,6 +270,23 @@ def _start_ray(workers: int) -> bool:
         file=sys.stderr,
     )
     return False
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """Fails at once, naming ``RAY_ADDRESS``, when nothing answers at its ``host:port``
+    (Ray itself retries in silence for minutes). Other forms (``auto``, ``ray://``) are
+    left to Ray."""
+    host, _, port = address.rpartition(":")
+    if not host or "://" in address or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as err:
+        raise ConnectionError(
+            f"RAY_ADDRESS={address}: nothing answers there ({err}). Start the cluster's "
+            f"head with `ray start --head --port {port}` on {host}, correct RAY_ADDRESS, or "
+            f"unset it to collect on a Ray instance of this process."
+        ) from None
 
 
 def _overlapped(

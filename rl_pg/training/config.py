@@ -376,6 +376,11 @@ class TrainConfig:
                 f"collector (got --batch-mode {self.batch_mode}, --workers {self.workers}"
                 f"{', --ray' if self.ray else ''})."
             )
+        if self.overlap and getattr(self, "num_envs", 2) < 2:
+            raise ValueError(
+                f"--overlap steps two halves of the environments in turn: use --num-envs 2 "
+                f"or more (got {self.num_envs})."
+            )
         if self.overlap and getattr(self, "backend", None) != "envpool":
             raise ValueError(
                 "--overlap needs environments that step without holding Python: use "
