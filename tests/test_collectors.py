@@ -105,6 +105,8 @@ def test_an_environment_in_one_group_is_refused():
         DoubleBufferedCollector(two, mlp_actor(two, hidden=(4,)), frames_per_batch=10)
     with pytest.raises(ValueError, match="at least 2"):
         EnvPoolEnv("CartPole-v1", 1, groups=2)
+    with pytest.raises(ValueError, match="backend='envpool'"):
+        gym_env("CartPole-v1", num_envs=4, groups=2)
 
 
 @pytest.mark.parametrize(

@@ -58,6 +58,11 @@ def gym_env(
     """
     if backend not in ("gymnasium", "envpool"):
         raise ValueError(f"backend must be 'gymnasium' or 'envpool', got {backend!r}.")
+    if "groups" in kwargs and backend != "envpool":
+        raise ValueError(
+            "groups splits an EnvPool pool into halves that step in turn: use "
+            "backend='envpool' with it (gymnasium's vector environments step as one)."
+        )
     if backend == "envpool":
         if num_envs is None or render:
             raise ValueError(
