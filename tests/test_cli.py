@@ -449,6 +449,10 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
                     "<!-- end of table -->\n")  # fmt: skip
     status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
     assert status == 1 and "not an object of rows" in err, err
+    page.write_text("<!-- table results/seeds.json /runs/1 {} | a | b | c -->\n"
+                    "<!-- end of table -->\n")  # fmt: skip
+    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 1 and "needs one for the rows and one for each of its values" in err, err
     # a marker that cannot be written names what is wrong with it
     for marker, message in [
         ("results/none.json /a {}", "none.json does not exist"),

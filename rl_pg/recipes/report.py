@@ -22,8 +22,8 @@ names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --p
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
 ``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file.
 A table of a JSON object's entries, one row each (a benchmark's results), is written
-between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER -->`` and
-``<!-- end of table -->``.
+between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER... -->`` and
+``<!-- end of table -->`` (one value header per column when the entries are objects).
 A figure in a sentence is written ``<!-- value FILE /JSON/POINTER FORMAT -->0.75×<!--
 /value -->``: the value at that JSON pointer (RFC 6901) of FILE, through the Python
 format FORMAT (e.g. ``{:.2f}×``), which ``--refresh`` writes again.
@@ -78,7 +78,7 @@ STORED_TABLE = re.compile(
 )
 STORED_MAP = re.compile(
     r"^<!-- table (?P<file>\S+) (?P<pointer>/\S*) (?P<format>\S*\{[^}]*\}\S*) "
-    r"\| (?P<key>[^|]+?) \| (?P<column>[^|]+?) -->\n(?P<table>.*?)^<!-- end of table -->$",
+    r"(?P<headers>(?:\| [^|\n]+? )+)-->\n(?P<table>.*?)^<!-- end of table -->$",
     re.MULTILINE | re.DOTALL,
 )
 STORED_VALUE = re.compile(
@@ -362,31 +362,63 @@ def stored_value(match: re.Match, folder: Path) -> str:
 def stored_map(match: re.Match, folder: Path) -> str:
     r"""The table a page's ``STORED_MAP`` match ``match`` shows: one row per entry of the
     JSON object at its pointer (the file relative to ``folder``, the page's), its key,
-    then its value formatted.
+    then its value; when the values are objects themselves, one column per key of the
+    first (``| ROW HEADER | COLUMN HEADER... |``, as many as it has keys). Fractional
+    numbers go through the marker's format, whole ones get thousands separators,
+    anything else is written as it is.
 
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
         >>> from rl_pg.recipes.report import STORED_MAP, stored_map
         >>> folder = Path(tempfile.mkdtemp())
-        >>> _ = (folder / "b.json").write_text(json.dumps({"rates": {"a": 1234.5, "b": 99}}))
+        >>> data = {"rates": {"a": 1234.5, "b": 99}, "runs": {"x": {"s": 1.5, "ok": "2/3"}}}
+        >>> _ = (folder / "b.json").write_text(json.dumps(data))
         >>> page = "<!-- table b.json /rates {:,.0f} | loop | frames/s -->\n<!-- end of table -->"
         >>> print(stored_map(STORED_MAP.search(page), folder))
         | loop | frames/s |
         |---|---:|
         | a | 1,234 |
         | b | 99 |
+        >>> page = "<!-- table b.json /runs {:.2f} | run | seconds | solved -->\n<!-- end of table"
+        >>> page += " -->"
+        >>> print(stored_map(STORED_MAP.search(page), folder))
+        | run | seconds | solved |
+        |---|---:|---:|
+        | x | 1.50 | 2/3 |
     """
     value, path = _stored_json(match, folder)
-    if not isinstance(value, dict):
+    headers = [h.strip() for h in match["headers"].strip().strip("|").split("|")]
+    where = f"{path}, {match['pointer']}"
+    if not isinstance(value, dict) or not value:
         raise ValueError(
-            f"{path} holds {type(value).__name__} at {match['pointer']}, not an object of "
-            f"rows: point the table at an object (name -> value)."
+            f"{where} holds {type(value).__name__}, not an object of rows: point the table "
+            f"at an object (name -> value, or name -> {{column -> value}})."
         )
-    rows = [f"| {match['key']} | {match['column']} |", "|---|---:|"]
+    first = next(iter(value.values()))
+    columns = list(first) if isinstance(first, dict) else None
+    if len(headers) != 1 + (len(columns) if columns else 1):
+        wanted = f"its columns {columns}" if columns else "its values"
+        raise ValueError(
+            f"The table of {where} has {len(headers)} headers; it needs one for the rows "
+            f"and one for each of {wanted}."
+        )
+    rows = ["| " + " | ".join(headers) + " |", "|---|" + "---:|" * (len(headers) - 1)]
     for key, item in value.items():
-        rows.append(f"| {key} | {_formatted(match['format'], item, path, match['pointer'])} |")
+        cells = [item.get(c) for c in columns] if columns else [item]
+        text = [_cell(match["format"], cell, path, match["pointer"]) for cell in cells]
+        rows.append(f"| {key} | " + " | ".join(text) + " |")
     return "\n".join(rows)
+
+
+def _cell(form: str, value: Any, path: Path, pointer: str) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value)
+    if isinstance(value, int):  # counts: whole, with thousands separators
+        return f"{value:,}"
+    return _formatted(form, value, path, pointer)
 
 
 def _stored_json(match: re.Match, folder: Path) -> tuple[Any, Path]:
