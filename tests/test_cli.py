@@ -444,7 +444,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     page.write_text("<!-- table results/seeds.json /runs/1/report {} | entry | value -->\n"
                     "| stale |\n<!-- end of table -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
-    assert f"| frames | {frames} |" in page.read_text() and "stale" not in page.read_text()
+    assert f"| frames | {frames:,} |" in page.read_text() and "stale" not in page.read_text()
     page.write_text("<!-- table results/seeds.json /runs/1/report/frames {} | a | b -->\n"
                     "<!-- end of table -->\n")  # fmt: skip
     status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
