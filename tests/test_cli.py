@@ -639,3 +639,16 @@ def test_a_recipe_module_that_fails_to_import_says_why(tmp_path, monkeypatch):
         load("mine", "raises")
     with pytest.raises(ValueError, match=r"No recipe called 'mine' \(its module 'gone'"):
         load("mine", "gone")  # a module that is not there at all
+
+
+def test_a_reported_evaluation_shows_its_crash_rate():
+    """The driving recipes' targets count crashes: the table says how many."""
+    from rl_pg.recipes.report import format_report
+
+    record = {"mean_return": 21.5, "std_return": 2.2, "episodes": 100, "crashed_rate": 0.02}
+    report = {"recipe": "highway", "seed": 0, "frames": 50_176, "train_wall_s": 948.0,
+              "threshold": 20.0, "solved_at_frames": 20_224, "best_eval_mean_return": 22.2,
+              "best_at_frames": 35_136, "greedy": record,
+              "sampled": {**record, "crashed_rate": 0.37}}  # fmt: skip
+    row = format_report([report], ["seed0"]).splitlines()[2]
+    assert "21.50 ± 2.20 (100), 2% crashed" in row and "37% crashed" in row

@@ -613,7 +613,10 @@ def _seconds(seconds: float) -> str:
 def _result(record: dict[str, Any] | None) -> str:
     if record is None:
         return "—"
-    return f"{record['mean_return']:.2f} ± {record['std_return']:.2f} ({record['episodes']})"
+    text = f"{record['mean_return']:.2f} ± {record['std_return']:.2f} ({record['episodes']})"
+    if record.get("crashed_rate") is not None:  # part of the driving recipes' targets
+        text += f", {record['crashed_rate']:.0%} crashed"
+    return text
 
 
 def main(args: Args) -> str:
