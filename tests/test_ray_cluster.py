@@ -56,6 +56,7 @@ def _nodes(address: str, env: dict) -> int:
     return int(out.stdout.strip() or 0)
 
 
+@pytest.mark.cluster
 def test_training_spreads_its_workers_over_two_nodes(tmp_path):
     # Short: Ray's sockets live under the temporary directory (a path limit of ~100).
     temp_dir = Path(tempfile.mkdtemp(prefix="rl"))
