@@ -54,3 +54,15 @@ def test_one_seed_or_unaligned_seeds_are_refused(tmp_path):
         ylabel="y", title="t", threshold=1.0, ylim=(0, 5),
     )  # fmt: skip
     assert figure.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_seeds_evaluated_a_batch_apart_are_aggregated_at_their_median_frames(tmp_path):
+    """Whole-episode runs evaluate at the first batch past each interval: a few frames
+    apart is the same evaluation; half an interval apart is not."""
+    values = np.array([1.0, 2.0, 3.0])
+    curves = {"a": (np.array([5_056, 10_048, 15_040]), values),
+              "b": (np.array([5_120, 10_112, 15_104]), values + 1)}  # fmt: skip
+    assert plot_seeds(curves, tmp_path / "ok.png", ylabel="r", title="t").is_file()
+    curves["b"] = (np.array([7_600, 12_600, 17_600]), values)
+    with pytest.raises(ValueError, match="within half an interval"):
+        plot_seeds(curves, tmp_path / "no.png", ylabel="r", title="t")

@@ -304,6 +304,25 @@ def plot_solved(reached: dict[str, float | None], path: Path, *, budget: int, ti
     return path
 
 
+def _common_grid(grids: list[np.ndarray]) -> np.ndarray:
+    """The median frames of evaluations that differ by less than half an interval."""
+    if any(len(grid) != len(grids[0]) for grid in grids) or len(grids[0]) == 0:
+        raise ValueError(
+            "plot_seeds needs every seed evaluated at the same frames; these runs were "
+            "evaluated a different number of times (another eval_interval, or a run not "
+            "finished)."
+        )
+    stacked = np.stack(grids)
+    median = np.median(stacked, axis=0)
+    spacing = np.diff(median).min() if len(median) > 1 else np.inf
+    if ((stacked.max(axis=0) - stacked.min(axis=0)) >= spacing / 2).any():
+        raise ValueError(
+            "plot_seeds needs every seed evaluated at the same frames (within half an "
+            "interval); these runs were evaluated at different ones (another eval_interval)."
+        )
+    return median
+
+
 def plot_seeds(
     curves: dict[str, tuple[np.ndarray, np.ndarray]],
     path: Path,
@@ -315,13 +334,14 @@ def plot_seeds(
 ) -> Path:
     """Several seeds of one setting (``{name: (frames, values)}``, evaluated at the same
     frames): each seed as a thin line, and their interquartile mean with its 95 %
-    bootstrap confidence band (see [`seed_aggregate`][rl_pg.training.curves.seed_aggregate])."""
-    grids = [frames for frames, _ in curves.values()]
+    bootstrap confidence band (see [`seed_aggregate`][rl_pg.training.curves.seed_aggregate]).
+
+    Runs whose batches are whole episodes evaluate at the first batch past each
+    interval, so their frames differ a little: evaluations that differ by less than half
+    an interval are aggregated at their median frames."""
+    grids = [np.asarray(frames) for frames, _ in curves.values()]
     if any(not np.array_equal(grid, grids[0]) for grid in grids):
-        raise ValueError(
-            "plot_seeds needs every seed evaluated at the same frames; these runs were "
-            "evaluated at different ones (another eval_interval, or a run not finished)."
-        )
+        grids = [_common_grid(grids)] * len(grids)
     values = np.stack([vals for _, vals in curves.values()])
     iqm, low, high = seed_aggregate(values)
     with png_figure(path) as ax:
