@@ -380,6 +380,9 @@ class _Pools(gym.vector.VectorEnv):
         return obs, reward, terminated, truncated
 
     def step(self, actions: np.ndarray):
+        if len(self.pools) == 1:  # the common case: no splitting and joining per step
+            self.send(0, actions)
+            return self.recv(0)
         parts = np.split(actions, self._bounds)
         for group, part in enumerate(parts):
             self.send(group, part)
@@ -388,7 +391,7 @@ class _Pools(gym.vector.VectorEnv):
 
     def reset(self):
         self._last = [pool.reset()[0] for pool in self.pools]
-        return np.concatenate(self._last)
+        return self._last[0] if len(self.pools) == 1 else np.concatenate(self._last)
 
     def reset_some(self, mask: np.ndarray, group: int | None = None) -> np.ndarray:
         """Resets the environments where ``mask`` (of all groups, or of ``group``'s);
@@ -401,7 +404,11 @@ class _Pools(gym.vector.VectorEnv):
                 obs = self._last[g].copy()
                 obs[ids] = self.pools[g].reset(ids)[0]
                 self._last[g] = obs
-        return np.concatenate([self._last[g] for g in groups])
+        return (
+            self._last[groups[0]]
+            if len(groups) == 1
+            else np.concatenate([self._last[g] for g in groups])
+        )
 
     def close(self, **kwargs) -> None:
         for pool in self.pools:
