@@ -1,19 +1,197 @@
-"""Collection that overlaps the environments' step with the policy's, strictly on-policy."""
+"""Segment collectors: synchronous with little work per step, or overlapping the
+environments' step with the policy's; both strictly on-policy."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["DoubleBufferedCollector"]
+from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
+
+__all__ = ["DoubleBufferedCollector", "SegmentCollector"]
 
 
-class DoubleBufferedCollector:
+class _Segments:
+    """What both collectors share: the checks, seeding, iteration and frame count.
+    A subclass collects one batch in ``_collect(horizon)``."""
+
+    def __init__(
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase,
+        frames_per_batch: int,
+        *,
+        total_frames: int = -1,
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+        device: torch.device | str | None = None,
+    ) -> None:
+        num_envs = env.batch_size.numel()  # 1 for an environment of batch size []
+        if frames_per_batch <= 0 or frames_per_batch % num_envs:
+            raise ValueError(
+                f"frames_per_batch must be a positive multiple of the {num_envs} "
+                f"environments (every environment steps as often), got {frames_per_batch}."
+            )
+        self.env = env
+        self.policy = policy
+        self.frames_per_batch = frames_per_batch
+        self.total_frames = total_frames
+        self.exploration_type = exploration_type
+        self.device = None if device is None else torch.device(device)
+        if self.device == (env.device or torch.device("cpu")):
+            self.device = None  # no copies
+        self._frames = 0
+
+    def set_seed(self, seed: int) -> int:
+        """Seeds the environments (they are reset with it at the next batch)."""
+        self.env.set_seed(seed)
+        self.reset()
+        return seed
+
+    def reset(self) -> None:
+        """Resets every environment: the next batch starts new episodes."""
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        while self.total_frames < 0 or self._frames < self.total_frames:
+            yield self.next()
+
+    def next(self) -> TensorDictBase:
+        """Collects one batch."""
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            batch = self._collect(self.frames_per_batch // self.env.batch_size.numel())
+        self._frames += self.frames_per_batch
+        return batch if self.device is None else batch.to(self.device)
+
+    def _collect(self, horizon: int) -> TensorDictBase:
+        raise NotImplementedError
+
+    def _act(self, root: TensorDictBase) -> TensorDictBase:
+        """The policy's outputs at ``root`` (on the policy's device, if it has one)."""
+        return self.policy(root if self.device is None else root.to(self.device))
+
+    def state_dict(self) -> dict:
+        """The frames collected so far (as TorchRL's collectors report them)."""
+        return {"frames": self._frames}
+
+    def shutdown(self) -> None:
+        """Closes the environments."""
+        if not self.env.is_closed:
+            self.env.close()
+
+
+class SegmentCollector(_Segments):
+    """Segments of experience from a batched environment, stepped synchronously with as
+    little work per step as the environment allows.
+
+    The batches are those of TorchRL's ``Collector`` on the same environment and policy
+    (``Collector(env, policy, frames_per_batch, track_traj_ids=False)``): the same
+    entries, and with the same seeds and random stream the same values, sampled actions
+    included. What differs is the work around each step. For a
+    [`VectorGymEnv`][rl_pg.envs.VectorGymEnv] or a one-group
+    [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv] the environment hands back plain tensors
+    (``step_tensors``) and the batch is built once, at its end; any other environment is
+    stepped by its ``step_and_maybe_reset``. For environments that take microseconds a
+    step, that work is what a training loop over TorchRL's collector spends beyond a
+    hand-written one.
+
+    Each batch holds ``frames_per_batch / num_envs`` consecutive steps of every
+    environment, batch size ``[*env.batch_size, T]`` (time last), and the environments
+    carry on from where the last batch stopped.
+
+    Args:
+        env (EnvBase): the environments (one environment: batch size ``[]``).
+        policy (TensorDictModuleBase): reads the environment's observations, writes its
+            action (and whatever else it outputs, stored in the batch).
+        frames_per_batch (int): steps per batch, a multiple of ``env.batch_size.numel()``.
+
+    Keyword Args:
+        total_frames (int): stop after this many steps (-1: never). Defaults to -1.
+        exploration_type (ExplorationType): how the policy acts while collecting.
+            Defaults to sampling (``ExplorationType.RANDOM``), as TorchRL's collectors.
+        device (torch.device, optional): where the policy runs and the batches are
+            returned. Defaults to the environment's device (the CPU).
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.collectors import SegmentCollector
+        >>> from rl_pg.envs import gym_env
+        >>> from rl_pg.models import mlp_actor
+        >>> env = gym_env("CartPole-v1", num_envs=4)
+        >>> actor = mlp_actor(env, hidden=(16,))
+        >>> collector = SegmentCollector(env, actor, frames_per_batch=32, total_frames=64)
+        >>> [batch.batch_size for batch in collector]
+        [torch.Size([4, 8]), torch.Size([4, 8])]
+        >>> collector.shutdown()
+    """
+
+    def __init__(self, env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int, **kwargs):
+        super().__init__(env, policy, frames_per_batch, **kwargs)
+        # Exactly our vector environments: a subclass may step otherwise, and a
+        # TransformedEnv passes its base's step_tensors on but would skip its transforms.
+        self._lean = type(env) in (VectorGymEnv, EnvPoolEnv) and getattr(env, "groups", 1) == 1
+        self._root: TensorDictBase | None = None
+        self._observations: dict[str, torch.Tensor] | None = None
+
+    def reset(self) -> None:
+        self._root = self._observations = None
+
+    def _collect(self, horizon: int) -> TensorDictBase:
+        if not self._lean:
+            root = self._root if self._root is not None else self.env.reset()
+            steps = []
+            for _ in range(horizon):
+                step, root = self.env.step_and_maybe_reset(self._act(root))
+                steps.append(step)
+            self._root = root
+            return torch.stack(steps, dim=len(self.env.batch_size))
+        env, size = self.env, self.env.batch_size
+        if self._observations is None:
+            first = env.reset()
+            self._observations = {key: first.get(key) for key in env.observation_spec.keys()}
+        observations = self._observations
+        # Every root's done flags are False: the environments that finished were reset.
+        clear = torch.zeros((*size, 1), dtype=torch.bool, device=env.device)
+        roots, nexts = [], []
+        for _ in range(horizon):
+            root = TensorDict._new_unsafe(
+                {**observations, "done": clear, "terminated": clear, "truncated": clear},
+                batch_size=size,
+                device=env.device,
+            )
+            root = self._act(root)
+            step, observations = env.step_tensors(root.get(env.action_key))
+            roots.append(root)
+            nexts.append(step)
+        self._observations = observations
+        batch = _stack(roots)  # on the policy's device
+        following = TensorDict._new_unsafe(
+            {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
+            batch_size=batch.batch_size,
+            device=env.device,
+        )
+        return batch.set("next", following.to(batch.device) if batch.device else following)
+
+
+def _stack(roots: list[TensorDictBase]) -> TensorDictBase:
+    """``torch.stack(roots, dim=1)``, entry by entry when every entry is a tensor at the
+    top level (a tenth of the time for a batch of small steps)."""
+    first = roots[0]
+    values = dict(first.items())
+    if not all(isinstance(value, torch.Tensor) for value in values.values()):
+        return torch.stack(roots, dim=1)
+    return TensorDict._new_unsafe(
+        {key: torch.stack([root.get(key) for root in roots], dim=1) for key in values},
+        batch_size=torch.Size([first.batch_size[0], len(roots)]),
+        device=first.device,
+    )
+
+
+class DoubleBufferedCollector(_Segments):
     """Segments of experience from two groups of environments, one group stepping while
     the policy acts on the other (the double-buffered sampling of Sample Factory,
     Petrenko et al. 2020).
@@ -64,16 +242,7 @@ class DoubleBufferedCollector:
         >>> collector.shutdown()
     """
 
-    def __init__(
-        self,
-        env: EnvBase,
-        policy: TensorDictModuleBase,
-        frames_per_batch: int,
-        *,
-        total_frames: int = -1,
-        exploration_type: ExplorationType = ExplorationType.RANDOM,
-        device: torch.device | str | None = None,
-    ) -> None:
+    def __init__(self, env: EnvBase, policy: TensorDictModuleBase, frames_per_batch: int, **kwargs):
         if getattr(env, "groups", 1) != 2 or not hasattr(env, "step_send"):
             raise TypeError(
                 f"DoubleBufferedCollector steps two groups of environments in turn: it needs "
@@ -85,69 +254,26 @@ class DoubleBufferedCollector:
             raise ValueError(
                 f"The environment's batch size must be [num_envs], got {env.batch_size}."
             )
-        num_envs = env.batch_size[0]
-        if frames_per_batch <= 0 or frames_per_batch % num_envs:
-            raise ValueError(
-                f"frames_per_batch must be a positive multiple of the {num_envs} "
-                f"environments (every environment steps as often), got {frames_per_batch}."
-            )
-        self.env = env
-        self.policy = policy
-        self.frames_per_batch = frames_per_batch
-        self.total_frames = total_frames
-        self.exploration_type = exploration_type
-        self.device = None if device is None else torch.device(device)
-        if self.device == (env.device or torch.device("cpu")):
-            self.device = None  # no copies
+        super().__init__(env, policy, frames_per_batch, **kwargs)
         self._first = env.group_sizes[0]  # environments of group 0; group 1 has the rest
-        self._frames = 0
         self._roots: list[TensorDictBase] | None = None
 
-    def set_seed(self, seed: int) -> int:
-        """Seeds the environments (they are reset with it at the next batch)."""
-        self.env.set_seed(seed)
-        self._roots = None
-        return seed
-
     def reset(self) -> None:
-        """Resets every environment: the next batch starts new episodes."""
         self._roots = None
 
-    def _start(self) -> list[TensorDictBase]:
-        root = self.env.reset()
-        return [root[: self._first], root[self._first :]]
-
-    def __iter__(self) -> Iterator[TensorDictBase]:
-        while self.total_frames < 0 or self._frames < self.total_frames:
-            yield self.next()
-
-    def next(self) -> TensorDictBase:
-        """Collects one batch."""
-        roots = self._roots if self._roots is not None else self._start()
+    def _collect(self, horizon: int) -> TensorDictBase:
+        if self._roots is None:
+            root = self.env.reset()
+            self._roots = [root[: self._first], root[self._first :]]
+        roots, env, act = self._roots, self.env, self._act
         steps: tuple[list, list] = ([], [])
-        env, device = self.env, self.device
-        policy = self.policy if device is None else lambda root: self.policy(root.to(device))
-        with torch.no_grad(), set_exploration_type(self.exploration_type):
-            env.step_send(policy(roots[0]), 0)
-            horizon = self.frames_per_batch // self.env.batch_size[0]
-            for t in range(horizon):
-                env.step_send(policy(roots[1]), 1)  # group 1 steps from here...
-                step, roots[0] = env.step_recv(0)
-                steps[0].append(step)
-                if t + 1 < horizon:  # on-policy: nothing is sent past the batch's end
-                    env.step_send(policy(roots[0]), 0)  # ...while group 0 acts
-                step, roots[1] = env.step_recv(1)
-                steps[1].append(step)
-        self._roots = roots
-        self._frames += self.frames_per_batch
-        batch = torch.cat([torch.stack(group, dim=1) for group in steps], dim=0)
-        return batch if device is None else batch.to(device)
-
-    def state_dict(self) -> dict:
-        """The frames collected so far (as TorchRL's collectors report them)."""
-        return {"frames": self._frames}
-
-    def shutdown(self) -> None:
-        """Closes the environments."""
-        if not self.env.is_closed:
-            self.env.close()
+        env.step_send(act(roots[0]), 0)
+        for t in range(horizon):
+            env.step_send(act(roots[1]), 1)  # group 1 steps from here...
+            step, roots[0] = env.step_recv(0)
+            steps[0].append(step)
+            if t + 1 < horizon:  # on-policy: nothing is sent past the batch's end
+                env.step_send(act(roots[0]), 0)  # ...while group 0 acts
+            step, roots[1] = env.step_recv(1)
+            steps[1].append(step)
+        return torch.cat([torch.stack(group, dim=1) for group in steps], dim=0)

@@ -148,6 +148,11 @@ class VectorGymEnv(EnvBase):
     def _transition(self, obs, reward, terminated, truncated) -> TensorDictBase:
         """The ``next`` entries of a step, from what the vector environment returned
         (of every environment, or of one group's)."""
+        out = self._transition_tensors(obs, reward, terminated, truncated)
+        n = len(out["reward"])
+        return TensorDict._new_unsafe(out, batch_size=torch.Size([n]), device=self.device)
+
+    def _transition_tensors(self, obs, reward, terminated, truncated) -> dict[str, torch.Tensor]:
         out = self._observations(obs)
         n = len(reward)
         shape = (n, 1)
@@ -158,7 +163,26 @@ class VectorGymEnv(EnvBase):
         out["done"] = terminated | truncated
         if self.device is not None and self.device.type != "cpu":
             out = {key: value.to(self.device, non_blocking=True) for key, value in out.items()}
-        return TensorDict._new_unsafe(out, batch_size=torch.Size([n]), device=self.device)
+        return out
+
+    def step_tensors(
+        self, action: torch.Tensor
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """What ``step_and_maybe_reset`` computes, as plain tensors, for a caller that
+        builds its own batch (a [`SegmentCollector`][rl_pg.collectors.SegmentCollector]):
+        the ``"next"`` entries of the step (observations, ``"reward"`` and the done flags),
+        and the next root's observations, where the environments that finished are already
+        reset (its done flags are all False). No TensorDict is built, no spec checked.
+
+        Args:
+            action (torch.Tensor): every environment's action, batch size first.
+        """
+        out = self._transition_tensors(*self._env_step(action.detach().cpu().numpy()))
+        done = out["done"]
+        if not done.any():
+            return out, {key: out[key] for key in self._obs_keys}
+        obs = self._observations(self._env_reset_some(done.reshape(-1).cpu().numpy()))
+        return out, {key: value.to(done.device) for key, value in obs.items()}
 
     def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         # `_step` already writes every done entry and the reward in their spec's shape:

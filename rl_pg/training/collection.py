@@ -28,7 +28,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
-from rl_pg.collectors import DoubleBufferedCollector
+from rl_pg.collectors import DoubleBufferedCollector, SegmentCollector
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
@@ -93,6 +93,11 @@ class Collection:
                 actor = _ReplayingPolicy(actor, self._action_key)
             if cfg.overlap:
                 self.collector = _overlapped(env, actor, kwargs["frames_per_batch"], device)
+            elif cfg.batch_mode == "segments":
+                # TorchRL's Collector's batches, with less work around each step.
+                self.collector = SegmentCollector(
+                    env, actor, kwargs["frames_per_batch"], device=device
+                )
             else:
                 self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._batches = self._record(iter(self.collector))

@@ -1,0 +1,110 @@
+"""Synchronous segment collection: TorchRL's Collector's batches, value for value."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs import StepCounter, TransformedEnv
+
+from rl_pg.collectors import SegmentCollector
+from rl_pg.envs import GridWorldEnv, gym_env
+from rl_pg.lean import lean_policy
+from rl_pg.models import mlp_actor
+
+
+def _envs(kind: str, num_envs: int):
+    """Two identical environments: one for each collector."""
+    if kind == "gridworld":  # an EnvBase without step_tensors: the generic path
+        return [GridWorldEnv(batch_size=num_envs) for _ in range(2)]
+    if kind == "transformed":  # a TorchRL transform on top of a vector environment
+        return [
+            TransformedEnv(gym_env("CartPole-v1", num_envs=num_envs), StepCounter())
+            for _ in range(2)
+        ]
+    task, backend = kind.split(":")
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    return [gym_env(task, num_envs=num_envs, backend=backend) for _ in range(2)]
+
+
+@pytest.mark.parametrize(
+    ("kind", "num_envs", "steps"),
+    [
+        ("CartPole-v1:gymnasium", 8, 40),
+        ("CartPole-v1:gymnasium", 1, 30),
+        ("CartPole-v1:envpool", 5, 30),
+        ("LunarLander-v3:gymnasium", 4, 150),
+        ("LunarLander-v3:envpool", 3, 150),
+        ("gridworld", 6, 20),
+        ("transformed", 4, 30),
+    ],
+)
+@pytest.mark.parametrize("lean", [True, False], ids=["lean-policy", "actor"])
+def test_sampled_batches_are_those_of_torchrls_collector(kind, num_envs, steps, lean):
+    """Same seeds, same random stream, a stochastic policy: the same batches, episode
+    ends, resets and sampled actions included, across batch boundaries and a reseed."""
+    if kind.startswith("LunarLander"):
+        pytest.importorskip("Box2D")
+    reference_env, env = _envs(kind, num_envs)
+    torch.manual_seed(0)
+    actor = mlp_actor(env, hidden=(16,))
+    policy = lean_policy(actor) if lean else actor
+    kwargs = {"frames_per_batch": num_envs * steps}
+    reference = Collector(reference_env, policy, total_frames=-1, track_traj_ids=False, **kwargs)
+    collector = SegmentCollector(env, policy, **kwargs)
+    ends = 0
+    for seed in (3, 4):
+        reference.set_seed(seed)
+        reference.reset()
+        collector.set_seed(seed)
+        for _ in range(3):
+            torch.manual_seed(seed)
+            expected = next(iter(reference))
+            torch.manual_seed(seed)
+            batch = next(iter(collector))
+            assert batch.batch_size == (num_envs, steps)
+            assert set(batch.keys(True, True)) == set(expected.keys(True, True))
+            for key in expected.keys(True, True):
+                assert torch.equal(batch[key], expected[key]), key
+            ends += int(batch["next", "done"].sum())
+    assert ends > 0  # the comparison crossed episode ends and resets
+    assert collector.state_dict()["frames"] == 6 * num_envs * steps
+    reference.shutdown()
+    collector.shutdown()
+
+
+def test_a_batch_size_that_does_not_divide_is_refused():
+    env = gym_env("CartPole-v1", num_envs=4)
+    with pytest.raises(ValueError, match="multiple of the 4"):
+        SegmentCollector(env, mlp_actor(env, hidden=(4,)), frames_per_batch=10)
+
+
+def test_one_environment_gives_batches_of_its_steps():
+    """Batch size []: the batch is [T], as TorchRL's Collector gives it."""
+    reference_env, env = gym_env("CartPole-v1"), gym_env("CartPole-v1")
+    torch.manual_seed(0)
+    actor = mlp_actor(env, hidden=(8,))
+    reference = Collector(reference_env, actor, frames_per_batch=50, total_frames=-1)
+    collector = SegmentCollector(env, actor, frames_per_batch=50)
+    reference.set_seed(1)
+    reference.reset()
+    collector.set_seed(1)
+    for _ in range(2):
+        torch.manual_seed(2)
+        expected = next(iter(reference))
+        torch.manual_seed(2)
+        batch = next(iter(collector))
+        assert batch.batch_size == expected.batch_size == (50,)
+        for key in ("action", "observation", ("next", "observation"), ("next", "done")):
+            assert torch.equal(batch[key], expected[key]), key
+    reference.shutdown()
+    collector.shutdown()
+
+
+def test_total_frames_ends_the_iteration():
+    env = gym_env("CartPole-v1", num_envs=2)
+    collector = SegmentCollector(env, mlp_actor(env, hidden=(4,)), 8, total_frames=24)
+    assert [b.batch_size for b in collector] == [torch.Size([2, 4])] * 3
+    collector.shutdown()
+    assert env.is_closed
