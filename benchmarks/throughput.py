@@ -13,6 +13,9 @@ run at the same number of environments:
   stepped with uniformly random actions.
 * rl_pg's loop with ``--overlap`` (EnvPool, two halves of the pool stepping in turn
   while the policy acts on the other half), against the same floors and the plain loop.
+* Collection alone, in segments of the recipe's length with its lean policy: TorchRL's
+  ``Collector`` (no trajectory ids) against rl_pg's ``SegmentCollector``, which the
+  recipes use and which gives the same batches.
 * For context: TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` (collection only,
   same MLP policy) and Stable-Baselines3 A2C's training loop (8 environments).
 
@@ -40,7 +43,9 @@ from common import REPO, table, write_json
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
+from rl_pg.collectors import SegmentCollector
 from rl_pg.functional import reward_to_go
+from rl_pg.lean import lean_policy
 from rl_pg.recipes import load
 
 cartpole, lunarlander = load("cartpole"), load("lunarlander")
@@ -210,6 +215,39 @@ def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
     return run
 
 
+def collection_only(recipe, n: int, kind: str) -> Callable[[int], float]:
+    """The recipe's environments and lean policy, collected in segments by TorchRL's
+    ``Collector`` (as tuned in the docs: no trajectory ids) or by rl_pg's
+    ``SegmentCollector``, which gives the same batches; no learning."""
+
+    def run(frames: int) -> float:
+        cfg = recipe.config(num_envs=n)
+        env = recipe.make_env(cfg)
+        policy = lean_policy(recipe.make_models(env, cfg)[0])
+        per_batch = n * cfg.segment_length
+        if kind == "SegmentCollector":
+            collector = SegmentCollector(env, policy, per_batch)
+        else:
+            collector = Collector(
+                env,
+                policy,
+                frames_per_batch=per_batch,
+                total_frames=-1,
+                track_traj_ids=False,
+                auto_register_policy_transforms=False,
+            )
+        iterator = iter(collector)
+        next(iterator)  # start-up outside the timer
+        start, done = time.perf_counter(), 0
+        while done < frames:
+            done += next(iterator).numel()
+        rate = done / (time.perf_counter() - start)
+        collector.shutdown()
+        return rate
+
+    return run
+
+
 def torchrl_collector(frames: int) -> float:
     recipe = cartpole.config()
     actor = cartpole.make_models(cartpole.make_env(recipe), recipe)[0]
@@ -271,6 +309,13 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                 pairs.append((overlapped, floor))
                 pairs.append((overlapped, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
                 pairs.append((overlapped, plain))
+            collected = {
+                kind: f"{task} x{n} collection only: {kind} (gymnasium)"
+                for kind in ("TorchRL Collector", "SegmentCollector")
+            }
+            for kind, name in collected.items():
+                runs[name] = collection_only(recipe, n, kind)
+            pairs.append((collected["SegmentCollector"], collected["TorchRL Collector"]))
             runs[plain] = plain_pytorch_training(recipe, n)
             pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", plain))
             pairs.append((plain, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))

@@ -149,32 +149,45 @@ class SegmentCollector(_Segments):
                 steps.append(step)
             self._root = root
             return torch.stack(steps, dim=len(self.env.batch_size))
-        env, size = self.env, self.env.batch_size
+        env = self.env
         if self._observations is None:
-            first = env.reset()
-            self._observations = {key: first.get(key) for key in env.observation_spec.keys()}
-        observations = self._observations
-        # Every root's done flags are False: the environments that finished were reset.
-        clear = torch.zeros((*size, 1), dtype=torch.bool, device=env.device)
+            self._observations = _observations_of(env, env.reset())
+        observations, clear = self._observations, _cleared(env.batch_size, env.device)
         roots, nexts = [], []
         for _ in range(horizon):
-            root = TensorDict._new_unsafe(
-                {**observations, "done": clear, "terminated": clear, "truncated": clear},
-                batch_size=size,
-                device=env.device,
-            )
-            root = self._act(root)
+            root = self._act(_root(observations, clear, env.batch_size, env.device))
             step, observations = env.step_tensors(root.get(env.action_key))
             roots.append(root)
             nexts.append(step)
         self._observations = observations
-        batch = _stack(roots)  # on the policy's device
-        following = TensorDict._new_unsafe(
-            {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
-            batch_size=batch.batch_size,
-            device=env.device,
-        )
-        return batch.set("next", following.to(batch.device) if batch.device else following)
+        return _segment(roots, nexts, env.device)
+
+
+def _observations_of(env: EnvBase, root: TensorDictBase) -> dict[str, torch.Tensor]:
+    return {key: root.get(key) for key in env.observation_spec.keys()}
+
+
+def _cleared(size: torch.Size, device) -> torch.Tensor:
+    """Done flags of a root: every root's are False (the environments that finished
+    were reset)."""
+    return torch.zeros((*size, 1), dtype=torch.bool, device=device)
+
+
+def _root(observations: dict, clear: torch.Tensor, size: torch.Size, device) -> TensorDictBase:
+    entries = {**observations, "done": clear, "terminated": clear, "truncated": clear}
+    return TensorDict._new_unsafe(entries, batch_size=size, device=device)
+
+
+def _segment(roots: list[TensorDictBase], nexts: list[dict], env_device) -> TensorDictBase:
+    """The batch ``[environments, T]`` of a segment's roots (with the policy's outputs)
+    and ``"next"`` entries, as TorchRL's collectors lay it out."""
+    batch = _stack(roots)  # on the policy's device
+    following = TensorDict._new_unsafe(
+        {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
+        batch_size=batch.batch_size,
+        device=env_device,
+    )
+    return batch.set("next", following.to(batch.device) if batch.device else following)
 
 
 def _stack(roots: list[TensorDictBase]) -> TensorDictBase:
@@ -262,9 +275,42 @@ class DoubleBufferedCollector(_Segments):
         self._roots = None
 
     def _collect(self, horizon: int) -> TensorDictBase:
+        env = self.env
         if self._roots is None:
-            root = self.env.reset()
+            root = env.reset()
             self._roots = [root[: self._first], root[self._first :]]
+        if type(env) is not EnvPoolEnv:  # any other two-group environment: its TensorDicts
+            return self._collect_tensordicts(horizon)
+        # EnvPoolEnv hands back plain tensors: each half's batch is built at the end.
+        observations = [_observations_of(env, root) for root in self._roots]
+        sizes = [root.batch_size for root in self._roots]
+        cleared = [_cleared(size, env.device) for size in sizes]
+        roots: tuple[list, list] = ([], [])
+        nexts: tuple[list, list] = ([], [])
+
+        def send(group: int) -> None:
+            root = _root(observations[group], cleared[group], sizes[group], env.device)
+            root = self._act(root)
+            env.send_action(root.get(env.action_key), group)
+            roots[group].append(root)
+
+        def receive(group: int) -> None:
+            step, observations[group] = env.recv_tensors(group)
+            nexts[group].append(step)
+
+        send(0)
+        for t in range(horizon):
+            send(1)  # group 1 steps from here...
+            receive(0)
+            if t + 1 < horizon:  # on-policy: nothing is sent past the batch's end
+                send(0)  # ...while group 0 acts
+            receive(1)
+        self._roots = [
+            _root(observations[group], cleared[group], sizes[group], env.device) for group in (0, 1)
+        ]
+        return torch.cat([_segment(roots[g], nexts[g], env.device) for g in (0, 1)], dim=0)
+
+    def _collect_tensordicts(self, horizon: int) -> TensorDictBase:
         roots, env, act = self._roots, self.env, self._act
         steps: tuple[list, list] = ([], [])
         env.step_send(act(roots[0]), 0)

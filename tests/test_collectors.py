@@ -28,14 +28,20 @@ def _same(a, b) -> bool:
     )
 
 
+class _OwnTwoGroups(EnvPoolEnv):
+    """Another environment of two groups: stepped through its step_send / step_recv
+    TensorDicts (the collector hands plain tensors only to EnvPoolEnv itself)."""
+
+
+@pytest.mark.parametrize("grouped", [EnvPoolEnv, _OwnTwoGroups])
 @pytest.mark.parametrize(
     ("task", "num_envs", "steps"),
     [("CartPole-v1", 8, 40), ("CartPole-v1", 5, 30), ("LunarLander-v3", 4, 150)],
 )
-def test_greedy_batches_are_those_of_torchrls_collector(task, num_envs, steps):
+def test_greedy_batches_are_those_of_torchrls_collector(task, num_envs, steps, grouped):
     """Same seeds and a deterministic policy: the same batches, episode ends included."""
     torch.manual_seed(0)
-    one, two = EnvPoolEnv(task, num_envs), EnvPoolEnv(task, num_envs, groups=2)
+    one, two = EnvPoolEnv(task, num_envs), grouped(task, num_envs, groups=2)
     actor = mlp_actor(one, hidden=(16,))
     kwargs = {
         "frames_per_batch": num_envs * steps,
@@ -152,3 +158,18 @@ def test_an_overlapped_run_resumes_exactly(tmp_path):
         recipe.config(run_dir=tmp_path / "split", total_updates=7, resume=True, **common)
     )
     assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
+
+
+def test_a_group_is_received_the_way_it_was_sent():
+    env = EnvPoolEnv("CartPole-v1", 4, groups=2)
+    root = env.reset()
+    with pytest.raises(RuntimeError, match="not stepping"):
+        env.recv_tensors(0)
+    env.send_action(torch.zeros(2, dtype=torch.long), 0)
+    with pytest.raises(RuntimeError, match="already stepping"):
+        env.step_send(root[:2].set("action", torch.zeros(2, dtype=torch.long)), 0)
+    with pytest.raises(RuntimeError, match="recv_tensors"):
+        env.step_recv(0)
+    step, observations = env.recv_tensors(0)
+    assert step["reward"].shape == (2, 1) and observations["observation"].shape == (2, 4)
+    env.close()

@@ -177,12 +177,18 @@ class VectorGymEnv(EnvBase):
         Args:
             action (torch.Tensor): every environment's action, batch size first.
         """
-        out = self._transition_tensors(*self._env_step(action.detach().cpu().numpy()))
-        done = out["done"]
+        returned = self._env_step(action.detach().cpu().numpy())
+        return self._step_and_roots(returned, self._env_reset_some)
+
+    def _step_and_roots(self, returned, reset_some):
+        """The ``"next"`` tensors of what the vector environment ``returned``, and the
+        next root's observations, the finished environments reset by ``reset_some(mask)``."""
+        step = self._transition_tensors(*returned)
+        done = step["done"]
         if not done.any():
-            return out, {key: out[key] for key in self._obs_keys}
-        obs = self._observations(self._env_reset_some(done.reshape(-1).cpu().numpy()))
-        return out, {key: value.to(done.device) for key, value in obs.items()}
+            return step, {key: step[key] for key in self._obs_keys}
+        observations = self._observations(reset_some(done.reshape(-1).cpu().numpy()))
+        return step, {key: value.to(done.device) for key, value in observations.items()}
 
     def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         # `_step` already writes every done entry and the reward in their spec's shape:
@@ -356,27 +362,52 @@ class EnvPoolEnv(VectorGymEnv):
     def step_send(self, tensordict: TensorDictBase, group: int) -> None:
         """Hands ``tensordict``'s actions (of group ``group``'s environments, batch size
         ``[num_envs / groups]``) to EnvPool and returns while they step."""
-        if self._sent[group] is not None:
-            raise RuntimeError(
-                f"Group {group} is already stepping: call step_recv({group}) before "
-                f"sending it another action."
-            )
-        actions = tensordict.get(self.action_key).detach().cpu().numpy()
-        self._env.send(group, actions)
+        self.send_action(tensordict.get(self.action_key), group)
         self._sent[group] = tensordict
 
     def step_recv(self, group: int) -> tuple[TensorDictBase, TensorDictBase]:
         """Waits for group ``group``'s step; returns what ``step_and_maybe_reset`` returns
         for that group: the tensordict sent with its ``"next"`` entries, and the next
         root, where the environments that finished are already reset."""
-        sent, self._sent[group] = self._sent[group], None
-        if sent is None:
-            raise RuntimeError(f"Group {group} is not stepping: call step_send first.")
-        next_td = self._transition(*self._env.recv(group))
+        sent = self._sent[group]
+        if sent is not None and not isinstance(sent, TensorDictBase):
+            raise RuntimeError(
+                f"Group {group}'s step was sent with send_action: receive it with "
+                f"recv_tensors({group})."
+            )
+        step, observations = self.recv_tensors(group)
+        next_td = TensorDict._new_unsafe(
+            step, batch_size=torch.Size([len(step["reward"])]), device=self.device
+        )
         sent.set("next", next_td)
         next_root = next_td.exclude("reward")
-        self._reset_finished(next_root, lambda mask: self._env.reset_some(mask, group))
+        if step["done"].any():
+            next_root.update(observations)
+            for key in ("done", "terminated", "truncated"):
+                next_root.set(key, torch.zeros_like(step["done"]))
         return sent, next_root
+
+    def send_action(self, action: torch.Tensor, group: int) -> None:
+        """Hands group ``group``'s ``action`` (its environments' rows) to EnvPool and
+        returns while they step: ``step_send`` without a TensorDict."""
+        if self._sent[group] is not None:
+            raise RuntimeError(
+                f"Group {group} is already stepping: call step_recv({group}) or "
+                f"recv_tensors({group}) before sending it another action."
+            )
+        self._env.send(group, action.detach().cpu().numpy())
+        self._sent[group] = action
+
+    def recv_tensors(self, group: int) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Waits for group ``group``'s step; returns what ``step_tensors`` returns for
+        that group: the ``"next"`` entries, and the next root's observations (the
+        environments that finished already reset)."""
+        if self._sent[group] is None:
+            raise RuntimeError(f"Group {group} is not stepping: call step_send first.")
+        self._sent[group] = None
+        return self._step_and_roots(
+            self._env.recv(group), lambda mask: self._env.reset_some(mask, group)
+        )
 
 
 class _Pools(gym.vector.VectorEnv):
