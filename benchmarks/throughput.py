@@ -236,14 +236,7 @@ def collection_only(recipe, n: int, kind: str) -> Callable[[int], float]:
                 track_traj_ids=False,
                 auto_register_policy_transforms=False,
             )
-        iterator = iter(collector)
-        next(iterator)  # start-up outside the timer
-        start, done = time.perf_counter(), 0
-        while done < frames:
-            done += next(iterator).numel()
-        rate = done / (time.perf_counter() - start)
-        collector.shutdown()
-        return rate
+        return _collection_rate(collector, frames)
 
     return run
 
@@ -255,8 +248,14 @@ def torchrl_collector(frames: int) -> float:
     collector = Collector(
         env, actor, frames_per_batch=200, total_frames=-1, auto_register_policy_transforms=False
     )
+    return _collection_rate(collector, frames)
+
+
+def _collection_rate(collector, frames: int) -> float:
+    """Frames per second of ``collector`` over about ``frames`` frames (its first batch,
+    the start-up, untimed); shuts it down."""
     iterator = iter(collector)
-    next(iterator)  # start-up outside the timer
+    next(iterator)
     start, done = time.perf_counter(), 0
     while done < frames:
         done += next(iterator).numel()
