@@ -74,6 +74,18 @@ class _Segments:
         """The policy's outputs at ``root`` (on the policy's device, if it has one)."""
         return self.policy(root if self.device is None else root.to(self.device))
 
+    def _action(self, root: TensorDictBase) -> torch.Tensor:
+        """The action the policy wrote into ``root``."""
+        action = root.get(self.env.action_key, None)
+        if action is None:
+            raise KeyError(
+                f"The policy wrote no {self.env.action_key!r} entry (it wrote "
+                f"{sorted(map(str, root.keys(True, True)))}): the environment steps on the "
+                f"policy's action. Give the policy that out_key (a ProbabilisticActor's "
+                f"out_keys=[{self.env.action_key!r}])."
+            )
+        return action
+
     def state_dict(self) -> dict:
         """The frames collected so far (as TorchRL's collectors report them)."""
         return {"frames": self._frames}
@@ -156,7 +168,7 @@ class SegmentCollector(_Segments):
         roots, nexts = [], []
         for _ in range(horizon):
             root = self._act(_root(observations, clear, env.batch_size, env.device))
-            step, observations = env.step_tensors(root.get(env.action_key))
+            step, observations = env.step_tensors(self._action(root))
             roots.append(root)
             nexts.append(step)
         self._observations = observations
@@ -291,7 +303,7 @@ class DoubleBufferedCollector(_Segments):
         def send(group: int) -> None:
             root = _root(observations[group], cleared[group], sizes[group], env.device)
             root = self._act(root)
-            env.send_action(root.get(env.action_key), group)
+            env.send_action(self._action(root), group)
             roots[group].append(root)
 
         def receive(group: int) -> None:

@@ -102,6 +102,15 @@ def test_one_environment_gives_batches_of_its_steps():
     collector.shutdown()
 
 
+def test_a_policy_without_an_action_is_named():
+    from tensordict.nn import TensorDictModule
+
+    env = gym_env("CartPole-v1", num_envs=2)
+    silent = TensorDictModule(torch.nn.Linear(4, 2), ["observation"], ["logits"])
+    with pytest.raises(KeyError, match=r"wrote no 'action' entry.*'logits'"):
+        SegmentCollector(env, silent, 8).next()
+
+
 def test_total_frames_ends_the_iteration():
     env = gym_env("CartPole-v1", num_envs=2)
     collector = SegmentCollector(env, mlp_actor(env, hidden=(4,)), 8, total_frames=24)
