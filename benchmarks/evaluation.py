@@ -38,6 +38,8 @@ from rl_pg.recipes import load
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import load_models
 
+COLUMNS = ["seconds", "steps/s", "mean return", "route completion"]
+
 
 @dataclass
 class Config:
@@ -100,11 +102,16 @@ def main(cfg: Config) -> dict:
          scores[name]["mean_return"], scores[name]["mean_route_completion"]]
         for name in contenders
     ]  # fmt: skip
-    print(table(rows, ["contender", "seconds", "steps/s", "mean return", "route completion"]))
+    print(table(rows, ["contender", *COLUMNS]))
     ratio = median["ParallelEnv"] / median["EpisodeWorkers"]
     print(f"ParallelEnv / EpisodeWorkers: {ratio:.2f}x the time")
     return write_json(
-        cfg.json_path, cfg, median_seconds=median, scores=scores, parallel_env_over_workers=ratio
+        cfg.json_path,
+        cfg,
+        median_seconds=median,
+        scores=scores,
+        rows={row[0]: dict(zip(COLUMNS, row[1:], strict=True)) for row in rows},
+        parallel_env_over_workers=ratio,
     )
 
 
