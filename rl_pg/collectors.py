@@ -281,21 +281,26 @@ class DoubleBufferedCollector(_Segments):
             )
         super().__init__(env, policy, frames_per_batch, **kwargs)
         self._first = env.group_sizes[0]  # environments of group 0; group 1 has the rest
+        # Where each group stands between batches: its roots, or for an EnvPoolEnv
+        # (which hands back plain tensors) its observations.
         self._roots: list[TensorDictBase] | None = None
+        self._observations: list[dict[str, torch.Tensor]] | None = None
 
     def reset(self) -> None:
-        self._roots = None
+        self._roots = self._observations = None
 
     def _collect(self, horizon: int) -> TensorDictBase:
         env = self.env
-        if self._roots is None:
-            root = env.reset()
-            self._roots = [root[: self._first], root[self._first :]]
-        if type(env) is not EnvPoolEnv:  # any other two-group environment: its TensorDicts
+        if type(env) is not EnvPoolEnv:  # another two-group environment: its TensorDicts
             return self._collect_tensordicts(horizon)
-        # EnvPoolEnv hands back plain tensors: each half's batch is built at the end.
-        observations = [_observations_of(env, root) for root in self._roots]
-        sizes = [root.batch_size for root in self._roots]
+        if self._observations is None:
+            root = env.reset()
+            self._observations = [
+                _observations_of(env, part) for part in (root[: self._first], root[self._first :])
+            ]
+        # Each half's batch is built at its end.
+        observations = self._observations
+        sizes = [torch.Size([size]) for size in env.group_sizes]
         cleared = [_cleared(size, env.device) for size in sizes]
         roots: tuple[list, list] = ([], [])
         nexts: tuple[list, list] = ([], [])
@@ -317,12 +322,12 @@ class DoubleBufferedCollector(_Segments):
             if t + 1 < horizon:  # on-policy: nothing is sent past the batch's end
                 send(0)  # ...while group 0 acts
             receive(1)
-        self._roots = [
-            _root(observations[group], cleared[group], sizes[group], env.device) for group in (0, 1)
-        ]
         return torch.cat([_segment(roots[g], nexts[g], env.device) for g in (0, 1)], dim=0)
 
     def _collect_tensordicts(self, horizon: int) -> TensorDictBase:
+        if self._roots is None:
+            root = self.env.reset()
+            self._roots = [root[: self._first], root[self._first :]]
         roots, env, act = self._roots, self.env, self._act
         steps: tuple[list, list] = ([], [])
         env.step_send(act(roots[0]), 0)

@@ -217,10 +217,17 @@ class VectorGymEnv(EnvBase):
         done = next_root.get("done")
         if done.any():
             obs = reset_some(done.reshape(-1).cpu().numpy())
-            for key, value in self._observations(obs).items():
-                next_root.set(key, value.to(done.device))
-            for key in ("done", "terminated", "truncated"):
-                next_root.set(key, torch.zeros_like(done))
+            self._write_restarted(next_root, self._observations(obs))
+
+    @staticmethod
+    def _write_restarted(next_root: TensorDictBase, observations: dict) -> None:
+        """Writes into ``next_root`` every environment's observation (the first one of
+        those just reset) and clears its done flags."""
+        done = next_root.get("done")
+        for key, value in observations.items():
+            next_root.set(key, value.to(done.device))
+        for key in ("done", "terminated", "truncated"):
+            next_root.set(key, torch.zeros_like(done))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
@@ -382,9 +389,7 @@ class EnvPoolEnv(VectorGymEnv):
         sent.set("next", next_td)
         next_root = next_td.exclude("reward")
         if step["done"].any():
-            next_root.update(observations)
-            for key in ("done", "terminated", "truncated"):
-                next_root.set(key, torch.zeros_like(step["done"]))
+            self._write_restarted(next_root, observations)
         return sent, next_root
 
     def send_action(self, action: torch.Tensor, group: int) -> None:

@@ -81,12 +81,6 @@ class Collection:
         # Our policies need no extra environment transform (no recurrent state).
         inner = {"auto_register_policy_transforms": False}
         if self.local:
-            # An environment without a device makes CPU tensors: a CPU policy needs no
-            # device arguments, which would copy every step's data (`.to(device)`) twice.
-            if device is not None and device != (env.device or torch.device("cpu")):
-                kwargs.update(policy_device=device, storing_device=device, env_device=env.device)
-            if cfg.batch_mode == "segments":  # nothing reads trajectory ids then
-                kwargs["track_traj_ids"] = False
             # The same actions as the actor, with less overhead per step where it can.
             actor = lean_policy(actor)
             if resumed and resumed["actions"]:  # only a resumed run replays: no cost otherwise
@@ -99,6 +93,12 @@ class Collection:
                     env, actor, kwargs["frames_per_batch"], device=device
                 )
             else:
+                # An environment without a device makes CPU tensors: a CPU policy needs no
+                # device arguments, which would copy every step's data twice.
+                if device is not None and device != (env.device or torch.device("cpu")):
+                    kwargs.update(
+                        policy_device=device, storing_device=device, env_device=env.device
+                    )
                 self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._batches = self._record(iter(self.collector))
             self._restart(resumed["restarted_at"] if resumed else updates)
