@@ -434,6 +434,23 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
                     "--settings -->\n| stale |\n<!-- end of report -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     assert out.strip() in page.read_text()
+    # the stored evaluations as a table, one column per run, the kept one in bold
+    status, curves, err = in_process("report", "--stored", str(stored), "--curves",
+                                     capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    header, _, *rows = curves.strip().splitlines()
+    assert header == "| frames | seed0 | seed1 |"
+    for run, column in zip(saved_runs["runs"], (1, 2), strict=True):
+        frames, values = run["curve"]["frames"], run["curve"]["values"]
+        cells = {int(r.split(" | ")[0][2:].replace(",", "")): r.split(" | ")[column].strip(" |")
+                 for r in rows if r.startswith("| ")}  # fmt: skip
+        for frame, value in zip(frames, values, strict=True):
+            bold = frame == run["report"]["best_at_frames"]
+            assert cells[frame] == (f"**{value:.4g}**" if bold else f"{value:.4g}"), frame
+    page.write_text("<!-- rl-pg report --stored results/seeds.json --curves -->\n| stale |\n"
+                    "<!-- end of report -->\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert curves.strip() in page.read_text() and "stale" not in page.read_text()
     # a figure in a sentence: the stored value at a JSON pointer, written by --refresh
     page.write_text("Seed 1 took <!-- value results/seeds.json /runs/1/report/frames "
                     "{:,} --> 12<!-- /value --> frames.\n")  # fmt: skip
@@ -481,6 +498,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", "--stored", str(tmp_path)), "is not a stored report"),
         (("report", "--profile", "x.png"), "name them with --stored"),
         (("report", runs[0], "--settings"), "compares stored files"),
+        (("report", runs[0], "--curves"), "tabulates stored curves"),
+        (("report", "--stored", str(stored), "--curves", "--settings"), "ask for one"),
         (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
         (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),

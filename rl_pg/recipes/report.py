@@ -7,6 +7,7 @@ rl-pg report --stored seeds.json                       # the same table, from th
 rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregate curve
 rl-pg report --stored a.json b.json --profile p.png    # settings' performance profiles
 rl-pg report --stored a.json b.json --settings         # one row per setting
+rl-pg report --stored seeds.json --curves              # the evaluations, run by run
 rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
@@ -20,7 +21,8 @@ the page), which ``--refresh`` rewrites from the file, so the page cannot drift 
 A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->``
 names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
-``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file.
+``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file,
+``<!-- rl-pg report --stored FILE --curves -->`` one of every stored evaluation.
 A table of a JSON object's entries, one row each (a benchmark's results), is written
 between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER... -->`` and
 ``<!-- end of table -->`` (one value header per column when the entries are objects).
@@ -50,6 +52,7 @@ from rl_pg.training.seeds import fresh_seed
 __all__ = [
     "Args",
     "draw_stored",
+    "format_curves",
     "format_report",
     "format_settings",
     "main",
@@ -72,7 +75,8 @@ STORED_FIGURE = re.compile(
     re.MULTILINE,
 )
 STORED_TABLE = re.compile(
-    r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)(?P<settings> --settings)? "
+    r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)"
+    r"(?:(?P<settings> --settings)|(?P<curves> --curves))? "
     r"-->\n(?P<table>.*?)^<!-- end of report -->$",
     re.MULTILINE | re.DOTALL,
 )
@@ -117,6 +121,9 @@ class Args:
     """With --stored: one row per file, the setting its runs share. The flags that differ
     from the recipe's defaults, how many runs reached the threshold and when (median),
     how many best checkpoints hold it greedily and by sampling, and their median scores."""
+    curves: bool = False
+    """With --stored: the evaluation curve as a table. One row per evaluation (its
+    frames), one column per run; the evaluation kept as the run's best in bold."""
     profile: Path | None = None
     """With --stored: draw the files' performance profiles into this PNG. One curve per
     file: the share of its runs whose best checkpoint scores above τ both ways (the
@@ -338,6 +345,8 @@ def stored_table(match: re.Match, folder: Path) -> str:
         return format_settings(files)
     if len(files) != 1:
         raise ValueError(f"a table of runs reads one stored file, got {match['files']!r}.")
+    if match["curves"]:
+        return format_curves(files[0])
     return format_report(*read_stored(files[0]))
 
 
@@ -551,6 +560,66 @@ def figure_ylim(match: re.Match) -> tuple[float, float] | None:
     return None if match["low"] is None else (float(match["low"]), float(match["high"]))
 
 
+def format_curves(path: Path) -> str:
+    """The evaluation curves a file written by ``--store`` holds, as a Markdown table:
+    one row per evaluation (by frames), one column per run; each run's best
+    evaluation (the checkpoint it kept) in bold, "—" where a run has no evaluation at
+    those frames (it stopped earlier, or evaluated elsewhere).
+
+    Raises:
+        ValueError: ``path`` is not a stored report (the message names it).
+
+    Examples:
+        >>> import json, tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.recipes.report import format_curves
+        >>> run = lambda name, values, best: {"name": name, "report": {"best_at_frames": best},
+        ...     "curve": {"metric": "eval/mean_return", "frames": [100, 200][:len(values)],
+        ...     "values": values}}
+        >>> path = Path(tempfile.mkdtemp()) / "seeds.json"
+        >>> _ = path.write_text(json.dumps({"runs": [run("seed0", [-21.0, 3.5], 200),
+        ...                                          run("seed1", [-20.0], 100)]}))
+        >>> print(format_curves(path))
+        | frames | seed0 | seed1 |
+        |---:|---:|---:|
+        | 100 | -21 | **-20** |
+        | 200 | **3.5** | — |
+        <BLANKLINE>
+        eval/mean_return at each evaluation; bold: the best, whose checkpoint each run kept.
+    """
+    runs = _stored_runs(path)
+    columns = []
+    for run in runs:
+        frames, values = run["curve"]["frames"], run["curve"]["values"]
+        if len(frames) != len(values):
+            raise ValueError(
+                f"{path}: run {run['name']}'s curve has {len(frames)} frames and "
+                f"{len(values)} values; write the file again with rl-pg report RUN... --store."
+            )
+        best = run["report"].get("best_at_frames")
+        columns.append((dict(zip(frames, values, strict=True)), best))
+    rows = sorted({frame for column, _ in columns for frame in column})
+    lines = [
+        "| frames | " + " | ".join(run["name"] for run in runs) + " |",
+        "|---:|" + "---:|" * len(runs),
+    ]
+    for frame in rows:
+        cells = []
+        for column, best in columns:
+            if frame not in column:
+                cells.append("—")
+                continue
+            text = f"{column[frame]:.4g}"
+            cells.append(f"**{text}**" if frame == best else text)
+        lines.append(f"| {int(frame):,} | " + " | ".join(cells) + " |")  # CSV frames: floats
+    metrics = sorted({run["curve"]["metric"] for run in runs})
+    lines += [
+        "",
+        f"{', '.join(metrics)} at each evaluation; bold: the best, whose checkpoint each run kept.",
+    ]
+    return "\n".join(lines)
+
+
 def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
     """The runs as a Markdown table, and how many reached their threshold.
 
@@ -623,6 +692,13 @@ def main(args: Args) -> str:
     """Prints (and returns) the table; draws the figure when ``args.plot`` is set."""
     if args.settings and args.stored is None:
         raise ValueError("--settings compares stored files: name them with --stored.")
+    if args.curves and args.stored is None:
+        raise ValueError(
+            "--curves tabulates stored curves: name the file with --stored (write it with "
+            "rl-pg report RUN... --store FILE)."
+        )
+    if args.curves and args.settings:
+        raise ValueError("--curves and --settings are two tables: ask for one.")
     if args.profile is not None and args.stored is None:
         raise ValueError("--profile draws stored files: name them with --stored.")
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
@@ -647,8 +723,7 @@ def main(args: Args) -> str:
             return table
         tables = []
         for path in args.stored:
-            reports, names = read_stored(path)
-            table = format_report(reports, names)
+            table = format_curves(path) if args.curves else format_report(*read_stored(path))
             tables.append(table if len(args.stored) == 1 else f"{path}:\n\n{table}")
         table = "\n\n".join(tables)
         print(table)
