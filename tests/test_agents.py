@@ -88,7 +88,10 @@ def test_every_shipped_agent_plays_one_episode_without_training(path, capsys, mo
     agent = load_checkpoint(path)
     assert agent["recipe"] == path.stem and not TRAINING_STATE & agent.keys()
     assert agent["agent"]["greedy"] is not None  # its results ship with it (docs show them)
-    assert path.stat().st_size < 1_000_000
+    # an agent file is its weights and a few KiB more; only Pong's network (6 400 inputs
+    # to 200 units: 5 MB of weights) is over 1 MB
+    weights = sum(t.numel() * t.element_size() for t in agent["loss"].values())
+    assert path.stat().st_size < max(1_000_000, weights + 64_000)
     assert shipped_agent(path.stem) == path
     status, out, err = in_process("play", path.stem, "--pretrained", "--episodes", "1",
                                   capsys=capsys)  # fmt: skip
@@ -97,7 +100,10 @@ def test_every_shipped_agent_plays_one_episode_without_training(path, capsys, mo
 
 def test_the_agents_are_shipped_in_the_package():
     shipped = {p.stem for p in SHIPPED.glob("*.pt")}
-    assert {"bandit", "gridworld", "cartpole", "lunarlander", "metadrive"} <= shipped
+    assert {"bandit", "gridworld", "cartpole", "lunarlander", "highway", "metadrive",
+            "pong"} <= shipped
+    # what the wheel carries for them stays small beside torch itself
+    assert sum(p.stat().st_size for p in SHIPPED.glob("*.pt")) < 6_000_000
     pyproject = (SHIPPED.parents[2] / "pyproject.toml").read_text()
     assert '"recipes/agents/*.pt"' in pyproject  # package data of a built wheel
 
