@@ -193,7 +193,7 @@ def _root(observations: dict, clear: torch.Tensor, size: torch.Size, device) -> 
 def _segment(roots: list[TensorDictBase], nexts: list[dict], env_device) -> TensorDictBase:
     """The batch ``[environments, T]`` of a segment's roots (with the policy's outputs)
     and ``"next"`` entries, as TorchRL's collectors lay it out."""
-    batch = _stack(roots)  # on the policy's device
+    batch = _stack(roots, cleared=("done", "terminated", "truncated"))  # policy's device
     following = TensorDict._new_unsafe(
         {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
         batch_size=batch.batch_size,
@@ -202,17 +202,24 @@ def _segment(roots: list[TensorDictBase], nexts: list[dict], env_device) -> Tens
     return batch.set("next", following.to(batch.device) if batch.device else following)
 
 
-def _stack(roots: list[TensorDictBase]) -> TensorDictBase:
+def _stack(roots: list[TensorDictBase], cleared: tuple[str, ...] = ()) -> TensorDictBase:
     """``torch.stack(roots, dim=1)``, entry by entry when every entry is a tensor at the
-    top level (a tenth of the time for a batch of small steps)."""
+    top level (a tenth of the time for a batch of small steps). The ``cleared`` entries
+    are the same all-False tensor in every root (``_root``'s done flags): one new
+    tensor of the stacked shape stands for them."""
     first = roots[0]
     values = dict(first.items())
     if not all(isinstance(value, torch.Tensor) for value in values.values()):
         return torch.stack(roots, dim=1)
+    stacked = {}
+    for key, value in values.items():
+        if key in cleared and all(root.get(key) is value for root in roots) and not value.any():
+            shape = (value.shape[0], len(roots), *value.shape[1:])
+            stacked[key] = torch.zeros(shape, dtype=value.dtype, device=value.device)
+        else:
+            stacked[key] = torch.stack([root.get(key) for root in roots], dim=1)
     return TensorDict._new_unsafe(
-        {key: torch.stack([root.get(key) for root in roots], dim=1) for key in values},
-        batch_size=torch.Size([first.batch_size[0], len(roots)]),
-        device=first.device,
+        stacked, batch_size=torch.Size([first.batch_size[0], len(roots)]), device=first.device
     )
 
 

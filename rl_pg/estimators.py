@@ -18,6 +18,7 @@ from torchrl.objectives.value import ValueEstimatorBase
 
 from rl_pg._checks import check_bool, check_int, check_real
 from rl_pg.functional import discounted_return, reward_to_go
+from rl_pg.lean import plain_layers, run_plain
 
 __all__ = ["DiscountedReturn", "RewardToGo"]
 
@@ -172,28 +173,29 @@ class _MonteCarloReturn(ValueEstimatorBase):
         keys = list(self.value_network.in_keys)
         data = self._sanitize_next_obs_nan(tensordict, keys)  # as TorchRL's calls do
         value_key = self.tensor_keys.value
+        layers = plain_layers(self.value_network)
+
+        def values_at(entries: dict, shape) -> torch.Tensor:
+            if layers is not None:  # the networks on the tensors: no TensorDict around them
+                return run_plain(layers, entries)[value_key]
+            return self.value_network(TensorDict(entries, batch_size=shape)).get(value_key)
 
         def inputs(*prefix):
-            return TensorDict(
-                {key: data.get((*prefix, key)) for key in keys}, batch_size=tensordict.shape
-            )
+            return {key: data.get((*prefix, key)) for key in keys}
 
         if graph:
-            attached = self.value_network(inputs()).get(value_key)
+            attached = values_at(inputs(), tensordict.shape)
             with torch.no_grad():
-                next_value = self.value_network(inputs("next")).get(value_key)
+                next_value = values_at(inputs("next"), tensordict.shape)
             value = attached.detach()
         else:
             n = tensordict.shape[0]
-            both = TensorDict(
-                {key: torch.cat([data.get(key), data.get(("next", key))]) for key in keys},
-                batch_size=[2 * n, *tensordict.shape[1:]],
-            )
+            both = {key: torch.cat([data.get(key), data.get(("next", key))]) for key in keys}
             # Out of the graph as TorchRL holds it: gradients may reach the inputs (a
             # differentiable estimator), never the network's parameters.
             held = hold_out_net(self.value_network) if self.differentiable else torch.no_grad()
             with held:
-                values = self.value_network(both).get(value_key)
+                values = values_at(both, [2 * n, *tensordict.shape[1:]])
             attached, value, next_value = None, values[:n], values[n:].detach()
         tensordict.set(value_key, value)
         tensordict.set(("next", value_key), next_value)

@@ -16,9 +16,15 @@ from tensordict.nn import (
     TensorDictSequential,
 )
 from torchrl.envs.utils import ExplorationType, exploration_type
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import ProbabilisticActor, ValueOperator
 
-__all__ = ["LeanCategoricalActor", "LeanCategoricalPolicy", "lean_policy"]
+__all__ = [
+    "LeanCategoricalActor",
+    "LeanCategoricalPolicy",
+    "lean_policy",
+    "plain_layers",
+    "run_plain",
+]
 
 
 def lean_policy(actor: TensorDictModuleBase) -> TensorDictModuleBase:
@@ -177,13 +183,31 @@ def _plain(modules) -> list[TensorDictModule] | None:
                 return None  # e.g. selected_out_keys: not every output is written
             layers += inner
         elif (
-            type(m) is TensorDictModule
+            type(m) in (TensorDictModule, ValueOperator)  # ValueOperator only sets keys
             and m.method is None
             and not m.method_kwargs
             and m._kwargs is None
             and len(m.out_keys) == 1
+            and not (m._forward_hooks or m._forward_pre_hooks)
         ):
             layers.append(m)
         else:
             return None
     return layers
+
+
+def plain_layers(module) -> list[tuple[torch.nn.Module, list, object]] | None:
+    """``(network, in_keys, out_key)`` for each ``TensorDictModule`` that ``module`` runs
+    in order, when each only calls its network on its inputs (a ``ValueOperator``, an
+    ``MLP`` wrapped with its keys, a sequence of such); None otherwise."""
+    layers = _plain([module])
+    return None if layers is None else [(m.module, list(m.in_keys), m.out_keys[0]) for m in layers]
+
+
+def run_plain(layers, values: dict) -> dict:
+    """Runs ``plain_layers``' networks on the tensors of ``values`` (keyed as the
+    modules' keys), adding each output: what the modules would write into a
+    TensorDict, without one."""
+    for network, in_keys, out_key in layers:
+        values[out_key] = network(*(values[key] for key in in_keys))
+    return values

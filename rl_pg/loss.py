@@ -805,6 +805,12 @@ def _check_support(dist, action: torch.Tensor, key, declared_bounds: bool) -> No
     ``log_prob`` does not: a categorical policy truncates ``1.7`` to ``1`` and a bounded
     continuous policy scores an action beyond its bounds as if it were on them.
     """
+    if type(dist) is torch.distributions.Categorical and not action.is_floating_point():
+        # Integer indices: inside the support iff within [0, K); one pass over them
+        # instead of the support's three comparisons (the full check below names a miss).
+        low, high = action.aminmax()
+        if bool((low >= 0) & (high < dist.logits.shape[-1])):
+            return
     low, high = getattr(dist, "low", None), getattr(dist, "high", None)
     if isinstance(dist, _ONE_HOT_DISTRIBUTIONS):
         # TorchRL's one-hot categorical reports Categorical's integer support.

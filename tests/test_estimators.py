@@ -138,6 +138,21 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(batch["next", "state_value"], next_value, rtol=0, atol=1e-6)
         assert torch.isfinite(next_value).all()
 
+    def test_a_critic_with_hooks_is_called_as_a_module(self, cls, fn, batch):
+        """Plain networks are run on tensors, without a TensorDict around them; a
+        critic whose module has a forward hook is called whole, so the hook runs."""
+        torch.manual_seed(0)
+        critic = make_critic()
+        plain = cls(gamma=0.9, value_network=critic)(batch.clone())
+        critic.register_forward_hook(
+            lambda module, args, out: out.set("state_value", out["state_value"] + 1.0)
+        )
+        hooked = cls(gamma=0.9, value_network=critic)(batch.clone())
+        torch.testing.assert_close(hooked["state_value"], plain["state_value"] + 1.0)
+        torch.testing.assert_close(
+            hooked["next", "state_value"], plain["next", "state_value"] + 1.0
+        )
+
     def test_named_time_dimension(self, cls, fn, batch):
         time_major = batch.transpose(0, 1).contiguous()
         time_major.names = ["time", None]

@@ -53,6 +53,10 @@ class EpisodeReturns:
         reward = reward.reshape(done.shape).clone()
         if self.partial is not None and self.partial.shape[0] == reward.shape[0]:
             reward[:, 0] += self.partial
+        if not done.any():  # no episode ended (long episodes, short segments): carry all
+            if self.carry:
+                self.partial = reward.sum(-1)
+            return
         self.ended.append(discounted_return(reward, done, 1.0, time_dim=-1)[done])
         if self.carry:  # what follows each row's last episode end is still in flight
             in_flight = done.flip(-1).cumsum(-1).flip(-1) == 0
