@@ -100,8 +100,15 @@ def test_every_shipped_agent_plays_one_episode_without_training(path, capsys, mo
 
 def test_the_agents_are_shipped_in_the_package():
     shipped = {p.stem for p in SHIPPED.glob("*.pt")}
-    assert {"bandit", "gridworld", "cartpole", "lunarlander", "highway", "metadrive",
-            "pong"} <= shipped
+    assert {
+        "bandit",
+        "gridworld",
+        "cartpole",
+        "lunarlander",
+        "highway",
+        "metadrive",
+        "pong",
+    } <= shipped
     # what the wheel carries for them stays small beside torch itself
     assert sum(p.stat().st_size for p in SHIPPED.glob("*.pt")) < 6_000_000
     pyproject = (SHIPPED.parents[2] / "pyproject.toml").read_text()
