@@ -104,6 +104,7 @@ def test_the_agents_are_shipped_in_the_package():
         "bandit",
         "gridworld",
         "cartpole",
+        "pendulum",
         "lunarlander",
         "highway",
         "metadrive",
