@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -197,3 +198,39 @@ def test_distributed(tmp_path):
     )
     assert set(out["predicted_speedup"]) == {"1", "8"}
     assert out["model_checks"]["2 Ray workers"]["predicted"] > 0
+
+
+def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
+    """The breakdown takes SegmentCollector's lean path apart to time it: its batches
+    must be the collector's, value for value, and the collector carries on from them."""
+    from tensordict import assert_close
+
+    from rl_pg.collectors import SegmentCollector
+    from rl_pg.lean import lean_policy
+    from rl_pg.recipes import load
+
+    breakdown = _script("breakdown")
+    recipe = load("cartpole")
+    cfg = recipe.config(num_envs=4)
+    envs = [recipe.make_env(cfg), recipe.make_env(cfg)]
+    actor, _ = recipe.make_models(envs[0], cfg)
+    timed, plain = (SegmentCollector(env, lean_policy(actor), frames_per_batch=32) for env in envs)
+    for collector in (timed, plain):
+        collector.set_seed(3)
+    torch.manual_seed(0)
+    expected = [plain.next() for _ in range(3)]
+    torch.manual_seed(0)
+    timer = breakdown._Timer()
+    got = [breakdown.timed_segment(timed, timer) for _ in range(2)] + [timed.next()]
+    for a, b in zip(got, expected, strict=True):
+        assert_close(a, b, rtol=0, atol=0)
+    assert set(timer.per_update(2)) == set(breakdown.PIECES[:3])
+    out = breakdown.main(
+        breakdown.Config(tasks=["cartpole:4"], rounds=1, updates=2, json_path=tmp_path / "b.json")
+    )
+    assert json.loads((tmp_path / "b.json").read_text()) == out
+    parts = out["tasks"]["cartpole-x4"]["parts"]
+    assert set(parts) == {*breakdown.PIECES, "total"}
+    assert parts["total"]["rl_pg"] == pytest.approx(
+        sum(parts[p]["rl_pg"] for p in breakdown.PIECES)
+    )

@@ -1,0 +1,271 @@
+"""Where the time of one update goes: rl_pg's loop piece by piece, beside the same
+algorithm written in plain PyTorch, in one process.
+
+For each task (a recipe at its number of environments), both contenders collect a
+segment of the recipe's length from their own environments and make one update on it,
+round after round, alternating; each piece is timed per update:
+
+* collection: the policy (building its input and sampling), the environments (the
+  vector environment's step, the resets of finished environments, the step's tensors),
+  and building the batch from the steps;
+* update: the loss's forward pass (returns, critic values, log-probabilities, checks,
+  diagnostics), timed by hooks around its call inside
+  ``rl_pg.training.optimisation.update``, and the rest of that call (backward, gradient
+  clip, optimiser step, metrics, observation statistics);
+* the loop's bookkeeping: the training episodes' returns and the CSV logger's rows.
+
+rl_pg's collection is ``rl_pg.collectors.SegmentCollector``'s own steps (its lean path,
+the one the recipes take), timed between its calls. The plain contender is
+``throughput.py``'s plain-PyTorch loop cut into the same pieces: gymnasium's vector env
+resetting finished environments inside its step, ``Categorical(logits=...).sample()``,
+the same networks, reward-to-go bootstrapped from the critic and fused Adam. Medians
+over rounds; the ratio of the totals is the one ``throughput.py`` measures end to end,
+without its start-up and logging.
+
+    python benchmarks/breakdown.py
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+import torch
+import tyro
+from common import REPO, table, write_json
+from tensordict import TensorDictBase
+from torchrl.envs.utils import set_exploration_type
+from torchrl.record.loggers import CSVLogger
+
+from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _root, _segment
+from rl_pg.functional import reward_to_go
+from rl_pg.lean import lean_policy
+from rl_pg.recipes import load
+from rl_pg.training.metrics import EpisodeReturns
+from rl_pg.training.optimisation import make_loss, make_optimizer, update, warm_up
+
+
+@dataclass
+class Config:
+    """Per-update cost of each piece of rl_pg's loop and of a plain-PyTorch loop."""
+
+    tasks: list[str] = field(default_factory=lambda: ["cartpole:32", "lunarlander:8"])
+    """Recipes and their numbers of environments, RECIPE:N."""
+    rounds: int = 7
+    """Rounds, each timing both contenders in turn (medians over rounds)."""
+    updates: int = 60
+    """Updates per contender per round."""
+    json_path: Path = REPO / "benchmarks" / "results" / "breakdown.json"
+    """Where the results are written."""
+
+
+PIECES = (
+    "collection: policy",
+    "collection: environments",
+    "collection: building the batch",
+    "update: loss forward",
+    "update: backward, clip, optimiser step, metrics",
+    "loop: episode returns and logging",
+)
+
+
+class _Timer:
+    """Sums nanoseconds per piece; ``per_update`` gives microseconds per update."""
+
+    def __init__(self) -> None:
+        self.ns: dict[str, int] = defaultdict(int)
+
+    def add(self, piece: str, start: int) -> int:
+        now = time.perf_counter_ns()
+        self.ns[piece] += now - start
+        return now
+
+    def per_update(self, updates: int) -> dict[str, float]:
+        return {piece: self.ns[piece] / updates / 1000 for piece in PIECES if piece in self.ns}
+
+
+def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
+    """``collector.next()`` on its lean path, step for step (the same batch, and the
+    collector carries on from it), with the policy's and the environments' time and
+    the batch's building timed apart."""
+    env = collector.env
+    if collector._observations is None:
+        collector._observations = _observations_of(env, env.reset())
+    observations, roots, nexts = collector._observations, [], []
+    clear = _cleared(env.batch_size, env.device)
+    with torch.no_grad(), set_exploration_type(collector.exploration_type):
+        for _ in range(collector.frames_per_batch // env.batch_size.numel()):
+            t = time.perf_counter_ns()
+            root = collector._act(_root(observations, clear, env.batch_size, env.device))
+            action = collector._action(root)
+            t = timer.add("collection: policy", t)
+            next_step, observations = env.step_tensors(action)
+            timer.add("collection: environments", t)
+            roots.append(root)
+            nexts.append(next_step)
+        t = time.perf_counter_ns()
+        batch = _segment(roots, nexts, env.device)
+        timer.add("collection: building the batch", t)
+    collector._observations = observations
+    collector._frames += collector.frames_per_batch
+    return batch
+
+
+def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, float]]:
+    """rl_pg's loop on the recipe: its environments, lean policy, loss, optimiser."""
+    cfg = recipe.config(num_envs=n, progress=False)
+    env = recipe.make_env(cfg)
+    actor, critic = recipe.make_models(env, cfg)
+    loss = make_loss(cfg, actor, critic)
+    warm_up(loss, env, torch.device("cpu"))
+    optimizer = make_optimizer(cfg, loss)
+    collector = SegmentCollector(env, lean_policy(actor), frames_per_batch=n * cfg.segment_length)
+    if not collector._lean:
+        raise ValueError(f"{recipe.name}: its environment has no lean step to time.")
+    # The loss's forward pass, timed inside the update by hooks around its call.
+    clock = {"start": 0, "forward": 0}
+    loss.register_forward_pre_hook(lambda *_: clock.update(start=time.perf_counter_ns()))
+    loss.register_forward_hook(
+        lambda *_: clock.update(forward=time.perf_counter_ns() - clock["start"])
+    )
+    episodes = EpisodeReturns(carry=True)
+    logger = CSVLogger(exp_name="csv", log_dir=str(log_dir))
+
+    def run(updates: int) -> dict[str, float]:
+        timer = _Timer()
+        for step in range(updates):
+            batch = timed_segment(collector, timer)
+            t = time.perf_counter_ns()
+            metrics = update(cfg, loss, optimizer, batch, lr=cfg.lr)
+            whole, forward = time.perf_counter_ns() - t, clock["forward"]
+            timer.ns["update: loss forward"] += forward
+            timer.ns["update: backward, clip, optimiser step, metrics"] += whole - forward
+            t = time.perf_counter_ns()
+            episodes.add(batch)
+            metrics["train/episode_return"] = episodes.pop_mean()
+            for name, value in metrics.items():
+                logger.log_scalar(name, value, step=step)
+            timer.add("loop: episode returns and logging", t)
+        return timer.per_update(updates)
+
+    return run
+
+
+def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
+    """The same algorithm in plain PyTorch over gymnasium's vector env (the networks of
+    the recipe, built the same way)."""
+    cfg = recipe.config(num_envs=n, progress=False)
+    sizing = recipe.make_env(cfg)
+    actor, critic = recipe.make_models(sizing, cfg)
+    sizing.close()
+    policy_net, value_net = actor.module[0].module, critic.module
+    params = [*policy_net.parameters(), *value_net.parameters()]
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, fused=True)
+    envs = gym.make_vec(
+        getattr(cfg, "env_id", "LunarLander-v3"),
+        num_envs=n,
+        vectorization_mode="sync",
+        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
+    )
+    state = {"obs": envs.reset(seed=0)[0]}
+
+    def forward(observation, action, reward, done, last):
+        with torch.no_grad():
+            next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
+            returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
+        value = value_net(observation)
+        advantage = returns - value.detach()
+        if cfg.normalize_advantage:
+            advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        dist = torch.distributions.Categorical(logits=policy_net(observation))
+        return (
+            -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
+            - cfg.entropy_coeff * dist.entropy().mean()
+            + cfg.critic_coeff * (value - returns).pow(2).mean()
+        )
+
+    def run(updates: int) -> dict[str, float]:
+        timer = _Timer()
+        for _ in range(updates):
+            segment, obs = [], state["obs"]
+            for _ in range(cfg.segment_length):
+                t = time.perf_counter_ns()
+                observation = torch.as_tensor(obs)
+                with torch.no_grad():
+                    action = torch.distributions.Categorical(logits=policy_net(observation))
+                    action = action.sample()
+                t = timer.add("collection: policy", t)
+                obs, reward, terminated, truncated, _ = envs.step(action.numpy())
+                done = torch.as_tensor(terminated | truncated)
+                segment.append((observation, action, torch.as_tensor(reward), done))
+                timer.add("collection: environments", t)
+            state["obs"] = obs
+            t = time.perf_counter_ns()
+            observation, action, reward, done = (torch.stack(x) for x in zip(*segment, strict=True))
+            reward, done = reward.float().unsqueeze(-1), done.unsqueeze(-1)
+            last = torch.as_tensor(obs)
+            t = timer.add("collection: building the batch", t)
+            loss = forward(observation, action, reward, done, last)
+            t = timer.add("update: loss forward", t)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.max_grad_norm is not None:
+                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm, foreach=True)
+            optimizer.step()
+            timer.add("update: backward, clip, optimiser step, metrics", t)
+        return timer.per_update(updates)
+
+    return run
+
+
+def main(cfg: Config) -> dict:
+    torch.set_num_threads(1)
+    results = {}
+    with tempfile.TemporaryDirectory() as log_dir:
+        for task in cfg.tasks:
+            name, _, n = task.partition(":")
+            recipe, n = load(name), int(n)
+            label = f"{recipe.name}-x{n}"  # a JSON pointer without spaces
+            contenders = {
+                "rl_pg": rl_pg_contender(recipe, n, Path(log_dir) / name),
+                "plain PyTorch": plain_contender(recipe, n),
+            }
+            for run in contenders.values():  # warm-up: first calls, caches
+                run(max(1, cfg.updates // 4))
+            rounds = defaultdict(list)
+            for _ in range(cfg.rounds):
+                for who, run in contenders.items():
+                    rounds[who].append(run(cfg.updates))
+            parts = {
+                piece: {
+                    who: (
+                        statistics.median(r[piece] for r in rounds[who])
+                        if piece in rounds[who][0]
+                        else 0.0
+                    )
+                    for who in contenders
+                }
+                for piece in PIECES
+            }
+            totals = {who: sum(p[who] for p in parts.values()) for who in contenders}
+            parts["total"] = totals
+            results[label] = {
+                "parts": parts,
+                "plain_over_rl_pg": totals["plain PyTorch"] / totals["rl_pg"],
+                "frames_per_update": n * recipe.config().segment_length,
+            }
+            rows = [[piece, *values.values()] for piece, values in parts.items()]
+            print(f"\n{label}: microseconds per update")
+            print(table(rows, ["piece", *contenders]))
+            print(f"plain / rl_pg: {results[label]['plain_over_rl_pg']:.2f}")
+    return write_json(cfg.json_path, cfg, tasks=results)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Config))
