@@ -35,16 +35,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import gymnasium as gym
 import torch
 import tyro
 from common import REPO, table, write_json
 from tensordict import TensorDictBase
+from throughput import PlainLoop
 from torchrl.envs.utils import set_exploration_type
 from torchrl.record.loggers import CSVLogger
 
 from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _root, _segment
-from rl_pg.functional import reward_to_go
 from rl_pg.lean import lean_policy
 from rl_pg.recipes import load
 from rl_pg.training.metrics import EpisodeReturns
@@ -158,66 +157,25 @@ def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, 
 
 
 def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
-    """The same algorithm in plain PyTorch over gymnasium's vector env (the networks of
-    the recipe, built the same way)."""
-    cfg = recipe.config(num_envs=n, progress=False)
-    sizing = recipe.make_env(cfg)
-    actor, critic = recipe.make_models(sizing, cfg)
-    sizing.close()
-    policy_net, value_net = actor.module[0].module, critic.module
-    params = [*policy_net.parameters(), *value_net.parameters()]
-    optimizer = torch.optim.Adam(params, lr=cfg.lr, fused=True)
-    envs = gym.make_vec(
-        getattr(cfg, "env_id", "LunarLander-v3"),
-        num_envs=n,
-        vectorization_mode="sync",
-        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
-    )
-    state = {"obs": envs.reset(seed=0)[0]}
-
-    def forward(observation, action, reward, done, last):
-        with torch.no_grad():
-            next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
-            returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
-        value = value_net(observation)
-        advantage = returns - value.detach()
-        if cfg.normalize_advantage:
-            advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-        dist = torch.distributions.Categorical(logits=policy_net(observation))
-        return (
-            -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
-            - cfg.entropy_coeff * dist.entropy().mean()
-            + cfg.critic_coeff * (value - returns).pow(2).mean()
-        )
+    """``throughput.py``'s plain-PyTorch loop, its pieces timed apart."""
+    plain = PlainLoop(recipe, n)
 
     def run(updates: int) -> dict[str, float]:
         timer = _Timer()
         for _ in range(updates):
-            segment, obs = [], state["obs"]
-            for _ in range(cfg.segment_length):
+            segment = []
+            for _ in range(plain.cfg.segment_length):
                 t = time.perf_counter_ns()
-                observation = torch.as_tensor(obs)
-                with torch.no_grad():
-                    action = torch.distributions.Categorical(logits=policy_net(observation))
-                    action = action.sample()
+                acted = plain.act()
                 t = timer.add("collection: policy", t)
-                obs, reward, terminated, truncated, _ = envs.step(action.numpy())
-                done = torch.as_tensor(terminated | truncated)
-                segment.append((observation, action, torch.as_tensor(reward), done))
+                segment.append(plain.step(*acted))
                 timer.add("collection: environments", t)
-            state["obs"] = obs
             t = time.perf_counter_ns()
-            observation, action, reward, done = (torch.stack(x) for x in zip(*segment, strict=True))
-            reward, done = reward.float().unsqueeze(-1), done.unsqueeze(-1)
-            last = torch.as_tensor(obs)
+            batch = plain.batch(segment)
             t = timer.add("collection: building the batch", t)
-            loss = forward(observation, action, reward, done, last)
+            loss = plain.loss(*batch)
             t = timer.add("update: loss forward", t)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.max_grad_norm is not None:
-                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm, foreach=True)
-            optimizer.step()
+            plain.optimise(loss)
             timer.add("update: backward, clip, optimiser step, metrics", t)
         return timer.per_update(updates)
 

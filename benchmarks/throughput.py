@@ -145,7 +145,7 @@ def random_floor(env_id: str, n: int, backend: str) -> Callable[[int], float]:
     return run
 
 
-def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
+class PlainLoop:
     """The recipe's algorithm written out in plain PyTorch over gymnasium's vector env:
     what the same work costs with no TensorDict, no TorchRL and no run bookkeeping.
 
@@ -153,63 +153,81 @@ def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
     weight, entropy bonus, advantage standardisation, gradient clipping and fused Adam
     as the recipe's defaults; one optimiser step per segment. It is a cost reference:
     finished episodes are treated as terminated (no truncation bootstrap) and no
-    episode statistics are kept.
+    episode statistics are kept. Its pieces (``act``, ``step``, ``batch``, ``loss``,
+    ``optimise``) are methods so that ``breakdown.py`` can time them apart.
     """
 
-    def run(frames: int) -> float:
-        cfg = recipe.config(num_envs=n)
-        env_id = getattr(cfg, "env_id", "LunarLander-v3")
+    def __init__(self, recipe, n: int) -> None:
+        self.cfg = cfg = recipe.config(num_envs=n)
         sizing = recipe.make_env(cfg)
         actor, critic = recipe.make_models(sizing, cfg)
         sizing.close()
-        policy_net, value_net = actor.module[0].module, critic.module
-        params = [*policy_net.parameters(), *value_net.parameters()]
-        optimizer = torch.optim.Adam(params, lr=cfg.lr, fused=True)
-        envs = gym.make_vec(
-            env_id,
+        self.policy_net, self.value_net = actor.module[0].module, critic.module
+        self.params = [*self.policy_net.parameters(), *self.value_net.parameters()]
+        self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr, fused=True)
+        self.envs = gym.make_vec(
+            getattr(cfg, "env_id", "LunarLander-v3"),
             num_envs=n,
             vectorization_mode="sync",
             vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
         )
-        obs, _ = envs.reset(seed=0)
-        steps = cfg.segment_length
+        self.obs, _ = self.envs.reset(seed=0)
+
+    def act(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The current observations and the actions sampled for them."""
+        observation = torch.as_tensor(self.obs)
+        with torch.no_grad():
+            action = torch.distributions.Categorical(logits=self.policy_net(observation))
+            return observation, action.sample()
+
+    def step(self, observation: torch.Tensor, action: torch.Tensor) -> tuple:
+        """Steps the environments (finished ones reset in the same call); the step."""
+        self.obs, reward, terminated, truncated, _ = self.envs.step(action.numpy())
+        return observation, action, torch.as_tensor(reward), torch.as_tensor(terminated | truncated)
+
+    def batch(self, segment: list[tuple]) -> tuple[torch.Tensor, ...]:
+        """The segment's steps stacked, time first, and the observations after it."""
+        observation, action, reward, done = (torch.stack(x) for x in zip(*segment, strict=True))
+        last = torch.as_tensor(self.obs)
+        return observation, action, reward.float().unsqueeze(-1), done.unsqueeze(-1), last
+
+    def loss(self, observation, action, reward, done, last) -> torch.Tensor:
+        cfg, value_net = self.cfg, self.value_net
+        with torch.no_grad():
+            next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
+            returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
+        value = value_net(observation)
+        advantage = returns - value.detach()
+        if cfg.normalize_advantage:
+            advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        dist = torch.distributions.Categorical(logits=self.policy_net(observation))
+        return (
+            -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
+            - cfg.entropy_coeff * dist.entropy().mean()
+            + cfg.critic_coeff * (value - returns).pow(2).mean()
+        )
+
+    def optimise(self, loss: torch.Tensor) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.cfg.max_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm, foreach=True)
+        self.optimizer.step()
+
+
+def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
+    """``PlainLoop`` trained for ``frames``: frames per second."""
+
+    def run(frames: int) -> float:
+        plain = PlainLoop(recipe, n)
+        steps = plain.cfg.segment_length
         updates = max(1, frames // (steps * n))
         start = time.perf_counter()
         for _ in range(updates):
-            segment = []
-            for _ in range(steps):
-                observation = torch.as_tensor(obs)
-                with torch.no_grad():
-                    action = torch.distributions.Categorical(logits=policy_net(observation))
-                    action = action.sample()
-                obs, reward, terminated, truncated, _ = envs.step(action.numpy())
-                done = torch.as_tensor(terminated | truncated)
-                segment.append((observation, action, torch.as_tensor(reward), done))
-            observation, action, reward, done = (torch.stack(x) for x in zip(*segment, strict=True))
-            reward = reward.float().unsqueeze(-1)
-            done = done.unsqueeze(-1)
-            with torch.no_grad():
-                next_value = value_net(
-                    torch.cat([observation[1:], torch.as_tensor(obs).unsqueeze(0)])
-                )
-                returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
-            value = value_net(observation)
-            advantage = returns - value.detach()
-            if cfg.normalize_advantage:
-                advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-            dist = torch.distributions.Categorical(logits=policy_net(observation))
-            loss = (
-                -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
-                - cfg.entropy_coeff * dist.entropy().mean()
-                + cfg.critic_coeff * (value - returns).pow(2).mean()
-            )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.max_grad_norm is not None:
-                torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm, foreach=True)
-            optimizer.step()
+            segment = [plain.step(*plain.act()) for _ in range(steps)]
+            plain.optimise(plain.loss(*plain.batch(segment)))
         rate = updates * steps * n / (time.perf_counter() - start)
-        envs.close()
+        plain.envs.close()
         return rate
 
     return run
