@@ -488,6 +488,11 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     for run in runs_on["runs"]:
         run["config"]["stop_when_solved"] = False
     trained_on.write_text(json.dumps(runs_on))
+    no_evaluation = tmp_path / "no_evaluation.json"
+    bare = json.loads(stored.read_text())
+    for run in bare["runs"]:
+        run["curve"]["frames"], run["curve"]["values"] = [], []
+    no_evaluation.write_text(json.dumps(bare))
     unevaluated = json.loads(stored.read_text())
     unevaluated["runs"][1]["report"]["sampled"] = None
     other.write_text(json.dumps(unevaluated))
@@ -500,6 +505,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", runs[0], "--settings"), "compares stored files"),
         (("report", runs[0], "--curves"), "tabulates stored curves"),
         (("report", "--stored", str(stored), "--curves", "--settings"), "ask for one"),
+        (("report", "--stored", str(no_evaluation), "--curves"), "holds no evaluation"),
         (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
         (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),

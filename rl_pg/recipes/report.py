@@ -567,7 +567,8 @@ def format_curves(path: Path) -> str:
     those frames (it stopped earlier, or evaluated elsewhere).
 
     Raises:
-        ValueError: ``path`` is not a stored report (the message names it).
+        ValueError: ``path`` is not a stored report, or holds no evaluation (the
+            message names it).
 
     Examples:
         >>> import json, tempfile
@@ -599,6 +600,11 @@ def format_curves(path: Path) -> str:
         best = run["report"].get("best_at_frames")
         columns.append((dict(zip(frames, values, strict=True)), best))
     rows = sorted({frame for column, _ in columns for frame in column})
+    if not rows:
+        raise ValueError(
+            f"{path} holds no evaluation: its runs were stored before their first one. "
+            f"Store them again once they have evaluated (rl-pg report RUN... --store)."
+        )
     lines = [
         "| frames | " + " | ".join(run["name"] for run in runs) + " |",
         "|---:|" + "---:|" * len(runs),
