@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 
@@ -147,6 +148,26 @@ def test_gridworld_comparison_plot(tmp_path):
         "reward-to-go - learned V",
     }
     assert (tmp_path / "comparison.png").is_file()
+
+
+def test_a_comparisons_run_resumes_as_a_run(tmp_path, capsys):
+    """A run of a comparison stores no command flag, and resuming it resumes it: it
+    ran the whole comparison again inside the run's directory."""
+    cfg = gridworld.config(run_dir=tmp_path, n_seeds=1, total_updates=2, compare=True, **TINY)
+    gridworld.run(cfg)
+    run = tmp_path / "reward-to-go" / "seed0"
+    assert json.loads((run / "config.json").read_text())["compare"] is False
+    resumed = gridworld.config.from_stored(
+        json.loads((run / "config.json").read_text()), resume=True, run_dir=run
+    )
+    summary = gridworld.run(dataclasses.replace(resumed, total_updates=3))
+    assert summary["updates"] == 3 and sorted(p.name for p in run.iterdir() if p.is_dir()) == [
+        "logs"
+    ]
+    # a run stored with the flag (before this fix) resumes too, and says what it does
+    gridworld.run(dataclasses.replace(resumed, total_updates=4, compare=True))
+    assert "--compare starts new runs and does not resume" in capsys.readouterr().err
+    assert not (run / "no baseline").exists()
 
 
 def test_bandit_comparison_plot(tmp_path):

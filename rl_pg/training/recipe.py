@@ -19,6 +19,7 @@ Its runs record the module, so ``rl-pg play RUN_DIR`` can rebuild them.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -212,6 +213,9 @@ class Recipe:
             )
         if self.prepare is not None:
             cfg = self.prepare(cfg)
+        # A command's flag (e.g. --compare) chose what to run, it is no setting of the
+        # run: stored, it would make `rl-pg resume` run the command again inside it.
+        cfg = dataclasses.replace(cfg, **{flag: False for flag in self.commands})
         eval_env = self.make_eval_env or self.make_env
         return train(
             cfg,
@@ -227,7 +231,17 @@ class Recipe:
         )
 
     def run(self, cfg: TrainConfig) -> dict[str, Any]:
-        """What the command line does: the command whose flag is set, else ``train``."""
+        """What the command line does: the command whose flag is set, else ``train``;
+        a resume always resumes the run (a command starts runs of its own)."""
+        if cfg.resume:
+            asked = [flag for flag in self.commands if getattr(cfg, flag)]
+            if asked:
+                print(
+                    f"--{asked[0].replace('_', '-')} starts new runs and does not resume; "
+                    f"resuming the run in {cfg.run_dir} instead.",
+                    file=sys.stderr,
+                )
+            return self.train(cfg)
         for flag, command in self.commands.items():
             if getattr(cfg, flag):
                 return command(cfg)
