@@ -90,7 +90,7 @@ STORED_VALUE = re.compile(
     r"(?P<value>[^<]*)<!-- /value -->"
 )
 # What a setting's flags leave out: where a run went, which seed, how it was watched.
-NOT_SETTINGS = frozenset({"seed", "run_dir", "resume", "progress", "threads", "device"})
+NOT_SETTINGS = frozenset({"seed", "n_seeds", "run_dir", "resume", "progress", "threads", "device"})
 
 
 @dataclass
