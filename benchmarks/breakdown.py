@@ -44,7 +44,8 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.record.loggers import CSVLogger
 
 from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _root, _segment
-from rl_pg.lean import lean_policy
+from rl_pg.envs import VectorGymEnv
+from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update, warm_up
@@ -182,16 +183,34 @@ def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
     return run
 
 
+def _task(task: str):
+    """The recipe and number of environments of ``RECIPE:N``, or a clear error."""
+    name, _, n = task.partition(":")
+    if not n.isdigit() or int(n) < 1:
+        raise ValueError(f"--tasks takes RECIPE:N (N environments, N >= 1), got {task!r}.")
+    recipe = load(name)
+    cfg = recipe.config(num_envs=int(n), progress=False)
+    env = recipe.make_env(cfg)
+    actor, _ = recipe.make_models(env, cfg)
+    env.close()
+    if type(env) is not VectorGymEnv or not LeanCategoricalPolicy.supports(actor):
+        raise ValueError(
+            f"{name}: the breakdown times recipes with a categorical policy over gymnasium's "
+            f"vector environments, as the plain loop it compares with (cartpole, "
+            f"lunarlander); this one's policy or environments are of another kind."
+        )
+    return recipe, int(n)
+
+
 def main(cfg: Config) -> dict:
     torch.set_num_threads(1)
     results = {}
     with tempfile.TemporaryDirectory() as log_dir:
         for task in cfg.tasks:
-            name, _, n = task.partition(":")
-            recipe, n = load(name), int(n)
+            recipe, n = _task(task)
             label = f"{recipe.name}-x{n}"  # a JSON pointer without spaces
             contenders = {
-                "rl_pg": rl_pg_contender(recipe, n, Path(log_dir) / name),
+                "rl_pg": rl_pg_contender(recipe, n, Path(log_dir) / label),
                 "plain PyTorch": plain_contender(recipe, n),
             }
             for run in contenders.values():  # warm-up: first calls, caches

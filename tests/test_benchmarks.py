@@ -229,6 +229,9 @@ def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
         breakdown.Config(tasks=["cartpole:4"], rounds=1, updates=2, json_path=tmp_path / "b.json")
     )
     assert json.loads((tmp_path / "b.json").read_text()) == out
+    for task, message in [("cartpole", "RECIPE:N"), ("pendulum:4", "categorical policy")]:
+        with pytest.raises(ValueError, match=message):
+            breakdown.main(breakdown.Config(tasks=[task], json_path=tmp_path / "x.json"))
     parts = out["tasks"]["cartpole-x4"]["parts"]
     assert set(parts) == {*breakdown.PIECES, "total"}
     assert parts["total"]["rl_pg"] == pytest.approx(
