@@ -361,6 +361,11 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     status, _, _ = in_process("evaluate", runs[0], "--episodes", "3", "--sample", "--seed",
                                   "424242", capsys=capsys)  # fmt: skip
     assert status == 0
+    # the final checkpoint's results are kept too (the best one's, when they are the same)
+    for mode in ((), ("--sample",)):
+        status, _, err = in_process("evaluate", runs[1], "--episodes", "3", "--checkpoint",
+                                    "last", *mode, capsys=capsys)  # fmt: skip
+        assert status == 0, err
     stored = tmp_path / "results" / "seeds.json"
     stored.parent.mkdir()
     status, table, err = in_process("report", *runs, "--store", str(stored), capsys=capsys)
@@ -451,6 +456,32 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
                     "<!-- end of report -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     assert curves.strip() in page.read_text() and "stale" not in page.read_text()
+    # every rl-pg evaluate result of the best and final checkpoints, one row each
+    status, evaluations, err = in_process("report", "--stored", str(stored), "--evaluations",
+                                          capsys=capsys)  # fmt: skip
+    assert status == 0, err
+    expected = []
+    for run in json.loads(stored.read_text())["runs"]:
+        report = run["report"]
+        final = report["last"] if report["best_at_frames"] != report["frames"] else {}
+        assert run["name"] != "seed1" or all(report["last"].values())
+        expected += [(run["name"], "best", mode, report[mode]) for mode in ("greedy", "sampled")]
+        expected += [(run["name"], "final", mode, final[mode]) for mode in final if final[mode]]
+    header, _, *rows = evaluations.strip().splitlines()
+    assert header.startswith("| run | checkpoint | actions | episodes | return | length |")
+    assert len(rows) == len(expected)
+    for row, (name, which, mode, record) in zip(rows, expected, strict=True):
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        assert cells[0] == name and cells[1].startswith(which) and cells[2] == mode, row
+        assert cells[3:6] == [
+            str(record["episodes"]),
+            f"{record['mean_return']:.1f} ± {record['std_return']:.1f}",
+            f"{record['mean_length']:.0f}",
+        ], row
+    page.write_text("<!-- rl-pg report --stored results/seeds.json --evaluations -->\n"
+                    "| stale |\n<!-- end of report -->\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert evaluations.strip() in page.read_text() and "stale" not in page.read_text()
     # a figure in a sentence: the stored value at a JSON pointer, written by --refresh
     page.write_text("Seed 1 took <!-- value results/seeds.json /runs/1/report/frames "
                     "{:,} --> 12<!-- /value --> frames.\n")  # fmt: skip
@@ -496,6 +527,11 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     unevaluated = json.loads(stored.read_text())
     unevaluated["runs"][1]["report"]["sampled"] = None
     other.write_text(json.dumps(unevaluated))
+    never_evaluated = tmp_path / "never_evaluated.json"
+    for run in unevaluated["runs"]:
+        run["report"]["greedy"] = run["report"]["sampled"] = None
+        run["report"].pop("last")  # as files stored before final checkpoints were
+    never_evaluated.write_text(json.dumps(unevaluated))
     # what cannot be done says so
     for args, message in [
         (("report",), "one of the three"),
@@ -505,6 +541,12 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", runs[0], "--settings"), "compares stored files"),
         (("report", runs[0], "--curves"), "tabulates stored curves"),
         (("report", "--stored", str(stored), "--curves", "--settings"), "ask for one"),
+        (("report", runs[0], "--evaluations"), "tabulates stored evaluations"),
+        (("report", "--stored", str(stored), "--evaluations", "--curves"), "ask for one"),
+        (
+            ("report", "--stored", str(never_evaluated), "--evaluations"),
+            "holds no evaluation of a best or final checkpoint",
+        ),
         (("report", "--stored", str(no_evaluation), "--curves"), "holds no evaluation"),
         (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
         (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),

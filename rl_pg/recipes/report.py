@@ -8,6 +8,7 @@ rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregat
 rl-pg report --stored a.json b.json --profile p.png    # settings' performance profiles
 rl-pg report --stored a.json b.json --settings         # one row per setting
 rl-pg report --stored seeds.json --curves              # the evaluations, run by run
+rl-pg report --stored seeds.json --evaluations         # every metric of rl-pg evaluate's
 rl-pg report --refresh RESULTS.md                      # every stored table in a page
 
 Each row comes from the run directory alone: its summary (frames, training time, when it
@@ -22,7 +23,9 @@ A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->
 names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
 FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
 ``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file,
-``<!-- rl-pg report --stored FILE --curves -->`` one of every stored evaluation.
+``<!-- rl-pg report --stored FILE --curves -->`` one of every stored evaluation during
+training, ``<!-- rl-pg report --stored FILE --evaluations -->`` one of every metric of
+the best and final checkpoints' ``rl-pg evaluate`` results.
 A table of a JSON object's entries, one row each (a benchmark's results), is written
 between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER... -->`` and
 ``<!-- end of table -->`` (one value header per column when the entries are objects).
@@ -53,6 +56,7 @@ __all__ = [
     "Args",
     "draw_stored",
     "format_curves",
+    "format_evaluations",
     "format_report",
     "format_settings",
     "main",
@@ -76,7 +80,7 @@ STORED_FIGURE = re.compile(
 )
 STORED_TABLE = re.compile(
     r"^<!-- rl-pg report --stored (?P<files>[^-\s]\S*(?: [^-\s]\S*)*)"
-    r"(?:(?P<settings> --settings)|(?P<curves> --curves))? "
+    r"(?:(?P<settings> --settings)|(?P<curves> --curves)|(?P<evaluations> --evaluations))? "
     r"-->\n(?P<table>.*?)^<!-- end of report -->$",
     re.MULTILINE | re.DOTALL,
 )
@@ -124,6 +128,10 @@ class Args:
     curves: bool = False
     """With --stored: the evaluation curve as a table. One row per evaluation (its
     frames), one column per run; the evaluation kept as the run's best in bold."""
+    evaluations: bool = False
+    """With --stored: every metric of the best and final checkpoints' evaluations. One row
+    per run, checkpoint and way of acting (greedy, sampled), one column per metric the
+    recipe's evaluation reports (MetaDrive's route completion, success and crash rates)."""
     profile: Path | None = None
     """With --stored: draw the files' performance profiles into this PNG. One curve per
     file: the share of its runs whose best checkpoint scores above τ both ways (the
@@ -150,12 +158,14 @@ def read_report(run_dir: Path) -> dict[str, Any]:
             f"rl-pg resume {run_dir} writes it again when the run ends or is stopped."
         )
     report["greedy"] = report["sampled"] = None
+    report["last"] = {"greedy": None, "sampled": None}
     evaluations = Path(run_dir) / EVALUATIONS
     if evaluations.is_file():
         # best.pt moves on when a resumed run evaluates better: only results of the
         # checkpoint that is best now, on the recipe's test set (not `--on` another one),
         # describe it; of those, the latest on rl-pg evaluate's own episodes (a result on
-        # episodes chosen with --seed is only taken where there is none).
+        # episodes chosen with --seed is only taken where there is none). The same for
+        # the last checkpoint, at the frames the run ended on.
         fresh = fresh_seed(report["seed"])
         for number, line in enumerate(evaluations.read_text().splitlines(), start=1):
             try:
@@ -170,14 +180,17 @@ def read_report(run_dir: Path) -> dict[str, Any]:
                         file=sys.stderr,
                     )
                 continue
-            if (
-                record["checkpoint"] == "best"
-                and record["frames"] == report["best_at_frames"]
-                and "on" not in record
-            ):
-                kept = report[record["mode"]]
-                if kept is None or record["seed"] == fresh or kept["seed"] != fresh:
-                    report[record["mode"]] = record
+            if "on" in record:
+                continue
+            if record["checkpoint"] == "best" and record["frames"] == report["best_at_frames"]:
+                results = report
+            elif record["checkpoint"] == "last" and record["frames"] == report["frames"]:
+                results = report["last"]
+            else:
+                continue
+            kept = results[record["mode"]]
+            if kept is None or record["seed"] == fresh or kept["seed"] != fresh:
+                results[record["mode"]] = record
     return report
 
 
@@ -347,6 +360,8 @@ def stored_table(match: re.Match, folder: Path) -> str:
         raise ValueError(f"a table of runs reads one stored file, got {match['files']!r}.")
     if match["curves"]:
         return format_curves(files[0])
+    if match["evaluations"]:
+        return format_evaluations(files[0])
     return format_report(*read_stored(files[0]))
 
 
@@ -626,6 +641,91 @@ def format_curves(path: Path) -> str:
     return "\n".join(lines)
 
 
+MODES = ("greedy", "sampled")
+# What an evaluation record says about itself, not about the driving: not a column.
+RECORD_ABOUT = frozenset({"checkpoint", "frames", "mode", "episodes", "seed", "seconds", "on",
+                          "weights", "mean_return", "std_return", "mean_length"})  # fmt: skip
+
+
+def format_evaluations(path: Path) -> str:
+    """The ``rl-pg evaluate`` results a file written by ``--store`` holds, as a Markdown
+    table: one row per run, checkpoint (its best; its final one, unless that is the
+    best) and way of acting, with the episodes, the return (mean ± standard deviation),
+    the length and one column per further metric the evaluations report (rates as
+    percentages; the recipe's own values, such as MetaDrive's route completion, to three
+    significant digits; "—" where a row's evaluation did not report it).
+
+    Raises:
+        ValueError: ``path`` is not a stored report, or holds no evaluation of a best or
+            final checkpoint (the message names it and says how to make them).
+
+    Examples:
+        >>> import json, tempfile
+        >>> from pathlib import Path
+        >>> from rl_pg.recipes.report import format_evaluations
+        >>> greedy = {"mode": "greedy", "episodes": 100, "mean_return": 288.9,
+        ...           "std_return": 120.0, "mean_length": 370.0, "mean_route_completion": 0.7543,
+        ...           "crash_rate": 0.14}
+        >>> report = {"frames": 2000, "best_at_frames": 1500, "greedy": greedy, "sampled": None,
+        ...           "last": {"greedy": {**greedy, "crash_rate": 0.2}, "sampled": None}}
+        >>> path = Path(tempfile.mkdtemp()) / "seeds.json"
+        >>> _ = path.write_text(json.dumps({"runs": [{"name": "seed0", "report": report,
+        ...                                           "curve": {"values": []}}]}))
+        >>> print(format_evaluations(path))
+        | run | checkpoint | actions | episodes | return | length | route completion | crash rate |
+        |---|---|---|---:|---:|---:|---:|---:|
+        | seed0 | best (1,500) | greedy | 100 | 288.9 ± 120.0 | 370 | 0.754 | 14% |
+        | seed0 | final (2,000) | greedy | 100 | 288.9 ± 120.0 | 370 | 0.754 | 20% |
+    """
+    rows = []
+    for run in _stored_runs(path):
+        report = run["report"]
+        best, final = report.get("best_at_frames"), report["frames"]
+        last = report.get("last") or {}  # files stored before final checkpoints were
+        for label, records in [
+            (
+                "best"
+                if best is None  # never evaluated during training: no best results
+                else f"best ({best:,})"
+                if best != final
+                else f"best and final ({final:,})",
+                report,
+            ),
+            (f"final ({final:,})", last if best != final else {}),
+        ]:
+            rows += [
+                (run["name"], label, mode, records[mode]) for mode in MODES if records.get(mode)
+            ]
+    if not rows:
+        raise ValueError(
+            f"{path} holds no evaluation of a best or final checkpoint: evaluate the runs "
+            f"(rl-pg evaluate RUN, with --sample, with --checkpoint last), then store them "
+            f"again (rl-pg report RUN... --store {path})."
+        )
+    metrics = []  # in the order the evaluations report them
+    for *_, record in rows:
+        metrics += [
+            key
+            for key, value in record.items()
+            if key not in RECORD_ABOUT and key not in metrics
+            and isinstance(value, (int, float)) and not isinstance(value, bool)
+        ]  # fmt: skip
+    headers = ["run", "checkpoint", "actions", "episodes", "return", "length"]
+    headers += [key.removeprefix("mean_").replace("_", " ") for key in metrics]
+    lines = ["| " + " | ".join(headers) + " |", "|---|---|---|" + "---:|" * (len(headers) - 3)]
+    for name, label, mode, record in rows:
+        cells = [name, label, mode, str(record["episodes"])]
+        cells += [f"{record['mean_return']:.1f} ± {record['std_return']:.1f}"]
+        cells += [f"{record['mean_length']:.0f}"]
+        cells += [
+            "—" if key not in record else
+            f"{record[key]:.0%}" if key.endswith("_rate") else f"{record[key]:.3g}"
+            for key in metrics
+        ]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
     """The runs as a Markdown table, and how many reached their threshold.
 
@@ -703,8 +803,13 @@ def main(args: Args) -> str:
             "--curves tabulates stored curves: name the file with --stored (write it with "
             "rl-pg report RUN... --store FILE)."
         )
-    if args.curves and args.settings:
-        raise ValueError("--curves and --settings are two tables: ask for one.")
+    if args.evaluations and args.stored is None:
+        raise ValueError(
+            "--evaluations tabulates stored evaluations: name the file with --stored (write "
+            "it with rl-pg report RUN... --store FILE)."
+        )
+    if sum((args.curves, args.settings, args.evaluations)) > 1:
+        raise ValueError("--curves, --settings and --evaluations are three tables: ask for one.")
     if args.profile is not None and args.stored is None:
         raise ValueError("--profile draws stored files: name them with --stored.")
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
@@ -729,7 +834,12 @@ def main(args: Args) -> str:
             return table
         tables = []
         for path in args.stored:
-            table = format_curves(path) if args.curves else format_report(*read_stored(path))
+            if args.curves:
+                table = format_curves(path)
+            elif args.evaluations:
+                table = format_evaluations(path)
+            else:
+                table = format_report(*read_stored(path))
             tables.append(table if len(args.stored) == 1 else f"{path}:\n\n{table}")
         table = "\n\n".join(tables)
         print(table)
