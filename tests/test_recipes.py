@@ -132,6 +132,24 @@ def _scale_parameters(cfg) -> list[torch.nn.Parameter]:
     return [p for name, p in actor.named_parameters() if "scale" in name]
 
 
+@pytest.mark.parametrize("sticky", [0.0, 0.25])
+def test_pong_evaluation_games_differ_only_with_sticky_actions(sticky):
+    """A deterministic player meets one game per seed unless the game repeats actions:
+    Pong's evaluations play with sticky actions so that their games differ."""
+    pytest.importorskip("ale_py")
+    env = pong.make_eval_env(pong.config(eval_episodes=2, eval_sticky=sticky))
+    try:
+        env.set_seed(0)  # two games, seeded apart
+        td, same = env.reset(), True
+        for t in range(300):  # up, down, up...: a repeated action is not the agent's
+            td["action"] = torch.full((2,), 2 + t % 2)
+            td = env.step(td)["next"]
+            same &= torch.equal(td["observation"][0], td["observation"][1])
+        assert same == (sticky == 0.0)
+    finally:
+        env.close()
+
+
 def test_cartpole_reaches_475(tmp_path):
     summary = cartpole.train(cartpole.config(run_dir=tmp_path, progress=False))
     assert summary["solved_at_frames"] is not None

@@ -14,6 +14,7 @@ entropy 0.01, value-loss weight 2, Adam 1e-3, gradient clip 1. Needs the atari e
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -24,7 +25,7 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
-from rl_pg.training import Count, TrainConfig
+from rl_pg.training import Count, Range, TrainConfig
 from rl_pg.training.recipe import Recipe
 
 
@@ -51,6 +52,11 @@ class Config(
     """Pong games played at once, as one batch. Split evenly over the workers."""
     hidden: Count = 200
     """Width of the shared trunk."""
+    eval_sticky: Annotated[float, Range(0, 1, high_open=True)] = 0.25
+    """Evaluations and recordings only: probability that the game repeats the previous
+    action instead of the agent's (ALE's sticky actions; 0.25 as Machado et al. 2018
+    evaluate). Training never repeats. At 0, Pong and a greedy policy are deterministic:
+    every greedy evaluation game replays the same game."""
 
 
 def _register_atari() -> None:
@@ -61,28 +67,32 @@ def _register_atari() -> None:
     gymnasium.register_envs(ale_py)
 
 
-ALE = {"frameskip": 4, "repeat_action_probability": 0.0}  # skip 4 frames, no sticky actions
+FRAMESKIP = 4  # each agent step is 4 Atari frames
 
 
-def make_game(*, render: bool = False) -> EnvBase:
-    """One game (evaluation, deployment)."""
+def make_game(*, sticky: float = 0.0, render: bool = False) -> EnvBase:
+    """One game (evaluation, deployment); ``sticky``: ALE's repeat-action probability."""
     _register_atari()
-    env = gym_env("ALE/Pong-v5", **ALE)  # GymEnv names image observations "pixels"
+    env = gym_env(  # GymEnv names image observations "pixels"
+        "ALE/Pong-v5", frameskip=FRAMESKIP, repeat_action_probability=sticky
+    )
     return TransformedEnv(env, FrameDifference(keep_pixels=render))
 
 
-def make_games(num_envs: int) -> EnvBase:
+def make_games(num_envs: int, *, sticky: float = 0.0) -> EnvBase:
     """``num_envs`` games stepped as one batch."""
     if num_envs == 1:
-        return make_game()
+        return make_game(sticky=sticky)
     _register_atari()
-    games = gym_env("ALE/Pong-v5", num_envs=num_envs, **ALE)  # frames under "observation"
+    games = gym_env(  # frames under "observation"
+        "ALE/Pong-v5", num_envs=num_envs, frameskip=FRAMESKIP, repeat_action_probability=sticky
+    )
     return TransformedEnv(games, FrameDifference(in_key="observation"))
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render:
-        return make_game(render=True)
+    if render:  # a recording shows a game as evaluations play it
+        return make_game(sticky=cfg.eval_sticky, render=True)
     return make_games(max(1, cfg.num_envs // max(1, cfg.workers)))
 
 
@@ -102,8 +112,8 @@ def make_models(env: EnvBase, cfg: Config):
 
 
 def make_eval_env(cfg: Config) -> EnvBase:
-    """The evaluation games, side by side."""
-    return make_games(cfg.eval_episodes)
+    """The evaluation games, side by side, with sticky actions (``eval_sticky``)."""
+    return make_games(cfg.eval_episodes, sticky=cfg.eval_sticky)
 
 
 RECIPE = Recipe(
