@@ -445,13 +445,19 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert status == 0, err
     header, _, *rows = curves.strip().splitlines()
     assert header == "| frames | seed0 | seed1 |"
+    rows = [row.strip("|").split("|") for row in rows if row.startswith("| ")]
+    assert len(rows) == max(len(run["curve"]["values"]) for run in saved_runs["runs"])
     for run, column in zip(saved_runs["runs"], (1, 2), strict=True):
         frames, values = run["curve"]["frames"], run["curve"]["values"]
-        cells = {int(r.split(" | ")[0][2:].replace(",", "")): r.split(" | ")[column].strip(" |")
-                 for r in rows if r.startswith("| ")}  # fmt: skip
-        for frame, value in zip(frames, values, strict=True):
-            bold = frame == run["report"]["best_at_frames"]
-            assert cells[frame] == (f"**{value:.4g}**" if bold else f"{value:.4g}"), frame
+        for k, row in enumerate(rows):  # row k: each run's k-th evaluation
+            if k >= len(values):
+                assert row[column].strip() == "—"
+                continue
+            low, _, high = row[0].strip().replace(",", "").partition("–")
+            assert int(low) <= frames[k] <= int(high or low)
+            bold = frames[k] == run["report"]["best_at_frames"]
+            text = f"{values[k]:.4g}"
+            assert row[column].strip() == (f"**{text}**" if bold else text), (k, row)
     page.write_text("<!-- rl-pg report --stored results/seeds.json --curves -->\n| stale |\n"
                     "<!-- end of report -->\n")  # fmt: skip
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
@@ -488,6 +494,21 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
     frames = saved_runs["runs"][1]["report"]["frames"]
     assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
+    # a figure summarising every entry of a * pointer: how many, how many set, min, max
+    page.write_text("The <!-- value results/seeds.json /runs/*/report/frames "
+                    "{0.count}/{0.n}:{0.min:,}–{0.max:,} --> ?<!-- /value --> runs.\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    every = [run["report"]["frames"] for run in saved_runs["runs"]]
+    assert f"-->2/2:{min(every):,}–{max(every):,}<!-- /value --> runs." in page.read_text()
+    page.write_text("<!-- value results/seeds.json /runs/*/report {0.held}/{0.n} -->?<!-- /value "
+                    "--> hold.\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    reports = [run["report"] for run in json.loads(stored.read_text())["runs"]]
+    held = sum(
+        min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]
+        for r in reports
+    )
+    assert f"-->{held}/2<!-- /value --> hold." in page.read_text()
     # a table of a JSON object's entries, one row each
     page.write_text("<!-- table results/seeds.json /runs/1/report {} | entry | value -->\n"
                     "| stale |\n<!-- end of table -->\n")  # fmt: skip
@@ -506,6 +527,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         ("results/none.json /a {}", "none.json does not exist"),
         ("results/seeds.json /runs/7/report/frames {}", "has nothing at /runs/7/report/frames"),
         ("results/seeds.json /runs/1/report/frames {:.2q}", "cannot write"),
+        ("results/seeds.json /runs/*/report/frames {:,}", "gathers several values"),
     ]:
         page.write_text(f"A <!-- value {marker} -->1<!-- /value -->.\n")
         status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)

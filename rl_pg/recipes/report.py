@@ -31,7 +31,9 @@ between ``<!-- table FILE /JSON/POINTER FORMAT | KEY HEADER | VALUE HEADER... --
 ``<!-- end of table -->`` (one value header per column when the entries are objects).
 A figure in a sentence is written ``<!-- value FILE /JSON/POINTER FORMAT -->0.75×<!--
 /value -->``: the value at that JSON pointer (RFC 6901) of FILE, through the Python
-format FORMAT (e.g. ``{:.2f}×``), which ``--refresh`` writes again.
+format FORMAT (e.g. ``{:.2f}×``), which ``--refresh`` writes again; a ``*`` in the
+pointer gathers every entry there, which the format summarises (``{0.count}/{0.n}``,
+``{0.min:.1f}–{0.max:.1f}``, ``{0.median}``: see ``Gathered``).
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ __all__ = [
     "format_evaluations",
     "format_report",
     "format_settings",
+    "holds",
     "main",
     "plot_profile",
     "plot_stored",
@@ -446,7 +449,8 @@ def _cell(form: str, value: Any, path: Path, pointer: str) -> str:
 
 
 def _stored_json(match: re.Match, folder: Path) -> tuple[Any, Path]:
-    """The value at a marker's JSON pointer in its file, and the file."""
+    """The value at a marker's JSON pointer in its file, and the file. A ``*`` segment
+    stands for every entry there: the values it gathers come as a ``Gathered``."""
     path = Path(folder) / match["file"]
     if not path.is_file():
         raise ValueError(f"{path} does not exist (named by {match.group(0).splitlines()[0]!r}).")
@@ -454,13 +458,57 @@ def _stored_json(match: re.Match, folder: Path) -> tuple[Any, Path]:
         value = json.loads(path.read_text())
     except (OSError, ValueError) as err:
         raise ValueError(f"{path}: not a JSON file ({err}).") from err
-    for part in match["pointer"].split("/")[1:]:
-        key = part.replace("~1", "/").replace("~0", "~")
-        try:
-            value = value[int(key)] if isinstance(value, list) else value[key]
-        except (KeyError, IndexError, ValueError, TypeError) as err:
-            raise ValueError(f"{path} has nothing at {match['pointer']} (no {key!r}).") from err
-    return value, path
+    parts = [p.replace("~1", "/").replace("~0", "~") for p in match["pointer"].split("/")[1:]]
+    values = _walk(value, parts, path, match["pointer"])
+    return (Gathered(values) if "*" in parts else values[0]), path
+
+
+def _walk(value: Any, parts: list[str], path: Path, pointer: str) -> list[Any]:
+    """The values ``parts`` (a JSON pointer's segments, ``*`` for every entry) reach."""
+    if not parts:
+        return [value]
+    key, rest = parts[0], parts[1:]
+    if key == "*" and isinstance(value, (list, dict)):
+        entries = value if isinstance(value, list) else list(value.values())
+        return [found for entry in entries for found in _walk(entry, rest, path, pointer)]
+    try:
+        value = value[int(key)] if isinstance(value, list) else value[key]
+    except (KeyError, IndexError, ValueError, TypeError) as err:
+        raise ValueError(f"{path} has nothing at {pointer} (no {key!r}).") from err
+    return _walk(value, rest, path, pointer)
+
+
+class Gathered:
+    """The values a marker's ``*`` pointer gathers, for its format to summarise:
+    ``{0.n}`` of them, ``{0.count}`` set (not null, not false), and of the numbers among
+    them ``{0.min}``, ``{0.max}`` and ``{0.median}``, each with a format spec
+    (``{0.min:.1f}–{0.max:.1f}``). Of runs' reports (``/runs/*/report``), ``{0.held}``:
+    how many best checkpoints score at least their threshold both greedily and by
+    sampling (see ``holds``; None, which no format writes, unless every run has both
+    evaluations and a threshold).
+
+    Examples:
+        >>> from rl_pg.recipes.report import Gathered
+        >>> "{0.count}/{0.n} solved, {0.min:,}–{0.max:,} frames".format(Gathered([900, None, 300]))
+        '2/3 solved, 300–900 frames'
+    """
+
+    def __init__(self, values: list[Any]) -> None:
+        self.values = values
+        self.n = len(values)
+        self.count = sum(v is not None and v is not False for v in values)
+        numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        self.min = min(numbers) if numbers else None
+        self.max = max(numbers) if numbers else None
+        self.median = float(np.median(numbers)) if numbers else None
+        held = [holds(v) if isinstance(v, dict) else None for v in values]
+        self.held = None if None in held else sum(held)
+
+    def __format__(self, spec: str) -> str:
+        raise ValueError(
+            "a * pointer gathers several values: format one of their summaries, "
+            "{0.n}, {0.count}, {0.min}, {0.max} or {0.median}"
+        )
 
 
 def _formatted(form: str, value: Any, path: Path, pointer: str) -> str:
@@ -577,9 +625,11 @@ def figure_ylim(match: re.Match) -> tuple[float, float] | None:
 
 def format_curves(path: Path) -> str:
     """The evaluation curves a file written by ``--store`` holds, as a Markdown table:
-    one row per evaluation (by frames), one column per run; each run's best
-    evaluation (the checkpoint it kept) in bold, "—" where a run has no evaluation at
-    those frames (it stopped earlier, or evaluated elsewhere).
+    one row per evaluation, one column per run; each run's best evaluation (the
+    checkpoint it kept) in bold, "—" where a run has no such evaluation (it stopped
+    earlier). Row k holds every run's k-th evaluation: runs whose batches are whole
+    episodes evaluate at the first update past each interval, so at frames that differ
+    a little from run to run, which the frames column then gives as a range.
 
     Raises:
         ValueError: ``path`` is not a stored report, or holds no evaluation (the
@@ -589,32 +639,29 @@ def format_curves(path: Path) -> str:
         >>> import json, tempfile
         >>> from pathlib import Path
         >>> from rl_pg.recipes.report import format_curves
-        >>> run = lambda name, values, best: {"name": name, "report": {"best_at_frames": best},
-        ...     "curve": {"metric": "eval/mean_return", "frames": [100, 200][:len(values)],
-        ...     "values": values}}
+        >>> run = lambda name, frames, values, best: {"name": name, "report": {
+        ...     "best_at_frames": best}, "curve": {"metric": "eval/mean_return",
+        ...     "frames": frames, "values": values}}
         >>> path = Path(tempfile.mkdtemp()) / "seeds.json"
-        >>> _ = path.write_text(json.dumps({"runs": [run("seed0", [-21.0, 3.5], 200),
-        ...                                          run("seed1", [-20.0], 100)]}))
+        >>> _ = path.write_text(json.dumps({"runs": [run("seed0", [100, 200], [-21.0, 3.5], 200),
+        ...                                          run("seed1", [104], [-20.0], 104)]}))
         >>> print(format_curves(path))
         | frames | seed0 | seed1 |
         |---:|---:|---:|
-        | 100 | -21 | **-20** |
+        | 100–104 | -21 | **-20** |
         | 200 | **3.5** | — |
         <BLANKLINE>
         eval/mean_return at each evaluation; bold: the best, whose checkpoint each run kept.
     """
     runs = _stored_runs(path)
-    columns = []
     for run in runs:
-        frames, values = run["curve"]["frames"], run["curve"]["values"]
-        if len(frames) != len(values):
+        if len(run["curve"]["frames"]) != len(run["curve"]["values"]):
             raise ValueError(
-                f"{path}: run {run['name']}'s curve has {len(frames)} frames and "
-                f"{len(values)} values; write the file again with rl-pg report RUN... --store."
+                f"{path}: run {run['name']}'s curve has {len(run['curve']['frames'])} frames "
+                f"and {len(run['curve']['values'])} values; write the file again with rl-pg "
+                f"report RUN... --store."
             )
-        best = run["report"].get("best_at_frames")
-        columns.append((dict(zip(frames, values, strict=True)), best))
-    rows = sorted({frame for column, _ in columns for frame in column})
+    rows = max(len(run["curve"]["frames"]) for run in runs)
     if not rows:
         raise ValueError(
             f"{path} holds no evaluation: its runs were stored before their first one. "
@@ -624,15 +671,18 @@ def format_curves(path: Path) -> str:
         "| frames | " + " | ".join(run["name"] for run in runs) + " |",
         "|---:|" + "---:|" * len(runs),
     ]
-    for frame in rows:
+    for k in range(rows):
+        at = [int(run["curve"]["frames"][k]) for run in runs if k < len(run["curve"]["frames"])]
+        frames = f"{min(at):,}" if min(at) == max(at) else f"{min(at):,}–{max(at):,}"
         cells = []
-        for column, best in columns:
-            if frame not in column:
+        for run in runs:
+            if k >= len(run["curve"]["values"]):
                 cells.append("—")
                 continue
-            text = f"{column[frame]:.4g}"
-            cells.append(f"**{text}**" if frame == best else text)
-        lines.append(f"| {int(frame):,} | " + " | ".join(cells) + " |")  # CSV frames: floats
+            text = f"{run['curve']['values'][k]:.4g}"
+            best = run["curve"]["frames"][k] == run["report"].get("best_at_frames")
+            cells.append(f"**{text}**" if best else text)
+        lines.append(f"| {frames} | " + " | ".join(cells) + " |")  # CSV frames: floats
     metrics = sorted({run["curve"]["metric"] for run in runs})
     lines += [
         "",
@@ -768,16 +818,23 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
         lines.append("")  # the counts are not rows of the table
         solved = sum(r.get("solved_at_frames") is not None for r in with_threshold)
         lines.append(f"{solved}/{len(with_threshold)} runs reached their threshold.")
-        if all(r["greedy"] is not None and r["sampled"] is not None for r in with_threshold):
-            held = sum(
-                min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]
-                for r in with_threshold
-            )
+        if all(holds(r) is not None for r in with_threshold):
+            held = sum(holds(r) for r in with_threshold)
             lines.append(
                 f"{held}/{len(with_threshold)} best checkpoints score at least their "
                 "threshold both greedily and by sampling."
             )
     return "\n".join(lines)
+
+
+def holds(report: dict[str, Any]) -> bool | None:
+    """Whether a run's best checkpoint scores at least its threshold both greedily and by
+    sampling (its lower mean return of the two); None without a threshold or without
+    both evaluations."""
+    if report.get("threshold") is None or not report.get("greedy") or not report.get("sampled"):
+        return None
+    lower = min(report["greedy"]["mean_return"], report["sampled"]["mean_return"])
+    return lower >= report["threshold"]
 
 
 def _seconds(seconds: float) -> str:
