@@ -16,6 +16,10 @@ estimator.
 
 from __future__ import annotations
 
+import json
+import os
+from pathlib import Path
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -250,6 +254,13 @@ def gridworld():
     return logits, exact.T.contiguous(), values.detach(), batches
 
 
+# The stored table of the estimates' total variance: one row per weight, one column per
+# baseline, as the pages show it.
+VARIANCE_FILE = Path(__file__).parents[1] / "results" / "gridworld-gradient-variance.json"
+VARIANCE_COMMAND = "tests/test_exact_gradients.py -n 0 -k lower_the_variance"
+ROWS = {"DiscountedReturn": "whole-episode return R(τ)", "RewardToGo": "reward-to-go G_t"}
+COLUMNS = {"none": "none", "running_mean": "running mean", "ema": "EMA", "critic": "critic"}
+
 GRIDWORLD_VARIANTS = [
     (value_type, baseline)
     for value_type in (DiscountedReturn, RewardToGo)
@@ -300,9 +311,30 @@ class TestGridworldGradient:
 
     def test_reward_to_go_and_baselines_lower_the_variance(self, gridworld_estimates):
         variance = {key: value.var(0).sum() for key, value in gridworld_estimates.items()}
-        # The table quoted in README.md: pytest tests/test_exact_gradients.py -s -k variance
-        for (value_type, baseline), total in variance.items():
-            print(f"{value_type:16s} {baseline:12s} total variance {total:9.4f}")
+        # The table README.md and the theory page show is this file, written by this test
+        # when asked (RL_PG_UPDATE_RESULTS=1); it must hold what the estimates measure.
+        measured = {
+            ROWS[value_type]: {COLUMNS[baseline]: round(float(variance[value_type, baseline]), 4)
+                               for baseline in COLUMNS}
+            for value_type in ROWS
+        }  # fmt: skip
+        if os.environ.get("RL_PG_UPDATE_RESULTS"):
+            stored = {
+                "command": f"RL_PG_UPDATE_RESULTS=1 pytest {VARIANCE_COMMAND}",
+                "estimates": GRID_ESTIMATES,
+                "episodes_per_estimate": GRID_EPISODES,
+                "total_variance": measured,
+            }
+            VARIANCE_FILE.write_text(json.dumps(stored, indent=1, ensure_ascii=False) + "\n")
+        stored = json.loads(VARIANCE_FILE.read_text())
+        assert stored["estimates"] == GRID_ESTIMATES
+        assert stored["episodes_per_estimate"] == GRID_EPISODES
+        assert stored["total_variance"].keys() == measured.keys()
+        for row, columns in measured.items():
+            assert stored["total_variance"][row] == pytest.approx(columns, rel=1e-3), (
+                f"{VARIANCE_FILE} no longer holds what the estimates measure: "
+                f"RL_PG_UPDATE_RESULTS=1 pytest {VARIANCE_COMMAND} writes it again."
+            )
         for baseline in ("none", "running_mean", "critic"):
             assert variance["RewardToGo", baseline] < variance["DiscountedReturn", baseline]
         for value_type in ("DiscountedReturn", "RewardToGo"):
