@@ -14,7 +14,7 @@ import torch
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from rl_pg._checks import check_int
+from rl_pg._checks import check_int, require_extra
 from rl_pg.evaluation import EpisodeRequest, episode_shares, play_episodes, policy_device
 
 __all__ = ["EpisodeWorkers"]
@@ -44,6 +44,12 @@ class EpisodeWorkers:
             one repeats (a fixed set of scenarios played in order: its size);
             [`evaluate`][rl_pg.evaluation.evaluate] refuses to play more. Defaults to
             None (no limit).
+        backend (str): ``"process"`` (the default), or ``"ray"``: each environment in a
+            Ray actor, dealt round-robin over the nodes of the Ray cluster this process
+            is connected to (``ray.init()`` first, or one is started: see
+            [Ray](https://docs.ray.io/en/latest/ray-core/starting-ray.html)). The actors
+            reserve no CPU: they play while a synchronous training's collectors wait,
+            on the CPUs those reserve. Needs rl_pg[ray].
 
     Examples:
         >>> from functools import partial
@@ -55,20 +61,32 @@ class EpisodeWorkers:
     """
 
     def __init__(
-        self, make_envs: Sequence[Callable[[], EnvBase]], *, distinct_episodes: int | None = None
+        self,
+        make_envs: Sequence[Callable[[], EnvBase]],
+        *,
+        distinct_episodes: int | None = None,
+        backend: str = "process",
     ) -> None:
         make_envs = list(make_envs)
         if not make_envs or not all(callable(make) for make in make_envs):
             raise TypeError("make_envs must be a non-empty sequence of environment factories.")
+        if backend not in ("process", "ray"):
+            raise ValueError(f"backend must be 'process' or 'ray', got {backend!r}.")
+        if backend == "ray":
+            require_extra("ray", "ray", "Evaluating on Ray actors")
         self.make_envs = make_envs
+        self.backend = backend
         self.distinct_episodes = (
             None
             if distinct_episodes is None
             else check_int("distinct_episodes", distinct_episodes, low=len(make_envs))
         )
-        self._workers: list[tuple[Any, Any]] = []  # (process, pipe)
+        self._workers: list[tuple[Any, Any]] = []  # (process, pipe), or Ray actors
         self._specs: dict[str, Any] = {}
         self._seed: int | None = None
+        self._owns_ray = False  # a Ray instance started for these workers alone
+        self.nodes: list[str] = []
+        """With the Ray backend, once started: the Ray node each actor runs on."""
 
     @property
     def num_workers(self) -> int:
@@ -109,15 +127,21 @@ class EpisodeWorkers:
         self._start()
         policy = _cpu_copy(policy)
         shares = episode_shares(request.episodes, self.num_workers)
-        for i, ((_, pipe), share) in enumerate(zip(self._workers, shares, strict=True)):
-            if share:
-                seed = None if self._seed is None else self._seed + i
-                pipe.send((policy, seed, request._replace(episodes=share)))
-        results = [self._receive(i) for i, share in enumerate(shares) if share]
+        seeds = [None if self._seed is None else self._seed + i for i in range(len(shares))]
+        if self.backend == "ray":
+            results = self._ray_play(policy, request, shares, seeds)
+        else:
+            for (_, pipe), share, seed in zip(self._workers, shares, seeds, strict=True):
+                if share:
+                    pipe.send((policy, seed, request._replace(episodes=share)))
+            results = [self._receive(i) for i, share in enumerate(shares) if share]
         keys = set.intersection(*(set(result) for result in results))
         return {key: torch.cat([result[key] for result in results]) for key in keys}
 
     def close(self) -> None:
+        if self.backend == "ray":
+            self._ray_close()
+            return
         for _, pipe in self._workers:
             with contextlib.suppress(BrokenPipeError, OSError):
                 pipe.send(None)
@@ -130,6 +154,9 @@ class EpisodeWorkers:
 
     def _start(self) -> None:
         if self._workers:
+            return
+        if self.backend == "ray":
+            self._ray_start()
             return
         # Spawn unless the user set a start method: fork is unsafe once torch runs threads.
         method = multiprocessing.get_start_method(allow_none=True) or "spawn"
@@ -158,6 +185,62 @@ class EpisodeWorkers:
             raise RuntimeError(f"Evaluation worker {i} failed:\n{payload}")
         return payload
 
+    def _ray_start(self) -> None:
+        import ray
+
+        if not ray.is_initialized():  # RAY_ADDRESS's cluster, or a local instance
+            ray.init(log_to_driver=False)
+            self._owns_ray = True
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        # Round-robin over the nodes with CPUs (Ray's "SPREAD" packs actors that reserve
+        # none onto one node).
+        nodes = sorted(n["NodeID"] for n in ray.nodes() if n["Alive"] and n["Resources"].get("CPU"))
+        actor = ray.remote(_RayEpisodeWorker)
+        self._workers = [
+            actor.options(
+                num_cpus=0,
+                scheduling_strategy=NodeAffinitySchedulingStrategy(
+                    nodes[i % len(nodes)], soft=True
+                ),
+            ).remote(make_env)
+            for i, make_env in enumerate(self.make_envs)
+        ]
+        ready = self._ray_get([worker.specs.remote() for worker in self._workers])
+        self._specs = ready[0]
+        self.nodes = [specs["node"] for specs in ready]
+
+    def _ray_play(self, policy, request, shares, seeds) -> list[dict[str, torch.Tensor]]:
+        import ray
+
+        policy = ray.put(policy)  # one copy in the object store, read by every actor
+        return self._ray_get([
+            worker.play.remote(policy, seed, request._replace(episodes=share))
+            for worker, share, seed in zip(self._workers, shares, seeds, strict=True)
+            if share
+        ])  # fmt: skip
+
+    def _ray_get(self, refs: list[Any]) -> list[Any]:
+        import ray
+
+        try:
+            return ray.get(refs)
+        except (ray.exceptions.RayTaskError, ray.exceptions.RayActorError) as err:
+            self.close()
+            raise RuntimeError(f"An evaluation worker (a Ray actor) failed:\n{err}") from None
+
+    def _ray_close(self) -> None:
+        import ray
+
+        for worker in self._workers:
+            with contextlib.suppress(Exception):  # already dead, or Ray is shut down
+                ray.get(worker.close.remote(), timeout=30)
+                ray.kill(worker)
+        self._workers = []
+        if self._owns_ray:
+            ray.shutdown()
+            self._owns_ray = False
+
     def __del__(self) -> None:
         if getattr(self, "_workers", None):
             self.close()
@@ -169,6 +252,34 @@ def _cpu_copy(policy: TensorDictModuleBase) -> TensorDictModuleBase:
     return copy.deepcopy(policy).to("cpu")
 
 
+def _specs(env: EnvBase) -> dict[str, Any]:
+    """What a policy for ``env`` is built from, as the main process asks for it."""
+    return {"batch_size": env.batch_size, "observation_spec": env.observation_spec,
+            "action_spec": env.action_spec}  # fmt: skip
+
+
+class _RayEpisodeWorker:
+    """One environment in a Ray actor, playing the episodes it is asked for."""
+
+    def __init__(self, make_env: Callable[[], EnvBase]) -> None:
+        torch.set_num_threads(1)
+        self.env = make_env()
+
+    def specs(self) -> dict[str, Any]:
+        import ray
+
+        return {**_specs(self.env), "node": ray.get_runtime_context().get_node_id()}
+
+    def play(self, policy, seed: int | None, request: EpisodeRequest) -> dict[str, torch.Tensor]:
+        if seed is not None:  # the environment, and the sampled actions
+            self.env.set_seed(seed)
+            torch.manual_seed(seed)
+        return play_episodes(policy, self.env, request)
+
+    def close(self) -> None:
+        self.env.close()
+
+
 def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
     """Builds one environment, then plays the episodes it is sent until told to stop."""
     stops = ("SIGINT", "SIGTERM", "SIGHUP")  # the main process handles them and closes us
@@ -177,9 +288,7 @@ def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
     torch.set_num_threads(1)
     try:
         env = make_env()
-        specs = {"batch_size": env.batch_size, "observation_spec": env.observation_spec,
-                 "action_spec": env.action_spec}  # fmt: skip
-        pipe.send(("ready", specs))
+        pipe.send(("ready", _specs(env)))
     except Exception:
         pipe.send(("error", traceback.format_exc()))
         return

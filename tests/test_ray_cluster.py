@@ -56,8 +56,24 @@ def _nodes(address: str, env: dict) -> int:
     return int(out.stdout.strip() or 0)
 
 
+# A driver on the cluster: two evaluation actors, which spread over its nodes.
+SPREAD = """
+import ray
+from functools import partial
+from rl_pg.envs import GridWorldEnv
+from rl_pg.episode_workers import EpisodeWorkers
+from rl_pg.evaluation import evaluate
+from torchrl.envs.utils import RandomPolicy
+ray.init(address=%r, log_to_driver=False)
+env = EpisodeWorkers([partial(GridWorldEnv, max_steps=20)] * 2, backend="ray")
+result = evaluate(RandomPolicy(env.action_spec), env, episodes=4)
+print(len(set(env.nodes)), result["mean_length"])
+env.close()
+"""
+
+
 @pytest.mark.cluster
-def test_training_spreads_its_workers_over_two_nodes(tmp_path):
+def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
     # Short: Ray's sockets live under the temporary directory (a path limit of ~100).
     temp_dir = Path(tempfile.mkdtemp(prefix="rl"))
     port = _free_port()
@@ -96,6 +112,27 @@ def test_training_spreads_its_workers_over_two_nodes(tmp_path):
         assert "(2 nodes, 2 CPUs" in result.stderr, result.stderr[-3000:]
         summary = json.loads((run / "summary.json").read_text())
         assert summary["frames"] >= 3000
+        # Evaluation workers (Ray actors that reserve no CPU) spread over the nodes too.
+        spread = subprocess.run(
+            [sys.executable, "-c", SPREAD % address], env=env, capture_output=True, text=True,
+            timeout=300,
+        )  # fmt: skip
+        assert spread.returncode == 0, spread.stderr[-3000:]
+        spread_over, length = spread.stdout.split()
+        assert spread_over == "2" and 1 <= float(length) <= 20
+        # MetaDrive, the slow simulator: collection and evaluation both on the cluster.
+        pytest.importorskip("metadrive")
+        run = tmp_path / "metadrive"
+        result = subprocess.run(
+            [sys.executable, "-m", "rl_pg.recipes", "train", "metadrive", "--ray",
+             "--workers", "2", "--total-frames", "512", "--eval-interval", "512",
+             "--eval-episodes", "2", "--horizon", "40", "--run-dir", str(run), "--no-progress"],
+            env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr[-3000:]
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["frames"] >= 512 and summary["eval_mean_return"] is not None
+        assert summary["eval_mean_route_completion"] is not None  # scored on the cluster
     finally:
         for node in reversed(nodes):
             _stop(node)

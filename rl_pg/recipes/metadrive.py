@@ -166,27 +166,27 @@ def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
 
 def make_eval_env(cfg: Config) -> EpisodeWorkers:
     """The selection scenarios in order, split among ``cfg.workers`` processes."""
-    return _in_order(md.SELECTION, _table(cfg), cfg.horizon, workers=cfg.workers)
+    return _in_order(md.SELECTION, cfg)
 
 
 def make_test_env(cfg: Config) -> EpisodeWorkers:
     """The held-out scenarios in order, split among ``cfg.workers`` processes."""
-    return _in_order(md.HELD_OUT, _table(cfg), cfg.horizon, workers=cfg.workers)
+    return _in_order(md.HELD_OUT, cfg)
 
 
 def make_training_test_env(cfg: Config) -> EpisodeWorkers:
     """The training scenarios in order, split among ``cfg.workers`` processes, as the
     other sets (100 episodes play 100 training scenarios, consecutive within each
     worker's part, from where the evaluation's seed starts them)."""
-    return _in_order(cfg.env_id, _table(cfg), cfg.horizon, workers=cfg.workers)
+    return _in_order(cfg.env_id, cfg)
 
 
-def _in_order(
-    env_id: str, actions: str | None, horizon: int, *, workers: int = 1
-) -> EpisodeWorkers:
+def _in_order(env_id: str, cfg: Config, *, table: bool = True) -> EpisodeWorkers:
     """Each worker plays its consecutive part of the set in order, in a process of its
-    own (one engine per process): an evaluation of as many episodes as the set has
-    scenarios plays each once."""
+    own (one engine per process), or with ``--ray`` in a Ray actor of the cluster the
+    training collects on: an evaluation of as many episodes as the set has scenarios
+    plays each once. ``table=False``: MetaDrive's own actions, not the recipe's."""
+    actions, horizon, workers = _table(cfg) if table else None, cfg.horizon, cfg.workers
     md.require_metadrive()  # here, rather than as a worker's traceback
     parts = md.split_scenarios(env_id, workers)
     return EpisodeWorkers(
@@ -196,6 +196,7 @@ def _in_order(
             for part in parts
         ],
         distinct_episodes=sum(len(part) for part in parts),
+        backend="ray" if cfg.ray else "process",
     )  # fmt: skip
 
 
@@ -216,13 +217,13 @@ def references(cfg: Config) -> dict:
     trained agents: on the held-out scenarios."""
     drivers = (
         # uniformly among the 9 actions of the table, as an untrained policy starts
-        ("random", _table(cfg), lambda env: RandomPolicy(env.action_spec)),
+        ("random", True, lambda env: RandomPolicy(env.action_spec)),
         # MetaDrive's own [steering, throttle] = [0, 1], whatever the table
-        ("full throttle", None, lambda env: _constant([0.0, 1.0])),
+        ("full throttle", False, lambda env: _constant([0.0, 1.0])),
     )
     results = {}
-    for name, actions, make_policy in drivers:
-        env = _in_order(md.HELD_OUT, actions, cfg.horizon, workers=cfg.workers)
+    for name, table, make_policy in drivers:
+        env = _in_order(md.HELD_OUT, cfg, table=table)
         try:
             torch.manual_seed(cfg.seed)
             env.set_seed(evaluation_seed(cfg.seed))  # the scenarios training evaluations play
