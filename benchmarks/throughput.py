@@ -16,6 +16,9 @@ run at the same number of environments:
 * Collection alone, in segments of the recipe's length with its lean policy: TorchRL's
   ``Collector`` (no trajectory ids) against rl_pg's ``SegmentCollector``, which the
   recipes use and which gives the same batches.
+* The same plain loop with a CleanRL script's bookkeeping (episode statistics and
+  per-update scalars written to TensorBoard), when TensorBoard is installed: what a
+  hand-written loop costs once it reports what it does, as rl_pg's does.
 * For context: TorchRL's stock ``Collector(GymEnv("CartPole-v1"))`` (collection only,
   same MLP policy) and Stable-Baselines3 A2C's training loop (8 environments).
 
@@ -50,6 +53,7 @@ from rl_pg.recipes import load
 
 cartpole, lunarlander = load("cartpole"), load("lunarlander")
 HAS_ENVPOOL = importlib.util.find_spec("envpool") is not None
+HAS_TENSORBOARD = importlib.util.find_spec("tensorboard") is not None
 
 
 @dataclass
@@ -215,22 +219,92 @@ class PlainLoop:
         self.optimizer.step()
 
 
-def plain_pytorch_training(recipe, n: int) -> Callable[[int], float]:
-    """``PlainLoop`` trained for ``frames``: frames per second."""
+class BookkeepingLoop(PlainLoop):
+    """``PlainLoop`` with the bookkeeping of a CleanRL script: gymnasium's
+    ``RecordEpisodeStatistics`` on the vector env, each finished episode's return and
+    length written to TensorBoard, and per update the learning rate, the policy, value
+    and entropy losses, the explained variance and the frames per second. Still no
+    truncation bootstrap (CleanRL has none) and no checkpoints or evaluations."""
+
+    def __init__(self, recipe, n: int, log_dir: str) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        super().__init__(recipe, n)
+        self.envs = gym.wrappers.vector.RecordEpisodeStatistics(self.envs)
+        self.obs, _ = self.envs.reset(seed=0)
+        self.writer = SummaryWriter(log_dir)
+        self.frames, self.start = 0, time.perf_counter()
+
+    def step(self, observation: torch.Tensor, action: torch.Tensor) -> tuple:
+        self.obs, reward, terminated, truncated, infos = self.envs.step(action.numpy())
+        self.frames += len(reward)
+        if "episode" in infos:  # as CleanRL reads it
+            for i in np.flatnonzero(infos["_episode"]):
+                self.writer.add_scalar(
+                    "charts/episodic_return", infos["episode"]["r"][i], self.frames
+                )
+                self.writer.add_scalar(
+                    "charts/episodic_length", infos["episode"]["l"][i], self.frames
+                )
+        return observation, action, torch.as_tensor(reward), torch.as_tensor(terminated | truncated)
+
+    def loss(self, observation, action, reward, done, last) -> torch.Tensor:
+        cfg, value_net = self.cfg, self.value_net
+        with torch.no_grad():
+            next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
+            returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
+        value = value_net(observation)
+        advantage = returns - value.detach()
+        if cfg.normalize_advantage:
+            advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        dist = torch.distributions.Categorical(logits=self.policy_net(observation))
+        policy_loss = -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
+        entropy = dist.entropy().mean()
+        value_loss = (value - returns).pow(2).mean()
+        self.logged = (policy_loss, value_loss, entropy, value.detach(), returns)
+        return policy_loss - cfg.entropy_coeff * entropy + cfg.critic_coeff * value_loss
+
+    def optimise(self, loss: torch.Tensor) -> None:
+        super().optimise(loss)
+        policy_loss, value_loss, entropy, value, returns = self.logged
+        y_pred, y_true = value.numpy(), returns.numpy()
+        var_y = np.var(y_true)
+        explained = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+        lr = self.optimizer.param_groups[0]["lr"]
+        for tag, scalar in (
+            ("charts/learning_rate", lr),
+            ("losses/value_loss", value_loss.item()),
+            ("losses/policy_loss", policy_loss.item()),
+            ("losses/entropy", entropy.item()),
+            ("losses/explained_variance", explained),
+            ("charts/SPS", self.frames / (time.perf_counter() - self.start)),
+        ):
+            self.writer.add_scalar(tag, scalar, self.frames)  # fmt: skip
+
+
+def plain_pytorch_training(recipe, n: int, bookkeeping: bool = False) -> Callable[[int], float]:
+    """``PlainLoop`` (or with ``bookkeeping``, ``BookkeepingLoop``) trained for
+    ``frames``: frames per second."""
 
     def run(frames: int) -> float:
-        plain = PlainLoop(recipe, n)
-        steps = plain.cfg.segment_length
-        updates = max(1, frames // (steps * n))
-        start = time.perf_counter()
-        for _ in range(updates):
-            segment = [plain.step(*plain.act()) for _ in range(steps)]
-            plain.optimise(plain.loss(*plain.batch(segment)))
-        rate = updates * steps * n / (time.perf_counter() - start)
-        plain.envs.close()
-        return rate
+        with tempfile.TemporaryDirectory() as log_dir:
+            return _plain_rate(BookkeepingLoop(recipe, n, log_dir) if bookkeeping
+                               else PlainLoop(recipe, n), frames)  # fmt: skip
 
     return run
+
+
+def _plain_rate(plain: PlainLoop, frames: int) -> float:
+    """Frames per second of ``plain`` trained for about ``frames``."""
+    steps, n = plain.cfg.segment_length, plain.cfg.num_envs
+    updates = max(1, frames // (steps * n))
+    start = time.perf_counter()
+    for _ in range(updates):
+        segment = [plain.step(*plain.act()) for _ in range(steps)]
+        plain.optimise(plain.loss(*plain.batch(segment)))
+    rate = updates * steps * n / (time.perf_counter() - start)
+    plain.envs.close()
+    return rate
 
 
 def collection_only(recipe, n: int, kind: str) -> Callable[[int], float]:
@@ -336,6 +410,11 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
             runs[plain] = plain_pytorch_training(recipe, n)
             pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", plain))
             pairs.append((plain, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
+            if HAS_TENSORBOARD:  # the plain loop with a CleanRL script's bookkeeping
+                kept = f"{task} x{n} the same in plain PyTorch, CleanRL's bookkeeping (gymnasium)"
+                runs[kept] = plain_pytorch_training(recipe, n, bookkeeping=True)
+                pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", kept))
+                pairs.append((kept, plain))
     if cfg.peers:
         runs["CartPole x1 TorchRL Collector(GymEnv), collection only"] = torchrl_collector
         if importlib.util.find_spec("stable_baselines3") is not None:

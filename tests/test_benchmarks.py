@@ -84,6 +84,8 @@ def test_comparisons_with_sb3(script, tmp_path):
         assert f"CartPole x32 {loop} / CartPole x32 {floor}" in out["ratios"]
         plain = "the same algorithm in plain PyTorch (gymnasium)"
         assert f"LunarLander x4 {loop} / LunarLander x4 {plain}" in out["ratios"]
+        kept = "the same in plain PyTorch, CleanRL's bookkeeping (gymnasium)"
+        assert f"CartPole x32 {loop} / CartPole x32 {kept}" in out["ratios"]
         assert out["rl_pg_over_stock_collector"] > 0
     else:
         for task, threshold in (("cartpole", 12.0), ("lunarlander", -1000.0)):
@@ -104,6 +106,23 @@ def test_comparisons_with_sb3(script, tmp_path):
                 task == "lunarlander"
             ):  # any return passes: every tool solves at its first evaluation
                 assert all(run["0"]["solved_at_frames"] is not None for run in runs.values())
+
+
+def test_the_plain_loop_with_bookkeeping_writes_what_a_cleanrl_script_writes(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    module = _script("throughput")
+    loop = module.BookkeepingLoop(module.cartpole, 8, str(tmp_path))
+    assert module._plain_rate(loop, 8 * loop.cfg.segment_length * 20) > 0  # 20 updates
+    loop.writer.close()
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"charts/episodic_return", "losses/value_loss", "charts/SPS"} <= tags
+    assert len(events.Scalars("losses/policy_loss")) == 20
+    returns = [event.value for event in events.Scalars("charts/episodic_return")]
+    assert returns and all(r >= 1 for r in returns)  # CartPole pays 1 a step
 
 
 def test_time_to_solve_counts_unsolved_runs_as_never_solving():
