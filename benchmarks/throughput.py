@@ -195,7 +195,8 @@ class PlainLoop:
         last = torch.as_tensor(self.obs)
         return observation, action, reward.float().unsqueeze(-1), done.unsqueeze(-1), last
 
-    def loss(self, observation, action, reward, done, last) -> torch.Tensor:
+    def terms(self, observation, action, reward, done, last) -> tuple[torch.Tensor, ...]:
+        """The policy loss, the value loss, the entropy, the values and the returns."""
         cfg, value_net = self.cfg, self.value_net
         with torch.no_grad():
             next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
@@ -205,11 +206,18 @@ class PlainLoop:
         if cfg.normalize_advantage:
             advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
         dist = torch.distributions.Categorical(logits=self.policy_net(observation))
-        return (
-            -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
-            - cfg.entropy_coeff * dist.entropy().mean()
-            + cfg.critic_coeff * (value - returns).pow(2).mean()
-        )
+        policy_loss = -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
+        value_loss = (value - returns).pow(2).mean()
+        return policy_loss, value_loss, dist.entropy().mean(), value.detach(), returns
+
+    def loss(self, *batch: torch.Tensor) -> torch.Tensor:
+        return self.combine(self.terms(*batch))
+
+    def combine(self, terms: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """The loss of ``terms``: the policy loss, the entropy bonus, the value loss."""
+        policy_loss, value_loss, entropy, *_ = terms
+        cfg = self.cfg
+        return policy_loss - cfg.entropy_coeff * entropy + cfg.critic_coeff * value_loss
 
     def optimise(self, loss: torch.Tensor) -> None:
         self.optimizer.zero_grad(set_to_none=True)
@@ -248,21 +256,9 @@ class BookkeepingLoop(PlainLoop):
                 )
         return observation, action, torch.as_tensor(reward), torch.as_tensor(terminated | truncated)
 
-    def loss(self, observation, action, reward, done, last) -> torch.Tensor:
-        cfg, value_net = self.cfg, self.value_net
-        with torch.no_grad():
-            next_value = value_net(torch.cat([observation[1:], last.unsqueeze(0)]))
-            returns = reward_to_go(reward, done, cfg.gamma, time_dim=0, next_value=next_value)
-        value = value_net(observation)
-        advantage = returns - value.detach()
-        if cfg.normalize_advantage:
-            advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-        dist = torch.distributions.Categorical(logits=self.policy_net(observation))
-        policy_loss = -(dist.log_prob(action).unsqueeze(-1) * advantage).mean()
-        entropy = dist.entropy().mean()
-        value_loss = (value - returns).pow(2).mean()
-        self.logged = (policy_loss, value_loss, entropy, value.detach(), returns)
-        return policy_loss - cfg.entropy_coeff * entropy + cfg.critic_coeff * value_loss
+    def loss(self, *batch: torch.Tensor) -> torch.Tensor:
+        self.logged = self.terms(*batch)
+        return self.combine(self.logged)
 
     def optimise(self, loss: torch.Tensor) -> None:
         super().optimise(loss)
