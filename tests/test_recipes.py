@@ -148,6 +148,19 @@ def test_pong_evaluation_games_differ_only_with_sticky_actions(sticky):
         assert same == (sticky == 0.0)
     finally:
         env.close()
+    # rl-pg play deploys in the same game, recorded or not (the training game never sticks)
+    for render in (False, True):
+        game = pong.make_play_env(pong.config(eval_sticky=sticky), render=render)
+        try:
+            ale = game.base_env._env.unwrapped.ale
+            assert ale.getFloat("repeat_action_probability") == pytest.approx(sticky)
+        finally:
+            game.close()
+    training = pong.make_env(pong.config(num_envs=1, eval_sticky=sticky))
+    try:
+        assert training.base_env._env.unwrapped.ale.getFloat("repeat_action_probability") == 0
+    finally:
+        training.close()
 
 
 def test_cartpole_reaches_475(tmp_path):

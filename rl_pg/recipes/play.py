@@ -62,7 +62,8 @@ def main(args: Args) -> list[float]:
     recipe = recipe_of(saved, run)
     cfg = recipe.config.from_stored(saved["config"], num_envs=1)  # one environment, to watch
     with torch_threads(cfg.threads):
-        env = recipe.make_env(cfg, render=args.gif is not None)
+        make_env = recipe.make_play_env or recipe.make_env
+        env = make_env(cfg, render=args.gif is not None)
         try:
             actor, critic = recipe.make_models(env, cfg)
             load_models(saved, actor, critic)

@@ -53,10 +53,10 @@ class Config(
     hidden: Count = 200
     """Width of the shared trunk."""
     eval_sticky: Annotated[float, Range(0, 1, high_open=True)] = 0.25
-    """Evaluations and recordings only: probability that the game repeats the previous
-    action instead of the agent's (ALE's sticky actions; 0.25 as Machado et al. 2018
-    evaluate). Training never repeats. At 0, Pong and a greedy policy are deterministic:
-    every greedy evaluation game replays the same game."""
+    """Sticky-action probability of evaluated and played games. Each step the game
+    repeats the previous action instead of the agent's with this probability (ALE's
+    sticky actions; 0.25 as Machado et al. 2018 evaluate); training never repeats. At
+    0, Pong and a greedy policy are deterministic: every greedy game replays one game."""
 
 
 def _register_atari() -> None:
@@ -91,9 +91,14 @@ def make_games(num_envs: int, *, sticky: float = 0.0) -> EnvBase:
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
-    if render:  # a recording shows a game as evaluations play it
-        return make_game(sticky=cfg.eval_sticky, render=True)
+    if render:
+        return make_game(render=True)
     return make_games(max(1, cfg.num_envs // max(1, cfg.workers)))
+
+
+def make_play_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    """The game ``rl-pg play`` deploys in, recorded or not: as evaluations play it."""
+    return make_game(sticky=cfg.eval_sticky, render=render)
 
 
 def make_models(env: EnvBase, cfg: Config):
@@ -122,4 +127,5 @@ RECIPE = Recipe(
     make_env=make_env,
     make_models=make_models,
     make_eval_env=make_eval_env,
+    make_play_env=make_play_env,
 )

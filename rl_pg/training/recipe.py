@@ -56,6 +56,10 @@ class Recipe:
             (for recordings). Module-level functions keep multi-process collection
             possible (they are pickled).
         make_models (callable): ``(env, cfg) -> (actor, critic or None)``.
+        make_play_env (callable, optional): ``(cfg, *, render=False) -> EnvBase``, the
+            one environment ``rl-pg play`` deploys an agent in, recorded or not, when it
+            must differ from the training one (Pong plays as it evaluates, with sticky
+            actions). Defaults to ``make_env``.
         make_eval_env (callable, optional): ``cfg -> EnvBase`` (or an
             [`EpisodeWorkers`][rl_pg.episode_workers.EpisodeWorkers], whose processes play
             whole episodes each) for the evaluations during training, which pick the
@@ -87,6 +91,7 @@ class Recipe:
     make_env: Callable[..., EnvBase]
     make_models: Callable[[EnvBase, Any], Models]
     make_eval_env: Callable[[Any], EvaluationEnv] | None = None
+    make_play_env: Callable[..., EnvBase] | None = None
     make_test_env: Callable[[Any], EvaluationEnv] | None = None
     test_sets: dict[str, Callable[[Any], EvaluationEnv]] = field(default_factory=dict)
     eval_flags: Sequence[str] = ()
