@@ -200,8 +200,10 @@ class EpisodeWorkers:
         self._workers = [
             actor.options(
                 num_cpus=0,
+                # Hard: a soft affinity let Ray place both actors of the two-node test
+                # on one node now and then.
                 scheduling_strategy=NodeAffinitySchedulingStrategy(
-                    nodes[i % len(nodes)], soft=True
+                    nodes[i % len(nodes)], soft=False
                 ),
             ).remote(make_env)
             for i, make_env in enumerate(self.make_envs)

@@ -68,6 +68,7 @@ ray.init(address=%r, log_to_driver=False)
 env = EpisodeWorkers([partial(GridWorldEnv, max_steps=20)] * 2, backend="ray")
 result = evaluate(RandomPolicy(env.action_spec), env, episodes=4)
 print(len(set(env.nodes)), result["mean_length"])
+print([(n["NodeID"][:8], n["Resources"].get("CPU")) for n in ray.nodes() if n["Alive"]])
 env.close()
 """
 
@@ -118,8 +119,8 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
             timeout=300,
         )  # fmt: skip
         assert spread.returncode == 0, spread.stderr[-3000:]
-        spread_over, length = spread.stdout.split()
-        assert spread_over == "2" and 1 <= float(length) <= 20
+        spread_over, length = spread.stdout.splitlines()[0].split()
+        assert spread_over == "2" and 1 <= float(length) <= 20, spread.stdout
         # MetaDrive, the slow simulator: collection and evaluation both on the cluster.
         pytest.importorskip("metadrive")
         run = tmp_path / "metadrive"
