@@ -195,7 +195,9 @@ class EpisodeWorkers:
 
         # Round-robin over the nodes with CPUs (Ray's "SPREAD" packs actors that reserve
         # none onto one node).
-        nodes = sorted(n["NodeID"] for n in ray.nodes() if n["Alive"] and n["Resources"].get("CPU"))
+        alive = [n for n in ray.nodes() if n["Alive"]]
+        nodes = sorted(n["NodeID"] for n in alive if n["Resources"].get("CPU"))
+        nodes = nodes or sorted(n["NodeID"] for n in alive)  # a cluster of CPU-less nodes
         actor = ray.remote(_RayEpisodeWorker)
         self._workers = [
             actor.options(
@@ -260,6 +262,15 @@ def _specs(env: EnvBase) -> dict[str, Any]:
             "action_spec": env.action_spec}  # fmt: skip
 
 
+def _seeded_play(policy, env: EnvBase, seed: int | None, request: EpisodeRequest) -> dict:
+    """A worker's share of an evaluation: its environment and the sampled actions seeded
+    with ``seed`` (unless None), then the episodes ``request`` asks for."""
+    if seed is not None:
+        env.set_seed(seed)
+        torch.manual_seed(seed)
+    return play_episodes(policy, env, request)
+
+
 class _RayEpisodeWorker:
     """One environment in a Ray actor, playing the episodes it is asked for."""
 
@@ -273,10 +284,7 @@ class _RayEpisodeWorker:
         return {**_specs(self.env), "node": ray.get_runtime_context().get_node_id()}
 
     def play(self, policy, seed: int | None, request: EpisodeRequest) -> dict[str, torch.Tensor]:
-        if seed is not None:  # the environment, and the sampled actions
-            self.env.set_seed(seed)
-            torch.manual_seed(seed)
-        return play_episodes(policy, self.env, request)
+        return _seeded_play(policy, self.env, seed, request)
 
     def close(self) -> None:
         self.env.close()
@@ -298,10 +306,7 @@ def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
         while (message := pipe.recv()) is not None:
             policy, seed, request = message
             try:
-                if seed is not None:  # the environment, and the sampled actions
-                    env.set_seed(seed)
-                    torch.manual_seed(seed)
-                pipe.send(("done", play_episodes(policy, env, request)))
+                pipe.send(("done", _seeded_play(policy, env, seed, request)))
             except Exception:
                 pipe.send(("error", traceback.format_exc()))
     except EOFError:  # the main process is gone

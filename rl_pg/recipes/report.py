@@ -98,6 +98,10 @@ STORED_VALUE = re.compile(
 )
 # What a setting's flags leave out: where a run went, which seed, how it was watched.
 NOT_SETTINGS = frozenset({"seed", "n_seeds", "run_dir", "resume", "progress", "threads", "device"})
+MODES = ("greedy", "sampled")
+# What an evaluation record says about itself, not about the driving: not a column.
+RECORD_ABOUT = frozenset({"checkpoint", "frames", "mode", "episodes", "seed", "seconds", "on",
+                          "weights", "mean_return", "std_return", "mean_length"})  # fmt: skip
 
 
 @dataclass
@@ -494,7 +498,6 @@ class Gathered:
     """
 
     def __init__(self, values: list[Any]) -> None:
-        self.values = values
         self.n = len(values)
         self.count = sum(v is not None and v is not False for v in values)
         numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
@@ -507,7 +510,7 @@ class Gathered:
     def __format__(self, spec: str) -> str:
         raise ValueError(
             "a * pointer gathers several values: format one of their summaries, "
-            "{0.n}, {0.count}, {0.min}, {0.max} or {0.median}"
+            "{0.n}, {0.count}, {0.min}, {0.max}, {0.median} or {0.held}"
         )
 
 
@@ -545,7 +548,7 @@ def format_settings(paths: list[Path]) -> str:
         median = float(np.median([np.inf if at is None else at for at in reached]))
         scores = {
             mode: [r[mode]["mean_return"] for r in reports if r.get(mode) is not None]
-            for mode in ("greedy", "sampled")
+            for mode in MODES
         }
         evaluated = all(len(values) == len(reports) for values in scores.values())
         threshold = reports[0].get("threshold")
@@ -691,12 +694,6 @@ def format_curves(path: Path) -> str:
     return "\n".join(lines)
 
 
-MODES = ("greedy", "sampled")
-# What an evaluation record says about itself, not about the driving: not a column.
-RECORD_ABOUT = frozenset({"checkpoint", "frames", "mode", "episodes", "seed", "seconds", "on",
-                          "weights", "mean_return", "std_return", "mean_length"})  # fmt: skip
-
-
 def format_evaluations(path: Path) -> str:
     """The ``rl-pg evaluate`` results a file written by ``--store`` holds, as a Markdown
     table: one row per run, checkpoint (its best; its final one, unless that is the
@@ -732,17 +729,14 @@ def format_evaluations(path: Path) -> str:
         report = run["report"]
         best, final = report.get("best_at_frames"), report["frames"]
         last = report.get("last") or {}  # files stored before final checkpoints were
-        for label, records in [
-            (
-                "best"
-                if best is None  # never evaluated during training: no best results
-                else f"best ({best:,})"
-                if best != final
-                else f"best and final ({final:,})",
-                report,
-            ),
-            (f"final ({final:,})", last if best != final else {}),
-        ]:
+        if best is None:  # never evaluated during training: no results of a best one
+            label = "best"
+        else:
+            label = f"best ({best:,})" if best != final else f"best and final ({final:,})"
+        checkpoints = [(label, report)]
+        if best != final:  # else the best row holds the final checkpoint's results
+            checkpoints.append((f"final ({final:,})", last))
+        for label, records in checkpoints:
             rows += [
                 (run["name"], label, mode, records[mode]) for mode in MODES if records.get(mode)
             ]
