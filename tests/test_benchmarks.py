@@ -256,3 +256,34 @@ def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
     assert parts["total"]["rl_pg"] == pytest.approx(
         sum(parts[p]["rl_pg"] for p in breakdown.PIECES)
     )
+
+
+def test_torchrl_compat_runs_the_tests_on_each_class(tmp_path):
+    # A stand-in for pytorch/rl (a git repository with test/objectives) whose one test
+    # passes on TorchRL's class only: TorchRL's run counts it passed, rl_pg's failed.
+    import subprocess
+
+    tests = tmp_path / "rl" / "test" / "objectives"
+    tests.mkdir(parents=True)
+    (tests / "test_which.py").write_text(
+        "from torchrl.objectives.reinforce import ReinforceLoss\n\n\n"
+        "def test_torchrls_own_class():\n"
+        "    assert ReinforceLoss.__module__ == 'torchrl.objectives.reinforce'\n"
+    )
+    git = ["git", "-C", str(tmp_path / "rl"), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "tests"], check=True)
+    compat = _script("torchrl_compat")
+    cfg = compat.Config(
+        repo=tmp_path / "rl", selection="test_which.py", json_path=tmp_path / "c.json"
+    )
+    out = compat.main(cfg)
+    assert json.loads((tmp_path / "c.json").read_text()) == out
+    assert out["results"]["torchrl.objectives.ReinforceLoss"] == {
+        "tests": 1, "passed": 1, "failed": 0, "skipped": 0,
+    }  # fmt: skip
+    assert out["results"]["rl_pg.ReinforceLoss"] == {
+        "tests": 1, "passed": 0, "failed": 1, "skipped": 0,
+    }  # fmt: skip
+    assert len(out["tests"]["commit"]) == 40
