@@ -406,10 +406,16 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
 
 
 @needs_metadrive
-def test_references_measure_random_and_full_throttle(capsys):
-    # As a user runs it: the command prints one line per driver, and nothing else.
-    cli.main(["train", "metadrive", "--references", "--eval-episodes", "2", "--horizon", "30"])
-    lines = capsys.readouterr().out.strip().splitlines()
+def test_references_measure_random_and_full_throttle(tmp_path, capsys):
+    # As a user runs it: one line per driver, then where the results were written, and
+    # the file holds the same results with the config and the machine they ran on.
+    run = tmp_path / "references"
+    cli.main([
+        "train", "metadrive", "--references", "--eval-episodes", "2", "--horizon", "30",
+        "--run-dir", str(run),
+    ])  # fmt: skip
+    *lines, written = capsys.readouterr().out.strip().splitlines()
+    assert written == f"written to {run / 'references.json'}"
     results = {}
     for line in lines:
         name, _, values = line.partition(": ")
@@ -423,6 +429,11 @@ def test_references_measure_random_and_full_throttle(capsys):
         results["full throttle"]["mean_route_completion"]
         > results["random"]["mean_route_completion"]
     )
+    stored = json.loads((run / "references.json").read_text())
+    assert stored["config"]["horizon"] == 30 and stored["config"]["eval_episodes"] == 2
+    assert stored["session"]["machine"]["cores"] >= 1
+    for name, result in results.items():
+        assert result == pytest.approx(stored["drivers"][name], abs=5e-4)
 
 
 @needs_metadrive

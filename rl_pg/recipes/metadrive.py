@@ -15,9 +15,11 @@ apart from both. MetaDrive runs offline and headless (its asset download is skip
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -26,11 +28,14 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import RandomPolicy
 
+from rl_pg.checkpoint import write_atomically
 from rl_pg.envs import metadrive as md
 from rl_pg.episode_workers import EpisodeWorkers
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, NonNegative, TrainConfig
+from rl_pg.training.config import config_dict
+from rl_pg.training.provenance import session_record
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.seeds import evaluation_seed
 
@@ -149,6 +154,7 @@ def _table(cfg: Config) -> str | None:
 
 
 # MetaDrive's terminal penalties that `--failure-penalty` sets (arriving pays +10).
+REFERENCES = "references.json"  # what `--references` writes into its run directory
 _FAILURE_PENALTIES = ("out_of_road_penalty", "crash_vehicle_penalty", "crash_object_penalty")
 
 
@@ -214,7 +220,8 @@ def make_models(env: EnvBase, cfg: Config):
 
 def references(cfg: Config) -> dict:
     """Scores a random and an always-full-throttle driver as ``rl-pg evaluate`` scores
-    trained agents: on the held-out scenarios."""
+    trained agents: on the held-out scenarios. Writes them, with the config and where
+    they ran, to ``references.json`` in ``--run-dir`` (``runs/metadrive-references``)."""
     drivers = (
         # uniformly among the 9 actions of the table, as an untrained policy starts
         ("random", True, lambda env: RandomPolicy(env.action_spec)),
@@ -237,6 +244,11 @@ def references(cfg: Config) -> dict:
             env.close()
         results[name] = result
         print(f"{name}: " + ", ".join(f"{key} {value:.3f}" for key, value in result.items()))
+    path = Path(cfg.run_dir or "runs/metadrive-references") / REFERENCES
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stored = {"config": config_dict(cfg), "session": session_record(0), "drivers": results}
+    write_atomically(path, json.dumps(stored, indent=1) + "\n")
+    print(f"written to {path}")
     return results
 
 
