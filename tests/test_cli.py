@@ -378,6 +378,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     saved = json.loads(stored.read_text())["runs"]
     assert [run["name"] for run in saved] == ["seed0", "seed1"]
     assert saved[0]["config"]["seed"] == 0 and saved[0]["curve"]["metric"] == "eval/mean_return"
+    speed = saved[0]["report"]["frames"] / saved[0]["report"]["train_wall_s"]
+    assert saved[0]["report"]["frames_per_s"] == pytest.approx(speed)
     assert len(saved[0]["curve"]["frames"]) == len(saved[0]["curve"]["values"]) >= 1
     # read back: the same table, without the run directories
     for run in runs:

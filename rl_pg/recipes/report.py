@@ -148,7 +148,8 @@ class Args:
 def read_report(run_dir: Path) -> dict[str, Any]:
     """A run's summary, with its best checkpoint's latest greedy and sampled
     ``rl-pg evaluate`` results (``"greedy"``, ``"sampled"``; ``None`` when there are
-    none of that checkpoint), those on its default fresh episodes first."""
+    none of that checkpoint), those on its default fresh episodes first, the final
+    checkpoint's (``"last"``) and the training's frames per second."""
     path = Path(run_dir) / SUMMARY
     if not path.is_file():
         raise ValueError(
@@ -166,6 +167,9 @@ def read_report(run_dir: Path) -> dict[str, Any]:
         )
     report["greedy"] = report["sampled"] = None
     report["last"] = {"greedy": None, "sampled": None}
+    # the training's speed over all its sessions (train_wall_s leaves evaluations out)
+    seconds = report["train_wall_s"]
+    report["frames_per_s"] = report["frames"] / seconds if seconds else None
     evaluations = Path(run_dir) / EVALUATIONS
     if evaluations.is_file():
         # best.pt moves on when a resumed run evaluates better: only results of the
