@@ -411,6 +411,10 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     (tmp_path / "profile.png").unlink()
     status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
     assert status == 0 and "refreshed" in out and (tmp_path / "profile.png").is_file(), err
+    # two stored settings on one figure, one aggregate curve each
+    status, out, err = in_process("report", "--stored", str(stored), str(other), "--plot",
+                                  str(tmp_path / "two.png"), capsys=capsys)  # fmt: skip
+    assert status == 0 and (tmp_path / "two.png").is_file(), err
     # one row per stored setting: the flags its runs share beyond the recipe's defaults
     for run in saved_runs["runs"]:
         run["config"]["lr"] = 0.5
@@ -556,6 +560,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         run["report"]["greedy"] = run["report"]["sampled"] = None
         run["report"].pop("last")  # as files stored before final checkpoints were
     never_evaluated.write_text(json.dumps(unevaluated))
+    namesake = shutil.copy(stored, tmp_path / stored.name)  # another file of the same stem
     # what cannot be done says so
     for args, message in [
         (("report",), "one of the three"),
@@ -573,7 +578,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         ),
         (("report", "--stored", str(no_evaluation), "--curves"), "holds no evaluation"),
         (("report", "--stored", str(other), "--profile", "x.png"), "run seed1 has no greedy"),
-        (("report", "--stored", str(stored), str(other), "--plot", "x.png"), "use --profile"),
+        (("report", "--stored", str(stored), str(namesake), "--plot", "x.png"), "repeat one"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
         (("report", "--stored", str(page)), "is not a stored report"),
         (("report", "--stored", str(stored), "--store", "x.json"), "leave it out"),

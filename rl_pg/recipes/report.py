@@ -5,6 +5,7 @@ rl-pg report runs/lunarlander-seed* --plot seeds.png   # and the evaluation curv
 rl-pg report runs/lunarlander-seed* --store seeds.json # and keep what the table shows
 rl-pg report --stored seeds.json                       # the same table, from that file
 rl-pg report --stored seeds.json --plot iqm.png        # and the seeds' aggregate curve
+rl-pg report --stored a.json b.json --plot iqm.png     # one aggregate curve per setting
 rl-pg report --stored a.json b.json --profile p.png    # settings' performance profiles
 rl-pg report --stored a.json b.json --settings         # one row per setting
 rl-pg report --stored seeds.json --curves              # the evaluations, run by run
@@ -19,9 +20,10 @@ Results are data: ``--store`` writes the rows with each run's config and evaluat
 curve to a JSON file, and a Markdown page shows a stored table between the lines
 ``<!-- rl-pg report --stored FILE -->`` and ``<!-- end of report -->`` (FILE relative to
 the page), which ``--refresh`` rewrites from the file, so the page cannot drift from it.
-A line ``<!-- rl-pg report --stored FILE --plot FIGURE.png [--ylim LOW HIGH] -->``
-names a figure drawn from the file, and ``<!-- rl-pg report --stored FILE... --profile
-FIGURE.png -->`` a performance profile drawn from several; ``--refresh`` draws both again.
+A line ``<!-- rl-pg report --stored FILE... --plot FIGURE.png [--ylim LOW HIGH] -->``
+names a figure drawn from the files (one colour per file), and ``<!-- rl-pg report
+--stored FILE... --profile FIGURE.png -->`` a performance profile drawn from several;
+``--refresh`` draws both again.
 ``<!-- rl-pg report --stored FILE... --settings -->`` opens a table of one row per file,
 ``<!-- rl-pg report --stored FILE --curves -->`` one of every stored evaluation during
 training, ``<!-- rl-pg report --stored FILE --evaluations -->`` one of every metric of
@@ -50,7 +52,15 @@ import tyro
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
-from rl_pg.training.curves import plot_profiles, plot_runs, plot_seeds, plot_solved, read_curve
+from rl_pg.training.curves import (
+    plot_profiles,
+    plot_runs,
+    plot_seeds,
+    plot_settings,
+    plot_solved,
+    plot_solved_settings,
+    read_curve,
+)
 from rl_pg.training.run_dir import CONFIG, SUMMARY
 from rl_pg.training.seeds import fresh_seed
 
@@ -121,7 +131,8 @@ class Args:
     --stored)."""
     plot: Path | None = None
     """Also draw every run's ``metric`` into this PNG file. By frame; with --stored,
-    each stored curve and their interquartile mean with a 95 % bootstrap band."""
+    each stored curve and their interquartile mean with a 95 % bootstrap band, one
+    colour per file."""
     metric: str = "eval/mean_return"
     """With plot: the logged scalar to draw. A CSV under RUN/logs/csv/scalars, without
     .csv, e.g. train/episode_return or eval/mean_route_completion."""
@@ -251,35 +262,73 @@ def _stored_runs(path: Path) -> list[dict[str, Any]]:
         ) from err
 
 
-def plot_stored(path: Path, figure: Path, *, ylim: tuple[float, float] | None = None) -> Path:
-    """Draws the seeds of a stored report into ``figure``: each run's curve, and their
+def plot_stored(
+    paths: Path | list[Path], figure: Path, *, ylim: tuple[float, float] | None = None
+) -> Path:
+    """Draws the seeds of stored reports into ``figure``: each run's curve, and their
     interquartile mean with a 95 % bootstrap band (see
     [`plot_seeds`][rl_pg.training.curves.plot_seeds]); for runs that stopped when
     solved (their curves end where each passed), the share of them solved by each
-    frame (see [`plot_solved`][rl_pg.training.curves.plot_solved])."""
-    runs = _stored_runs(path)
+    frame (see [`plot_solved`][rl_pg.training.curves.plot_solved]). Several files are
+    several settings on one figure, one colour each, named by the file's stem.
+
+    Raises:
+        ValueError: a file that is not a stored report, or two files of one stem (the
+            figure could not tell them apart).
+    """
+    paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(p) for p in paths]
+    stems = [path.stem for path in paths]
+    if len(set(stems)) != len(stems):
+        raise ValueError(f"--plot names each file's runs by its stem; these repeat one: {paths}.")
+    settings = dict(zip(_setting_names(stems), map(_stored_runs, paths), strict=True))
+    stems = list(settings)
+    runs = [run for group in settings.values() for run in group]
+    title = ", ".join(sorted({run["report"]["recipe"] for run in runs}))
     if all(run["config"].get("stop_when_solved") for run in runs):
-        return plot_solved(
-            {run["name"]: run["report"].get("solved_at_frames") for run in runs},
-            Path(figure),
-            budget=max(run["config"]["total_frames"] for run in runs),
-            title=", ".join(sorted({run["report"]["recipe"] for run in runs})),
-        )
+        reached = {
+            stem: {run["name"]: run["report"].get("solved_at_frames") for run in group}
+            for stem, group in settings.items()
+        }  # fmt: skip
+        budget = max(run["report"]["frames"] for run in runs)  # where the last one stopped
+        if len(paths) == 1:
+            return plot_solved(reached[stems[0]], Path(figure), budget=budget, title=title)
+        return plot_solved_settings(reached, Path(figure), budget=budget, title=title)
     metrics = {run["curve"]["metric"] for run in runs}
     thresholds = {run["report"].get("threshold") for run in runs}
     metric = metrics.pop() if len(metrics) == 1 else "the stored metric"
     shared = thresholds.pop() if len(thresholds) == 1 else None
-    return plot_seeds(
-        {
+    curves = {
+        stem: {
             run["name"]: (np.array(run["curve"]["frames"]), np.array(run["curve"]["values"]))
-            for run in runs
-        },
-        Path(figure),
-        ylabel=metric,
-        title=", ".join(sorted({run["report"]["recipe"] for run in runs})),
+            for run in group
+        }
+        for stem, group in settings.items()
+    }
+    draw = dict(
+        ylabel=metric, title=title, ylim=ylim,
         threshold=shared if metric == "eval/mean_return" else None,
-        ylim=ylim,
-    )
+    )  # fmt: skip
+    if len(paths) == 1:
+        return plot_seeds(curves[stems[0]], Path(figure), **draw)
+    return plot_settings(curves, Path(figure), **draw)
+
+
+def _setting_names(stems: list[str]) -> list[str]:
+    """Files' stems without the words all of them start with (``gridworld-no-baseline``,
+    ``gridworld-reward-to-go`` -> ``no-baseline``, ``reward-to-go``).
+
+    Examples:
+        >>> from rl_pg.recipes.report import _setting_names
+        >>> _setting_names(["bandit-ema", "bandit-no-baseline"]), _setting_names(["seeds"])
+        (['ema', 'no-baseline'], ['seeds'])
+    """
+    words = [stem.split("-") for stem in stems]
+    shared = 0
+    while len(stems) > 1 and all(
+        len(w) > shared + 1 and w[shared] == words[0][shared] for w in words
+    ):
+        shared += 1
+    return ["-".join(w[shared:]) for w in words]
 
 
 def plot_profile(paths: list[Path], figure: Path) -> Path:
@@ -322,9 +371,7 @@ def draw_stored(match: re.Match, folder: Path, figure: Path | None = None) -> Pa
     figure = Path(folder) / match["figure"] if figure is None else figure
     if match["kind"] == "profile":
         return plot_profile(files, figure)
-    if len(files) != 1:
-        raise ValueError(f"--plot draws one stored file, got {match['files']!r}.")
-    return plot_stored(files[0], figure, ylim=figure_ylim(match))
+    return plot_stored(files, figure, ylim=figure_ylim(match))
 
 
 def refresh(page: Path) -> bool:
@@ -881,8 +928,6 @@ def main(args: Args) -> str:
     if args.stored is not None:
         if args.store is not None:
             raise ValueError("--store reads run directories: leave it out with --stored.")
-        if args.plot is not None and len(args.stored) != 1:
-            raise ValueError("--plot draws one stored file's seeds; for several, use --profile.")
         if args.settings:
             table = format_settings(args.stored)
             print(table)
@@ -899,7 +944,7 @@ def main(args: Args) -> str:
         table = "\n\n".join(tables)
         print(table)
         if args.plot is not None:
-            print(f"curves: {plot_stored(args.stored[0], args.plot, ylim=args.ylim)}")
+            print(f"curves: {plot_stored(args.stored, args.plot, ylim=args.ylim)}")
         if args.profile is not None:
             print(f"performance profiles: {plot_profile(args.stored, args.profile)}")
         return table

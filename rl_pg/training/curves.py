@@ -28,6 +28,8 @@ __all__ = [
     "plot_run",
     "plot_runs",
     "plot_seeds",
+    "plot_settings",
+    "plot_solved_settings",
     "png_figure",
     "read_curve",
     "seed_aggregate",
@@ -284,20 +286,33 @@ def plot_solved(reached: dict[str, float | None], path: Path, *, budget: int, ti
     """Runs that stop when solved (``{name: frames to the threshold, or None}``): the
     share of them solved by each frame up to ``budget``, with its 95 % bootstrap band
     (see [`solved_share`][rl_pg.training.curves.solved_share]), and a tick per run."""
-    at = np.array([np.inf if f is None else f for f in reached.values()], dtype=np.float64)
-    frames = np.linspace(0, budget, 500)
-    share, low, high = solved_share(at, frames)
+    return plot_solved_settings({"": reached}, path, budget=budget, title=title)
+
+
+def plot_solved_settings(
+    settings: dict[str, dict[str, float | None]], path: Path, *, budget: int, title: str
+) -> Path:
+    """Several settings of runs that stop when solved (``{setting: {name: frames to the
+    threshold, or None}}``), one colour each: the share of its runs solved by each frame
+    up to ``budget``, with its 95 % bootstrap band, and a tick per solved run."""
+    right = budget * 1.03  # a margin: a run solved at the budget shows its step
+    frames = np.linspace(0, right, 500)
     with png_figure(path) as ax:
-        ax.step(frames, share, where="post", color="C0", linewidth=2,
-                label=f"share of {len(at)} seeds solved")  # fmt: skip
-        ax.fill_between(frames, low, high, step="post", color="C0", alpha=0.25,
-                        label="95 % bootstrap CI")  # fmt: skip
-        solved = at[np.isfinite(at)]
-        ax.plot(solved, np.zeros_like(solved), "|", color="black", markersize=12,
-                label="a seed's first evaluation at the threshold")  # fmt: skip
+        for number, (setting, reached) in enumerate(settings.items()):
+            at = np.array([np.inf if f is None else f for f in reached.values()], dtype=np.float64)
+            share, low, high = solved_share(at, frames)
+            color, named = f"C{number}", f"{setting}: " if setting else ""
+            ax.step(frames, share, where="post", color=color, linewidth=2,
+                    label=f"{named}share of {len(at)} seeds solved")  # fmt: skip
+            ax.fill_between(frames, low, high, step="post", color=color, alpha=0.25,
+                            label=None if named else "95 % bootstrap CI")  # fmt: skip
+            solved = at[np.isfinite(at)]
+            tick = None if named else "a seed's first evaluation at the threshold"
+            ax.plot(solved, np.zeros_like(solved), "|", color=color if named else "black",
+                    markersize=12, label=tick)  # fmt: skip
         ax.set_xlabel("frames")
-        ax.set_ylabel("share of seeds solved")
-        ax.set_xlim(0, budget)
+        ax.set_ylabel("share of seeds solved" + (" (bands: 95 % bootstrap CI)" if named else ""))
+        ax.set_xlim(0, right)
         ax.set_ylim(-0.04, 1.02)
         ax.set_title(title)
         ax.legend(fontsize=8, loc="lower right")
@@ -339,17 +354,40 @@ def plot_seeds(
     Runs whose batches are whole episodes evaluate at the first batch past each
     interval, so their frames differ a little: evaluations that differ by less than half
     an interval are aggregated at their median frames."""
-    grids = [np.asarray(frames) for frames, _ in curves.values()]
-    if any(not np.array_equal(grid, grids[0]) for grid in grids):
-        grids = [_common_grid(grids)] * len(grids)
-    values = np.stack([vals for _, vals in curves.values()])
-    iqm, low, high = seed_aggregate(values)
+    return plot_settings(
+        {"": curves}, path, ylabel=ylabel, title=title, threshold=threshold, ylim=ylim
+    )
+
+
+def plot_settings(
+    settings: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]],
+    path: Path,
+    *,
+    ylabel: str,
+    title: str,
+    threshold: float | None = None,
+    ylim: tuple[float, float] | None = None,
+) -> Path:
+    """Several settings' seeds (``{setting: {name: (frames, values)}}``), one colour
+    each: each setting's interquartile mean with its 95 % bootstrap band, as
+    [`plot_seeds`][rl_pg.training.curves.plot_seeds] draws one (without its seeds'
+    thin lines, which would hide the bands)."""
     with png_figure(path) as ax:
-        for frames, vals in curves.values():
-            ax.plot(frames, vals, color="grey", linewidth=0.6, alpha=0.6)
-        ax.plot(grids[0], iqm, color="C0", linewidth=2,
-                label=f"interquartile mean of {len(curves)} seeds")  # fmt: skip
-        ax.fill_between(grids[0], low, high, color="C0", alpha=0.25, label="95 % bootstrap CI")
+        for number, (setting, curves) in enumerate(settings.items()):
+            grids = [np.asarray(frames) for frames, _ in curves.values()]
+            if any(not np.array_equal(grid, grids[0]) for grid in grids):
+                grids = [_common_grid(grids)] * len(grids)
+            iqm, low, high = seed_aggregate(np.stack([vals for _, vals in curves.values()]))
+            color, named = f"C{number}", f"{setting}: " if setting else ""
+            if not named:  # one setting: its seeds too (several: the bands say enough)
+                for frames, vals in curves.values():
+                    ax.plot(frames, vals, color="grey", linewidth=0.6, alpha=0.6)
+            ax.plot(grids[0], iqm, color=color, linewidth=2,
+                    label=f"{named}interquartile mean of {len(curves)} seeds")  # fmt: skip
+            ax.fill_between(grids[0], low, high, color=color, alpha=0.25,
+                            label=None if named else "95 % bootstrap CI")  # fmt: skip
+        if named:
+            ylabel += " (bands: 95 % bootstrap CI)"
         _frame_axes(ax, ylabel=ylabel, title=title, threshold=threshold, ylim=ylim)
     return path
 
