@@ -535,7 +535,8 @@ def _walk(value: Any, parts: list[str], path: Path, pointer: str) -> list[Any]:
 
 class Gathered:
     """The values a marker's ``*`` pointer gathers, for its format to summarise:
-    ``{0.n}`` of them, ``{0.count}`` set (not null, not false), and of the numbers among
+    ``{0.n}`` of them, ``{0.count}`` set (not null, not false), ``{0.missing}`` not set
+    (runs that never reached their threshold, say), and of the numbers among
     them ``{0.min}``, ``{0.max}`` and ``{0.median}``, each with a format spec
     (``{0.min:.1f}–{0.max:.1f}``). Of runs' reports (``/runs/*/report``), ``{0.held}``:
     how many best checkpoints score at least their threshold both greedily and by
@@ -551,6 +552,7 @@ class Gathered:
     def __init__(self, values: list[Any]) -> None:
         self.n = len(values)
         self.count = sum(v is not None and v is not False for v in values)
+        self.missing = self.n - self.count
         numbers = [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
         self.min = min(numbers) if numbers else None
         self.max = max(numbers) if numbers else None
@@ -561,7 +563,7 @@ class Gathered:
     def __format__(self, spec: str) -> str:
         raise ValueError(
             "a * pointer gathers several values: format one of their summaries, "
-            "{0.n}, {0.count}, {0.min}, {0.max}, {0.median} or {0.held}"
+            "{0.n}, {0.count}, {0.missing}, {0.min}, {0.max}, {0.median} or {0.held}"
         )
 
 
