@@ -547,6 +547,8 @@ class Gathered:
         >>> from rl_pg.recipes.report import Gathered
         >>> "{0.count}/{0.n} solved, {0.min:,}–{0.max:,} frames".format(Gathered([900, None, 300]))
         '2/3 solved, 300–900 frames'
+        >>> Gathered([900, None, 300]).missing
+        1
     """
 
     def __init__(self, values: list[Any]) -> None:
