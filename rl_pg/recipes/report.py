@@ -78,12 +78,14 @@ __all__ = [
     "read_report",
     "read_stored",
     "refresh",
+    "smoothed",
     "store_report",
     "stored_map",
     "stored_table",
     "stored_value",
 ]
 
+STORED_POINTS = 200  # a stored curve's most points: longer ones are stored smoothed
 SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
 RECORD_KEYS = frozenset({"checkpoint", "frames", "mode", "seed", "mean_return"})
 STORED_FIGURE = re.compile(
@@ -134,8 +136,10 @@ class Args:
     each stored curve and their interquartile mean with a 95 % bootstrap band, one
     colour per file."""
     metric: str = "eval/mean_return"
-    """With plot: the logged scalar to draw. A CSV under RUN/logs/csv/scalars, without
-    .csv, e.g. train/episode_return or eval/mean_route_completion."""
+    """With plot or store: the logged scalar to draw or keep. A CSV under
+    RUN/logs/csv/scalars, without .csv, e.g. train/episode_return or
+    eval/mean_route_completion; stored, a curve of more than 200 points is kept as the
+    means of 200 windows."""
     ylim: tuple[float, float] | None = None
     """With plot: the vertical range, LOW HIGH. For when a few early values squash the
     rest."""
@@ -218,18 +222,46 @@ def read_report(run_dir: Path) -> dict[str, Any]:
 
 def store_report(runs: list[Path], path: Path, *, metric: str = "eval/mean_return") -> None:
     """Writes the runs' rows (as ``read_report`` reads them), names, configs and
-    ``metric`` curves to the JSON file ``path`` (atomically)."""
+    ``metric`` curves to the JSON file ``path`` (atomically). A curve of more than
+    ``STORED_POINTS`` points (a training metric, logged every few updates) is stored
+    smoothed: see ``smoothed``."""
     names = _names(runs)
     stored = []
     for name, run in zip(names, runs, strict=True):
-        frames, values = read_curve(run, metric)
+        frames, values, window = smoothed(*read_curve(run, metric))
         stored.append({
             "name": name,
             "report": read_report(run),
             "config": json.loads((Path(run) / CONFIG).read_text()),
-            "curve": {"metric": metric, "frames": frames.tolist(), "values": values.tolist()},
+            "curve": {
+                "metric": metric, "window": window, "frames": frames.tolist(),
+                "values": values.tolist(),
+            },
         })  # fmt: skip
     write_atomically(Path(path), json.dumps({"runs": stored}, indent=1) + "\n")
+
+
+def smoothed(
+    frames: np.ndarray, values: np.ndarray, points: int | None = None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """A curve of at most ``points`` points (default ``STORED_POINTS``): the means of
+    consecutive windows of ``window`` logged values, each at its window's last frame
+    (a last, shorter window keeps the curve's end), and ``window`` (1: as logged).
+
+    Examples:
+        >>> import numpy as np
+        >>> from rl_pg.recipes.report import smoothed
+        >>> smoothed(np.arange(1.0, 6.0), np.array([0.0, 1.0, 0.0, 1.0, 1.0]), points=2)
+        (array([3., 5.]), array([0.33333333, 1.        ]), 3)
+    """
+    points = STORED_POINTS if points is None else points
+    window = max(1, -(-len(values) // points))  # the smallest that fits
+    if window == 1:
+        return frames, values, 1
+    starts = np.arange(0, len(values), window)
+    means = np.add.reduceat(values, starts) / np.diff(np.append(starts, len(values)))
+    ends = np.minimum(starts + window, len(values)) - 1
+    return frames[ends], means, window
 
 
 def read_stored(path: Path) -> tuple[list[dict[str, Any]], list[str]]:
@@ -296,6 +328,9 @@ def plot_stored(
     metrics = {run["curve"]["metric"] for run in runs}
     thresholds = {run["report"].get("threshold") for run in runs}
     metric = metrics.pop() if len(metrics) == 1 else "the stored metric"
+    windows = {run["curve"].get("window", 1) for run in runs}
+    if windows != {1}:  # stored smoothed: say over how many logged values
+        title += f" (curves: means of {'/'.join(map(str, sorted(windows)))} logged values)"
     shared = thresholds.pop() if len(thresholds) == 1 else None
     curves = {
         stem: {

@@ -310,8 +310,10 @@ def plot_solved_settings(
             tick = None if named else "a seed's first evaluation at the threshold"
             ax.plot(solved, np.zeros_like(solved), "|", color=color if named else "black",
                     markersize=12, label=tick)  # fmt: skip
+        if named:  # one legend entry for every setting's band
+            ax.fill_between([], [], color="grey", alpha=0.25, label="bands: 95 % bootstrap CI")
         ax.set_xlabel("frames")
-        ax.set_ylabel("share of seeds solved" + (" (bands: 95 % bootstrap CI)" if named else ""))
+        ax.set_ylabel("share of seeds solved")
         ax.set_xlim(0, right)
         ax.set_ylim(-0.04, 1.02)
         ax.set_title(title)
@@ -386,8 +388,8 @@ def plot_settings(
                     label=f"{named}interquartile mean of {len(curves)} seeds")  # fmt: skip
             ax.fill_between(grids[0], low, high, color=color, alpha=0.25,
                             label=None if named else "95 % bootstrap CI")  # fmt: skip
-        if named:
-            ylabel += " (bands: 95 % bootstrap CI)"
+        if named:  # one legend entry for every setting's band
+            ax.fill_between([], [], color="grey", alpha=0.25, label="bands: 95 % bootstrap CI")
         _frame_axes(ax, ylabel=ylabel, title=title, threshold=threshold, ylim=ylim)
     return path
 
