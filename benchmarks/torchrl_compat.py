@@ -62,7 +62,7 @@ def run_tests(folder: Path, selection: str, *, substitute: bool) -> dict[str, in
     plugin = ["-p", "torchrl_substitute"] if substitute else []
     command = [
         sys.executable, "-m", "pytest", selection, *plugin, "-q", "-p", "no:cacheprovider",
-        "-p", "no:randomly", "-n", "0", f"--junitxml={junit}", "-o", "addopts=",
+        "-p", "no:randomly", "-p", "no:xdist", f"--junitxml={junit}", "-o", "addopts=",
     ]  # fmt: skip
     done = subprocess.run(command, cwd=folder, env=env, capture_output=True, text=True)
     if not junit.is_file():  # no report: the tests did not even collect
