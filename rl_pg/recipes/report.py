@@ -853,7 +853,8 @@ def format_evaluations(path: Path) -> str:
         cells += [f"{record['mean_length']:.0f}"]
         cells += [
             "—" if key not in record else
-            f"{record[key]:.0%}" if key.endswith("_rate") else f"{record[key]:.3g}"
+            f"{record[key]:.0%}" if key.endswith("_rate") else
+            f"{record[key]:.3f}" if abs(record[key]) < 10 else f"{record[key]:.1f}"
             for key in metrics
         ]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
