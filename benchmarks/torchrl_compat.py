@@ -72,10 +72,16 @@ def run_tests(folder: Path, selection: str, *, substitute: bool) -> dict[str, in
 
 
 def main(cfg: Config) -> dict:
-    commit = subprocess.run(
-        ["git", "-C", str(cfg.repo), "rev-parse", f"{cfg.rev}^{{commit}}"],
-        capture_output=True, text=True, check=True,
-    ).stdout.strip()  # fmt: skip
+    found = subprocess.run(
+        ["git", "-C", str(cfg.repo), "rev-parse", "--verify", f"{cfg.rev}^{{commit}}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if found.returncode != 0:
+        raise SystemExit(
+            f"--repo {cfg.repo} --rev {cfg.rev}: not a git clone of pytorch/rl with that "
+            f"revision ({found.stderr.strip()}); clone it: git clone https://github.com/pytorch/rl"
+        )
+    commit = found.stdout.strip()
     with tempfile.TemporaryDirectory() as tmp:
         archive = Path(tmp) / "tests.tar"
         with archive.open("wb") as out:

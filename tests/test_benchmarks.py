@@ -287,3 +287,7 @@ def test_torchrl_compat_runs_the_tests_on_each_class(tmp_path):
         "tests": 1, "passed": 0, "failed": 1, "skipped": 0,
     }  # fmt: skip
     assert len(out["tests"]["commit"]) == 40
+    # not a clone, or a revision it lacks: one line that says what to do
+    for bad in (compat.Config(repo=tmp_path), compat.Config(repo=tmp_path / "rl", rev="nope")):
+        with pytest.raises(SystemExit, match="not a git clone of pytorch/rl"):
+            compat.main(bad)
