@@ -15,9 +15,11 @@ TUTORIALS = sorted((Path(__file__).resolve().parents[1] / "docs" / "tutorials").
 
 def test_there_are_tutorials_and_the_site_lists_each_one():
     nav = (TUTORIALS[0].parents[2] / "mkdocs.yml").read_text()
+    index = (TUTORIALS[0].parent / "index.md").read_text()
     assert len(TUTORIALS) >= 5
     for path in TUTORIALS:
         assert f"tutorials/{path.name}" in nav, f"{path.name} is not in mkdocs.yml's nav"
+        assert f"]({path.name})" in index, f"{path.name} is not in docs/tutorials/index.md"
 
 
 @pytest.mark.parametrize("path", TUTORIALS, ids=lambda path: path.stem)

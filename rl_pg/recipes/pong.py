@@ -65,6 +65,8 @@ def _register_atari() -> None:
     import gymnasium
 
     gymnasium.register_envs(ale_py)
+    # ALE prints its banner to stderr for every game it creates; keep its errors only.
+    ale_py.ALEInterface.setLoggerMode(ale_py.LoggerMode.Error)
 
 
 FRAMESKIP = 4  # each agent step is 4 Atari frames
