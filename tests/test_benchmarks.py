@@ -177,6 +177,22 @@ def test_evaluation(tmp_path):
     assert out["parallel_env_over_workers"] > 0
 
 
+@pytest.mark.skipif(
+    importlib.util.find_spec("metadrive") is None, reason="MetaDrive is not installed"
+)
+def test_metadrive_maps(tmp_path):
+    maps = _script("metadrive_maps")
+    out = maps.main(maps.Config(scenarios=3, repeats=1, json_path=tmp_path / "m.json"))
+    assert json.loads((tmp_path / "m.json").read_text()) == out
+    assert [len(runs) for runs in out["runs"].values()] == [1, 1]
+    kept = out["results"]["store_map"]
+    assert kept["gb_for_the_training_scenarios"] == pytest.approx(
+        kept["mb_per_new_scenario"] * out["training_scenarios"] / 1024
+    )
+    with pytest.raises(SystemExit, match="at least 3"):
+        maps.main(maps.Config(scenarios=2, json_path=tmp_path / "n.json"))
+
+
 def test_grad_stats(tmp_path):
     grad_stats = _script("grad_stats")
     cfg = grad_stats.Config(
