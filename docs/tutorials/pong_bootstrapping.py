@@ -17,10 +17,13 @@
 # project grew from does what actor-critic methods do: 16 games play side by side, and
 # every $n = 50$ steps an update weights each action by
 #
-# $$\hat G_t = \sum_{k=t}^{T-1} \gamma^{k-t} r_k + \gamma^{T-t}\, V(s_T) - V(s_t),$$
+# $$
+# \hat G_t - V(s_t) = \sum_{k=t}^{T-1} \gamma^{k-t} r_k + \gamma^{T-t}\, V(s_T) - V(s_t)
+# $$
 #
 # the rewards up to the end of the segment ($T$), then the learned value of where the
-# segment stopped, minus the value of where the action was taken. Here we look at what
+# segment stopped (none if the game ended inside it), minus the value of where the
+# action was taken. Here we look at what
 # the network sees, then at the three weights — the return to the end of the game, the
 # same minus $V(s_t)$, and the bootstrapped one — on the same steps of a trained agent.
 
@@ -135,18 +138,21 @@ cut = done.clone()
 cut[segment - 1 :: segment] = True
 bootstrapped = reward_to_go(reward, cut, gamma, terminated=terminated, next_value=next_value)
 
-weights = {
-    "$G_t$": to_end,
-    "$G_t - V(s_t)$": to_end - value,
-    f"$\\hat G_t$ ({segment} steps, bootstrapped) $- V(s_t)$": bootstrapped - value,
+weights = {  # name: (label of the figure, the weight of each step)
+    "G_t": ("$G_t$", to_end),
+    "G_t - V(s_t)": ("$G_t - V(s_t)$", to_end - value),
+    f"bootstrapped ({segment} steps) - V(s_t)": (
+        f"$\\hat G_t - V(s_t)$, {segment} steps, bootstrapped",
+        bootstrapped - value,
+    ),
 }
-for name, psi in weights.items():
-    print(f"{name:45s} spread (std) {psi.std():.3f}   mean {psi.mean():+.3f}")
+for name, (_, psi) in weights.items():
+    print(f"{name:35s} spread (std) {psi.std():.3f}   mean {psi.mean():+.3f}")
 print(f"bootstrapped minus to-the-end returns: mean {(bootstrapped - to_end).mean():+.3f}")
 
 fig, ax = plt.subplots(figsize=(7, 3.4))
-for name, psi in weights.items():
-    ax.hist(psi.squeeze(-1), bins=80, range=(-2, 2), histtype="step", label=name)
+for label, psi in weights.values():
+    ax.hist(psi.squeeze(-1), bins=80, range=(-2, 2), histtype="step", label=label)
 ax.set(xlabel="the weight $\\Psi_t$ of $\\nabla \\log \\pi(a_t \\mid s_t)$", ylabel="steps")
 ax.legend(fontsize=8)
 fig.tight_layout()
