@@ -41,13 +41,12 @@ from common import REPO, table, write_json
 from tensordict import TensorDictBase
 from throughput import PlainLoop
 from torchrl.envs.utils import set_exploration_type
-from torchrl.record.loggers import CSVLogger
 
 from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _root, _segment
 from rl_pg.envs import VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
-from rl_pg.training.metrics import EpisodeReturns
+from rl_pg.training.metrics import BufferedCSVLogger, EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update, warm_up
 
 
@@ -135,7 +134,7 @@ def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, 
         lambda *_: clock.update(forward=time.perf_counter_ns() - clock["start"])
     )
     episodes = EpisodeReturns(carry=True)
-    logger = CSVLogger(exp_name="csv", log_dir=str(log_dir))
+    logger = BufferedCSVLogger(exp_name="csv", log_dir=str(log_dir))  # as the loop logs
 
     def run(updates: int) -> dict[str, float]:
         timer = _Timer()

@@ -25,6 +25,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import ValueOperator
+from torchrl.record.loggers import CSVLogger
 
 from rl_pg.checkpoint import CheckpointError, load_checkpoint
 from rl_pg.envs import GridWorldEnv
@@ -32,6 +33,7 @@ from rl_pg.models import mlp_actor, mlp_critic
 from rl_pg.normalization import PopArt, RunningNorm, update_running_norms
 from rl_pg.recipes import load
 from rl_pg.training import (
+    Callback,
     RunDirBusy,
     TrainConfig,
     TrainingDiverged,
@@ -41,7 +43,7 @@ from rl_pg.training import (
 )
 from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
-from rl_pg.training.metrics import EpisodeReturns
+from rl_pg.training.metrics import BufferedCSVLogger, EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
 from rl_pg.training.seeds import evaluation_seed
 
@@ -990,6 +992,56 @@ class _Flatten(nn.Module):
 
     def forward(self, observation):
         return self.linear(observation).squeeze(-1)
+
+
+class TestBufferedCSVLogs:
+    """The CSV logs are TorchRL's rows, written in bulk but on disk whenever the run
+    checkpoints, evaluates or ends."""
+
+    CALLS = (  # name, value, step (None: TorchRL counts the scalar's rows)
+        ("loss/actor", 0.5, 128), ("eval/mean_return", -3.25, 256),
+        ("loss/actor", 1e-9, 384), ("loss/actor", float("nan"), 512),
+        ("count", 7, None), ("count", 8, None),
+    )  # fmt: skip
+
+    def test_the_files_hold_torchrls_own_rows(self, tmp_path):
+        ours = BufferedCSVLogger("csv", str(tmp_path / "ours"), flush_every=3600.0)
+        theirs = CSVLogger("csv", str(tmp_path / "theirs"))
+        for name, value, step in self.CALLS:
+            ours.log_scalar(name, value, step=step)
+            theirs.log_scalar(name, value, step=step)
+        ours.flush()
+
+        def files(root):
+            return {p.relative_to(root): p.read_bytes() for p in root.rglob("*.csv")}
+
+        assert files(tmp_path / "ours") == files(tmp_path / "theirs")
+        assert len(files(tmp_path / "ours")) == 3
+
+    def test_rows_wait_for_a_flush_or_their_deadline(self, tmp_path):
+        held = BufferedCSVLogger("csv", str(tmp_path / "held"), flush_every=3600.0)
+        held.log_scalar("a", 1.0, step=1)
+        path = tmp_path / "held" / "csv" / "scalars" / "a.csv"
+        assert path.read_text() == ""
+        held.flush()
+        assert path.read_text() == "1,1.0\n"
+        eager = BufferedCSVLogger("csv", str(tmp_path / "eager"), flush_every=0.0)
+        eager.log_scalar("a", 2.0, step=3)
+        assert (tmp_path / "eager" / "csv" / "scalars" / "a.csv").read_text() == "3,2.0\n"
+
+    def test_every_row_is_on_disk_when_the_run_checkpoints_and_when_it_ends(self, tmp_path):
+        seen = []
+
+        class ReadTheLogs(Callback):
+            def on_checkpoint(self, run):
+                seen.append((run.state.frames, read_curve(run.path, "loss/actor")[0][-1]))
+
+            def on_end(self, run):
+                seen.append((run.state.frames, read_curve(run.path, "loss/actor")[0][-1]))
+
+        _train(_cfg(tmp_path, total_updates=5, checkpoint_interval=2), callbacks=[ReadTheLogs()])
+        assert len(seen) == 4  # at updates 2, 4 and 5 (the last), then at the end
+        assert all(frames == last_logged for frames, last_logged in seen)
 
 
 def test_curves_are_read_from_logs_cut_short_by_a_kill(tmp_path):

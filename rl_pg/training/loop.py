@@ -178,6 +178,7 @@ def train(
                     break
         finally:
             try:
+                run.logger.flush()  # a callback's on_end may read the logs
                 hooks.on_end(run)
             finally:
                 run.close()
@@ -346,7 +347,10 @@ class Run:
         return (self.state.frames // self.cfg.eval_interval + 1) * self.cfg.eval_interval
 
     def _pause(self) -> None:
+        """Stops the training clock for an evaluation or a checkpoint, whose logs and
+        checkpoint then agree on disk (the CSV rows held back are written)."""
         self.state.train_time += time.perf_counter() - self._clock
+        self.logger.flush()
 
     def _resume_clock(self) -> None:
         self._clock = time.perf_counter()
