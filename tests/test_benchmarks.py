@@ -186,7 +186,7 @@ def test_metadrive_maps(tmp_path):
     assert json.loads((tmp_path / "m.json").read_text()) == out
     assert [len(runs) for runs in out["runs"].values()] == [1, 1]
     kept = out["results"]["store_map"]
-    assert kept["gb_for_the_training_scenarios"] == pytest.approx(
+    assert out["gb_for_the_training_scenarios"] == pytest.approx(
         kept["mb_per_new_scenario"] * out["training_scenarios"] / 1024
     )
     with pytest.raises(SystemExit, match="at least 3"):
