@@ -515,6 +515,19 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         for r in reports
     )
     assert f"-->{held}/2<!-- /value --> hold." in page.read_text()
+    # below a *, a record that is null (not evaluated) gathers as missing; an absent
+    # key is still an error
+    partly = json.loads(stored.read_text())
+    partly["runs"][1]["report"]["sampled"] = None
+    (page.parent / "results" / "partly.json").write_text(json.dumps(partly))
+    page.write_text("<!-- value results/partly.json /runs/*/report/sampled/mean_return "
+                    "{0.count}/{0.n}:{0.missing} -->?<!-- /value --> sampled.\n")  # fmt: skip
+    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert "-->1/2:1<!-- /value --> sampled." in page.read_text()
+    page.write_text("<!-- value results/partly.json /runs/*/report/nowhere/mean_return "
+                    "{0.n} -->?<!-- /value -->\n")  # fmt: skip
+    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    assert status == 1 and "has nothing at" in err, err
     # a table of a JSON object's entries, one row each
     page.write_text("<!-- table results/seeds.json /runs/1/report {} | entry | value -->\n"
                     "| stale |\n<!-- end of table -->\n")  # fmt: skip

@@ -553,19 +553,30 @@ def _stored_json(match: re.Match, folder: Path) -> tuple[Any, Path]:
     return (Gathered(values) if "*" in parts else values[0]), path
 
 
-def _walk(value: Any, parts: list[str], path: Path, pointer: str) -> list[Any]:
-    """The values ``parts`` (a JSON pointer's segments, ``*`` for every entry) reach."""
+def _walk(
+    value: Any, parts: list[str], path: Path, pointer: str, *, gathering: bool = False
+) -> list[Any]:
+    """The values ``parts`` (a JSON pointer's segments, ``*`` for every entry) reach.
+    Below a ``*``, an entry that is null where the pointer goes on gathers as None
+    (a run without that record, e.g. no final-checkpoint evaluation when the best
+    checkpoint is the final one); a key that is absent is an error, as without ``*``."""
     if not parts:
         return [value]
     key, rest = parts[0], parts[1:]
     if key == "*" and isinstance(value, (list, dict)):
         entries = value if isinstance(value, list) else list(value.values())
-        return [found for entry in entries for found in _walk(entry, rest, path, pointer)]
+        return [
+            found
+            for entry in entries
+            for found in _walk(entry, rest, path, pointer, gathering=True)
+        ]
+    if value is None and gathering:
+        return [None]
     try:
         value = value[int(key)] if isinstance(value, list) else value[key]
     except (KeyError, IndexError, ValueError, TypeError) as err:
         raise ValueError(f"{path} has nothing at {pointer} (no {key!r}).") from err
-    return _walk(value, rest, path, pointer)
+    return _walk(value, rest, path, pointer, gathering=gathering)
 
 
 class Gathered:
