@@ -1025,6 +1025,9 @@ class TestBufferedCSVLogs:
         assert path.read_text() == ""
         held.flush()
         assert path.read_text() == "1,1.0\n"
+        for bad, error in ((-1.0, ValueError), (float("nan"), ValueError), ("1", TypeError)):
+            with pytest.raises(error, match="flush_every"):
+                BufferedCSVLogger("csv", str(tmp_path / "bad"), flush_every=bad)
         eager = BufferedCSVLogger("csv", str(tmp_path / "eager"), flush_every=0.0)
         eager.log_scalar("a", 2.0, step=3)
         assert (tmp_path / "eager" / "csv" / "scalars" / "a.csv").read_text() == "3,2.0\n"

@@ -150,10 +150,8 @@ class Loggers:
 
 class _BufferedCSVExperiment(CSVExperiment):
     """TorchRL's CSV experiment, its rows written to the files in bulk: at most
-    ``flush_every`` seconds after they are logged, or at ``flush()``. TorchRL's own
-    checks that a file exists and flushes it for every scalar, which costs a fast
-    task's update a few per cent (a CartPole update logs a dozen scalars in about
-    7 ms)."""
+    ``flush_every`` seconds after they are logged, or at ``flush()``, where TorchRL's
+    own checks that the file exists and flushes it for every scalar."""
 
     def __init__(self, log_dir: str, *, flush_every: float, **kwargs) -> None:
         super().__init__(log_dir, **kwargs)
@@ -200,6 +198,12 @@ class BufferedCSVLogger(CSVLogger):
     """
 
     def __init__(self, exp_name: str, log_dir: str, *, flush_every: float = 1.0) -> None:
+        if isinstance(flush_every, bool) or not isinstance(flush_every, (int, float)):
+            raise TypeError(f"flush_every must be a number of seconds, got {flush_every!r}.")
+        if not flush_every >= 0:  # NaN too
+            raise ValueError(
+                f"flush_every must be >= 0 seconds (0 writes every row at once), got {flush_every}."
+            )
         self.flush_every = flush_every
         super().__init__(exp_name=exp_name, log_dir=log_dir)
 
