@@ -284,8 +284,13 @@ def plain_pytorch_training(recipe, n: int, bookkeeping: bool = False) -> Callabl
 
     def run(frames: int) -> float:
         with tempfile.TemporaryDirectory() as log_dir:
-            return _plain_rate(BookkeepingLoop(recipe, n, log_dir) if bookkeeping
-                               else PlainLoop(recipe, n), frames)  # fmt: skip
+            if not bookkeeping:
+                return _plain_rate(PlainLoop(recipe, n), frames)
+            loop = BookkeepingLoop(recipe, n, log_dir)
+            try:
+                return _plain_rate(loop, frames)
+            finally:  # its writer's thread would write into the deleted directory
+                loop.writer.close()
 
     return run
 
