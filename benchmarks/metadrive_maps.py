@@ -75,9 +75,14 @@ def summary(run: dict[str, list[float]], scenarios: int) -> dict[str, float]:
 
 
 def main(cfg: Config) -> dict:
-    if cfg.scenarios < 3:
-        raise SystemExit(f"--scenarios {cfg.scenarios}: at least 3 are needed to measure.")
     training = md.SCENARIO_SETS[TRAINING][1]
+    if not 3 <= cfg.scenarios <= training:
+        raise SystemExit(
+            f"--scenarios {cfg.scenarios}: at least 3 are needed to measure, and the "
+            f"training set has {training}."
+        )
+    if cfg.repeats < 1:
+        raise SystemExit(f"--repeats {cfg.repeats}: at least one repetition is needed.")
     context = mp.get_context("spawn")  # a fresh interpreter, and engine, per measurement
     runs: dict[str, list[dict[str, float]]] = {"store_map": [], "no store_map": []}
     with context.Pool(1, maxtasksperchild=1) as pool:

@@ -9,6 +9,7 @@ import importlib
 import importlib.util
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -189,8 +190,10 @@ def test_metadrive_maps(tmp_path):
     assert out["gb_for_the_training_scenarios"] == pytest.approx(
         kept["mb_per_new_scenario"] * out["training_scenarios"] / 1024
     )
-    with pytest.raises(SystemExit, match="at least 3"):
-        maps.main(maps.Config(scenarios=2, json_path=tmp_path / "n.json"))
+    for bad in (maps.Config(scenarios=2), maps.Config(scenarios=1001), maps.Config(repeats=0)):
+        with pytest.raises(SystemExit, match=r"--scenarios|--repeats"):
+            maps.main(replace(bad, json_path=tmp_path / "n.json"))
+    assert not (tmp_path / "n.json").exists()
 
 
 def test_grad_stats(tmp_path):
