@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import importlib.util
 import io
+import itertools
 import json
 import math
 import os
@@ -21,6 +22,8 @@ import numpy as np
 import pytest
 import torch
 from conftest import assert_same_run, hide_module, run_weights
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -748,30 +751,60 @@ class TestKilledRun:
             assert_same_run(resumed, run, straight)
 
 
-@pytest.mark.parametrize("p_end", [0.15, 0.02])  # 0.02: most segments end no episode
-def test_training_episode_returns_are_summed_across_segments(p_end):
-    generator = torch.Generator().manual_seed(0)
-    n_envs, steps, cut = 3, 40, 8
-    reward = torch.randn(n_envs, steps, generator=generator)
-    done = torch.rand(n_envs, steps, generator=generator) < p_end
-    assert done.any()
-    expected, running = [], torch.zeros(n_envs)
-    for t in range(steps):  # plain loop over the whole stream
-        running += reward[:, t]
+@settings(max_examples=60, deadline=None)
+@given(
+    n_envs=st.integers(1, 4),
+    steps=st.integers(1, 30),
+    p_end=st.sampled_from([0.0, 0.02, 0.15, 0.6]),
+    cuts=st.lists(st.integers(1, 29), max_size=4),
+    features=st.sampled_from([(), (1,), (2,)]),
+    dtype=st.sampled_from([torch.float32, torch.float64, torch.bfloat16]),
+    resume_at=st.integers(0, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_training_episode_returns_match_a_plain_loop_over_the_stream(
+    n_envs, steps, p_end, cuts, features, dtype, resume_at, seed
+):
+    """Each ended episode's undiscounted return, whatever the segment cuts, with a
+    checkpoint round trip between two segments, rewards with feature dimensions (summed)
+    in any precision, and the mean popped every other segment."""
+    generator = torch.Generator().manual_seed(seed)
+    reward = torch.randn(n_envs, steps, *features, generator=generator).to(dtype)
+    done = torch.rand(n_envs, steps, *features[:1], generator=generator) < p_end
+    summed = reward.double().reshape(n_envs, steps, -1).sum(-1)
+    ends, running = [], torch.zeros(n_envs, dtype=torch.float64)
+    for t in range(steps):  # a plain loop over the whole stream
+        running += summed[:, t]
         for i in range(n_envs):
-            if done[i, t]:
-                expected.append(running[i].item())
+            if done[i, t].any():
+                ends.append((t, running[i].item()))
                 running[i] = 0.0
-    tracker = EpisodeReturns(carry=True)
-    for start in range(0, steps, cut):  # the same stream as 8-step segments
-        sl = slice(start, start + cut)
-        batch = TensorDict(
-            {"next": {"reward": reward[:, sl, None], "done": done[:, sl, None]}},
-            batch_size=[n_envs, cut],
+    bounds = sorted({0, steps, *(c for c in cuts if c < steps)})
+    tracker, popped_since = EpisodeReturns(carry=True), 0
+    for k, (lo, hi) in enumerate(itertools.pairwise(bounds)):
+        if k == resume_at:  # as a resumed run restores it from its checkpoint
+            buffer = io.BytesIO()
+            torch.save(tracker.state_dict(), buffer)
+            buffer.seek(0)
+            tracker = EpisodeReturns(carry=True)
+            tracker.load_state_dict(torch.load(buffer))
+        tracker.add(
+            TensorDict(
+                {"next": {"reward": reward[:, lo:hi], "done": done[:, lo:hi]}},
+                batch_size=[n_envs, hi - lo],
+            )
         )
-        tracker.add(batch)
-    assert tracker.pop_mean() == pytest.approx(sum(expected) / len(expected), rel=1e-5)
-    assert math.isnan(tracker.pop_mean())  # nothing ended since the last call
+        if k % 2 == 0 and hi < steps:
+            continue
+        expected = [value for t, value in ends if popped_since <= t < hi]
+        recorded = [e for ended in tracker.state_dict()["ended"] for e in ended.tolist()]
+        assert sorted(recorded) == pytest.approx(sorted(expected), rel=1e-9, abs=1e-9)
+        mean = tracker.pop_mean()
+        if expected:
+            assert mean == pytest.approx(sum(expected) / len(expected), rel=1e-9, abs=1e-9)
+        else:
+            assert math.isnan(mean)
+        popped_since = hi
 
 
 _HOLD_THE_LOCK = textwrap.dedent(

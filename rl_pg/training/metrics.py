@@ -49,10 +49,13 @@ class EpisodeReturns:
         self.partial = None
 
     def add(self, batch: TensorDictBase) -> None:
-        done = batch["next", "done"].reshape(*batch.shape, -1).any(-1)
-        reward = batch["next", "reward"].reshape(*batch.shape, -1).sum(-1)
+        done = batch["next", "done"].reshape(*batch.shape, -1).any(-1).cpu()
+        # Summed in float64 (on the CPU: not every accelerator has it) whatever the
+        # rewards' precision: a return of 500 in bfloat16 steps by 2.
+        reward = batch["next", "reward"].reshape(*batch.shape, -1).to("cpu", torch.float64)
+        reward = reward.sum(-1)
         done = done.reshape(-1, done.shape[-1])  # [environments, T]
-        reward = reward.reshape(done.shape).clone()
+        reward = reward.reshape(done.shape)
         if self.partial is not None and self.partial.shape[0] == reward.shape[0]:
             reward[:, 0] += self.partial
         if not done.any():  # no episode ended (long episodes, short segments): carry all
@@ -74,7 +77,7 @@ class EpisodeReturns:
         """Mean over the episodes ended since the last call (NaN if none)."""
         ended = torch.cat(self.ended) if self.ended else torch.zeros(0)
         self.ended = []
-        return ended.float().mean().item() if ended.numel() else float("nan")
+        return ended.double().mean().item() if ended.numel() else float("nan")
 
 
 class Loggers:
