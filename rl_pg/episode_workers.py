@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_int, require_extra
+from rl_pg._process import frozen_heap
 from rl_pg.evaluation import EpisodeRequest, episode_shares, play_episodes, policy_device
 
 __all__ = ["EpisodeWorkers"]
@@ -296,20 +297,21 @@ def _episode_worker(make_env: Callable[[], EnvBase], pipe: Any) -> None:
     for sig in (getattr(signal, name) for name in stops if hasattr(signal, name)):
         signal.signal(sig, signal.SIG_IGN)
     torch.set_num_threads(1)
-    try:
-        env = make_env()
-        pipe.send(("ready", _specs(env)))
-    except Exception:
-        pipe.send(("error", traceback.format_exc()))
-        return
-    try:
-        while (message := pipe.recv()) is not None:
-            policy, seed, request = message
-            try:
-                pipe.send(("done", _seeded_play(policy, env, seed, request)))
-            except Exception:
-                pipe.send(("error", traceback.format_exc()))
-    except EOFError:  # the main process is gone
-        pass
-    finally:
-        env.close()
+    with frozen_heap():  # the process ends with this function: close() waits for it
+        try:
+            env = make_env()
+            pipe.send(("ready", _specs(env)))
+        except Exception:
+            pipe.send(("error", traceback.format_exc()))
+            return
+        try:
+            while (message := pipe.recv()) is not None:
+                policy, seed, request = message
+                try:
+                    pipe.send(("done", _seeded_play(policy, env, seed, request)))
+                except Exception:
+                    pipe.send(("error", traceback.format_exc()))
+        except EOFError:  # the main process is gone
+            pass
+        finally:
+            env.close()

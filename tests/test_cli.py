@@ -761,3 +761,51 @@ def test_a_reported_evaluation_shows_its_crash_rate():
               "sampled": {**record, "crashed_rate": 0.37}}  # fmt: skip
     row = format_report([report], ["seed0"]).splitlines()[2]
     assert "21.50 ± 2.20 (100), 2% crashed" in row and "37% crashed" in row
+
+
+def test_every_way_of_starting_the_command_freezes_its_heap():
+    """The console script, ``python -m rl_pg.recipes`` and a checkout's recipe scripts
+    start at ``run`` (the heap frozen), not at ``main``, which tests call in-process."""
+    import tomllib
+
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["rl-pg"] == "rl_pg.recipes.cli:run"
+    assert "cli import run\n\nrun()" in (REPO / "rl_pg/recipes/__main__.py").read_text()
+    source = (REPO / "rl_pg/recipes/cli.py").read_text()
+    checkout = source[source.index("def run_checkout_script") :]
+    assert "    run([" in checkout and "main([" not in checkout
+
+
+def test_a_frozen_heap_still_collects_what_the_process_makes_afterwards(capsys):
+    import gc
+    import weakref
+
+    from rl_pg._process import frozen_heap
+    from rl_pg.recipes.cli import run
+
+    class Node:
+        pass
+
+    def cycle() -> weakref.ref:
+        node = Node()
+        node.self = node  # garbage only the cycle collector frees
+        return weakref.ref(node)
+
+    before = cycle()  # made before the freeze, not yet collected: frozen with the rest
+    try:
+        with frozen_heap():
+            frozen = gc.get_freeze_count()
+            assert frozen > 0 and before() is not None
+            after = cycle()
+            gc.collect()
+            assert after() is None, "an object made after the freeze was not collected"
+            assert before() is not None  # what was frozen stays out of the collector's sight
+        gc.unfreeze()
+        with pytest.raises(SystemExit):  # the command's entry point freezes, however it ends
+            run(["no-such-command"])
+        assert "rl-pg" in capsys.readouterr().err
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()  # this test process goes on living
+    gc.collect()
+    assert before() is None

@@ -1,5 +1,5 @@
 """``python -m rl_pg.recipes``: the ``rl-pg`` command."""
 
-from rl_pg.recipes.cli import main
+from rl_pg.recipes.cli import run
 
-main()
+run()

@@ -32,6 +32,7 @@ from typing import Annotated, Any, TypeVar
 
 import tyro
 
+from rl_pg._process import frozen_heap
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.recipes import NAMES, load, recipe_of
 from rl_pg.training.checkpoints import read_run
@@ -245,6 +246,15 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play,export,tune,report,lab}
 """
 
 
+def run(argv: Sequence[str] | None = None) -> None:
+    """The ``rl-pg`` command as a process of its own: [`main`][rl_pg.recipes.cli.main]
+    with the imports' objects kept out of the garbage collector's walks, and none left
+    for the interpreter's teardown (see ``rl_pg._process.frozen_heap``). The console
+    script, ``python -m rl_pg.recipes`` and a checkout's ``recipes/*.py`` start here."""
+    with frozen_heap():
+        main(argv)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """The ``rl-pg`` command (``argv`` defaults to ``sys.argv[1:]``)."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -283,7 +293,7 @@ def run_checkout_script(path: str) -> None:
     folder = str(Path(path).resolve().parent)
     sys.path[:] = [p for p in sys.path if str(Path(p or ".").resolve()) != folder]
     name = Path(path).stem
-    main(["play", *sys.argv[1:]] if name == "play" else ["train", name, *sys.argv[1:]])
+    run(["play", *sys.argv[1:]] if name == "play" else ["train", name, *sys.argv[1:]])
 
 
 @contextmanager
