@@ -196,6 +196,28 @@ def test_metadrive_maps(tmp_path):
     assert not (tmp_path / "n.json").exists()
 
 
+def test_command_times_whole_processes_through_both_entry_points(tmp_path):
+    command = _script("command")
+    out = command.main(
+        command.Config(commands=["--help"], repeats=1, json_path=tmp_path / "c.json")
+    )
+    assert json.loads((tmp_path / "c.json").read_text()) == out
+    assert set(out["median_seconds"]) == {
+        *command.IMPORTS,
+        "rl-pg --help (entry: main)",
+        "rl-pg --help (entry: run)",
+    }
+    assert all(len(times) == 1 and times[0] > 0 for times in out["seconds"].values())
+    assert out["median_training_seconds"] == {}  # --help trains nothing
+    assert set(out["run_over_main"]) == {"--help"}
+    with pytest.raises(SystemExit, match="--repeats"):
+        command.main(command.Config(repeats=0, json_path=tmp_path / "n.json"))
+    with pytest.raises(SystemExit, match="no-such-command"):  # a failing command stops the run
+        command.main(command.Config(commands=["no-such-command"], repeats=1,
+                                    json_path=tmp_path / "n.json"))  # fmt: skip
+    assert not (tmp_path / "n.json").exists()
+
+
 def test_grad_stats(tmp_path):
     grad_stats = _script("grad_stats")
     cfg = grad_stats.Config(
