@@ -292,11 +292,16 @@ def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
     for task, message in [("cartpole", "RECIPE:N"), ("pendulum:4", "categorical policy")]:
         with pytest.raises(ValueError, match=message):
             breakdown.main(breakdown.Config(tasks=[task], json_path=tmp_path / "x.json"))
-    parts = out["tasks"]["cartpole-x4"]["parts"]
-    assert set(parts) == {*breakdown.PIECES, "total"}
+    result = out["tasks"]["cartpole-x4"]
+    parts = result["parts"]
+    assert set(parts) == {*breakdown.PIECES, "total"}  # the repeated pass is not a piece
     assert parts["total"]["rl_pg"] == pytest.approx(
         sum(parts[p]["rl_pg"] for p in breakdown.PIECES)
     )
+    repeated = result["loss_forward_repeated_at_once"]
+    assert set(repeated) == {"rl_pg", "plain PyTorch"} and min(repeated.values()) > 0
+    for who, ratio in result["loss_forward_in_loop_over_repeated"].items():
+        assert ratio == pytest.approx(parts["update: loss forward"][who] / repeated[who])
 
 
 def test_torchrl_compat_runs_the_tests_on_each_class(tmp_path):
