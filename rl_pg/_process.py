@@ -15,8 +15,8 @@ def frozen_heap() -> Iterator[None]:
 
     What the imports build (torch, TorchRL, tensordict and the compiler stack that
     tensordict imports: about a million objects) lives as long as the process, yet
-    every full collection walks it, and so does the interpreter's teardown: about a
-    second after each command on a 2-core machine. ``gc.freeze()`` moves the objects
+    every full collection walks it, and so does the interpreter's teardown (what that
+    costs a command: ``benchmarks/command.py``). ``gc.freeze()`` moves the objects
     that exist into a generation the collector never visits; objects made afterwards
     are collected as before. At the end the rest is frozen too: the process is ending,
     the operating system takes the memory back, and ``atexit`` handlers (loggers'
