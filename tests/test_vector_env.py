@@ -200,3 +200,51 @@ def test_envpool_errors_name_the_fix():
         gym_env("CartPole-v1", backend="envpool")
     with pytest.raises(ValueError, match="backend must be 'gymnasium' or 'envpool'"):
         gym_env("CartPole-v1", num_envs=2, backend="gym")
+
+
+@pytest.mark.parametrize(
+    ("task_id", "steps"),
+    [
+        ("CartPole-v1", 120),  # many terminations
+        ("LunarLanderContinuous-v3", 60),  # float actions
+        ("Pong-v5", 30),  # image observations, extra info arrays
+    ],
+)
+def test_envpool_steps_through_its_arrays_as_through_its_api(task_id, steps):
+    """EnvPoolEnv reads and writes EnvPool's arrays directly; every step (observations,
+    rewards, terminations, truncations, partial resets) is what EnvPool's gymnasium API
+    gives for the same actions."""
+    pytest.importorskip("envpool")
+    import envpool
+
+    from rl_pg.envs.vector import _direct_layout
+
+    env = EnvPoolEnv(task_id, num_envs=3, max_episode_steps=25)  # seeds 0, 1, 2
+    assert env._env._direct[0] is not None  # the direct path is the one under test
+    api = envpool.make_gymnasium(task_id, num_envs=3, seed=0, max_episode_steps=25)
+    obs, _ = api.reset()
+    root = env.reset()
+    torch.testing.assert_close(root["observation"], torch.as_tensor(obs), rtol=0, atol=0)
+    ended = 0
+    for _ in range(steps):
+        action = env.action_spec.rand().numpy()
+        step, root = env.step_and_maybe_reset(root.set("action", torch.as_tensor(action)))
+        obs, reward, terminated, truncated, _ = api.step(action)
+        for key, expected in (
+            (("next", "observation"), obs),
+            (("next", "reward"), reward.reshape(3, 1)),
+            (("next", "terminated"), terminated.reshape(3, 1)),
+            (("next", "truncated"), truncated.reshape(3, 1)),
+        ):
+            torch.testing.assert_close(
+                step[key], torch.as_tensor(expected).to(step[key].dtype), rtol=0, atol=0
+            )
+        done = terminated | truncated
+        if done.any():  # EnvPoolEnv reset those at once: so does the reference
+            ended += int(done.sum())
+            fresh, _ = api.reset(np.flatnonzero(done).astype(np.int32))
+            obs = obs.copy()
+            obs[done] = fresh
+        torch.testing.assert_close(root["observation"], torch.as_tensor(obs), rtol=0, atol=0)
+    assert ended > 0  # the comparison crossed episode ends
+    assert _direct_layout(gym.make_vec("CartPole-v1", num_envs=2)) is None  # not a pool

@@ -430,12 +430,26 @@ class _Pools(gym.vector.VectorEnv):
         self._ids = [np.arange(size, dtype=np.int32) for size in self.sizes]
         self._bounds = np.cumsum(self.sizes)[:-1]
         self._last: list[np.ndarray | None] = [None] * len(pools)
+        self._direct = [_direct_layout(pool) for pool in pools]
+        self._checked = [False] * len(pools)
 
     def send(self, group: int, actions: np.ndarray) -> None:
-        self.pools[group].send(actions, self._ids[group])
+        pool, direct = self.pools[group], self._direct[group]
+        if direct is None or not self._checked[group]:
+            pool.send(actions, self._ids[group])  # checks the actions' dtype and shape once
+            self._checked[group] = True
+            return
+        ids = self._ids[group]
+        pool._send([ids, ids, np.asarray(actions, dtype=direct[0])])
 
     def recv(self, group: int):
-        obs, reward, terminated, truncated, _ = self.pools[group].recv()
+        direct = self._direct[group]
+        if direct is None:
+            obs, reward, terminated, truncated, _ = self.pools[group].recv()
+        else:
+            state = self.pools[group]._recv()
+            obs, reward, done, truncated = (state[i] for i in direct[1])
+            terminated = done & ~truncated  # as EnvPool's gymnasium API derives it
         self._last[group] = obs
         return obs, reward, terminated, truncated
 
@@ -473,3 +487,35 @@ class _Pools(gym.vector.VectorEnv):
     def close(self, **kwargs) -> None:
         for pool in self.pools:
             pool.close()
+
+
+def _direct_layout(pool) -> tuple[np.dtype, list[int]] | None:
+    """How to step ``pool`` through EnvPool's own arrays, or None to use its API.
+
+    EnvPool's ``send`` and ``recv`` wrap two C++ calls that take and give a list of
+    arrays (``_send``, ``_recv``) in Python that builds dictionaries, infers multiplayer
+    ids and unflattens the info tree at every step, which a double-buffered loop pays
+    twice per step on the thread that also runs the policy. For a single-player pool
+    with one action array and an ``"obs"`` array this gives the action's dtype and the
+    positions of the observation, reward, done and truncation arrays in ``_recv``'s
+    list; any other layout (or an EnvPool that names things otherwise) keeps the API.
+    The first ``send`` of each pool still goes through the API, which checks the
+    actions' dtype and shape once.
+    """
+    try:
+        action_keys = list(pool._spec._action_keys)
+        action_dtype = np.dtype(pool._spec._action_spec[-1][0])
+        state_keys = list(pool._state_keys)
+        players = pool.config.get("max_num_players", 1)
+    except (AttributeError, IndexError, TypeError):
+        return None
+    wanted = ("obs", "reward", "done", "trunc")
+    if (
+        players != 1
+        or action_keys[:2] != ["env_id", "players.env_id"]
+        or len(action_keys) != 3
+        or not all(key in state_keys for key in wanted)
+        or not all(callable(getattr(pool, name, None)) for name in ("_send", "_recv"))
+    ):
+        return None
+    return action_dtype, [state_keys.index(key) for key in wanted]
