@@ -7,6 +7,7 @@ batch ([`LeanCategoricalActor`][rl_pg.lean.LeanCategoricalActor], what
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import (
     ProbabilisticTensorDictModule,
@@ -15,12 +16,15 @@ from tensordict.nn import (
     TensorDictModuleBase,
     TensorDictSequential,
 )
+from torch.nn.modules import module as _torch_module
 from torchrl.envs.utils import ExplorationType, exploration_type
-from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
 __all__ = [
+    "DirectSequential",
     "LeanCategoricalActor",
     "LeanCategoricalPolicy",
+    "direct_network",
     "lean_policy",
     "plain_layers",
     "run_plain",
@@ -87,7 +91,9 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
         self.actor = actor
         self.in_keys, self.out_keys = actor.in_keys, actor.out_keys
         *modules, head = actor.module
-        self._layers = [(m.module, list(m.in_keys), m.out_keys[0]) for m in _plain(modules)]
+        self._layers = [
+            (direct_network(m.module), list(m.in_keys), m.out_keys[0]) for m in _plain(modules)
+        ]
         self._logits_key = head.in_keys[0]
         self._action_key = head.out_keys[0]
         self._default = head.default_interaction_type
@@ -201,7 +207,9 @@ def plain_layers(module) -> list[tuple[torch.nn.Module, list, object]] | None:
     in order, when each only calls its network on its inputs (a ``ValueOperator``, an
     ``MLP`` wrapped with its keys, a sequence of such); None otherwise."""
     layers = _plain([module])
-    return None if layers is None else [(m.module, list(m.in_keys), m.out_keys[0]) for m in layers]
+    if layers is None:
+        return None
+    return [(direct_network(m.module), list(m.in_keys), m.out_keys[0]) for m in layers]
 
 
 def run_plain(layers, values: dict) -> dict:
@@ -211,3 +219,80 @@ def run_plain(layers, values: dict) -> dict:
     for network, in_keys, out_key in layers:
         values[out_key] = network(*(values[key] for key in in_keys))
     return values
+
+
+def direct_network(network: torch.nn.Module):
+    """``network``, or for a plain stack of layers (an ``nn.Sequential``, or TorchRL's
+    ``MLP``) a callable that computes exactly what it does with less Python: see
+    [`DirectSequential`][rl_pg.lean.DirectSequential]."""
+    if type(network) is torch.nn.Sequential or (type(network) is MLP and not network._reshape_out):
+        return DirectSequential(network)
+    return network
+
+
+class DirectSequential:
+    """Calls a stack of layers as its ``forward`` does, without ``nn.Module``'s call
+    machinery around each layer.
+
+    For the recipes' small MLPs over a few environments that machinery is a sizeable
+    share of each call, paid at every step of collection: each ``Linear`` runs here as
+    ``F.linear`` on the layer's current weight and bias (read at every call, so swapped
+    or updated parameters are used as the module would use them) and ``Tanh``, ``ReLU``
+    and ``Sigmoid`` as their functions, which is what their ``forward`` does: the same
+    operations, the same outputs and the same autograd graph. Any other layer, a layer
+    or network with a hook, a global module hook, or several inputs are left to
+    ``nn.Module``.
+
+    Args:
+        network (torch.nn.Sequential): the layers (an ``MLP`` whose output is not
+            reshaped is one).
+    """
+
+    def __init__(self, network: torch.nn.Sequential) -> None:
+        self.network = network
+        self._steps = [(layer, _direct_function(layer)) for layer in network]
+
+    def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
+        if len(inputs) != 1 or _hooked(self.network) or _hooked_globally():
+            return self.network(*inputs)
+        out = inputs[0]
+        for layer, function in self._steps:
+            if function is None or _hooked(layer):
+                out = layer(out)
+            elif function is F.linear:
+                out = F.linear(out, layer.weight, layer.bias)
+            else:
+                out = function(out)
+        return out
+
+
+def _direct_function(layer: torch.nn.Module):
+    """The function a layer's ``forward`` applies, for the kinds run directly."""
+    kind = type(layer)
+    if kind is torch.nn.Linear:
+        return F.linear
+    if kind is torch.nn.Tanh:
+        return torch.tanh
+    if kind is torch.nn.Sigmoid:
+        return torch.sigmoid
+    if kind is torch.nn.ReLU and not layer.inplace:
+        return torch.relu
+    return None
+
+
+def _hooked(module: torch.nn.Module) -> bool:
+    return bool(
+        module._forward_hooks
+        or module._forward_pre_hooks
+        or module._backward_hooks
+        or module._backward_pre_hooks
+    )
+
+
+def _hooked_globally() -> bool:
+    return bool(
+        _torch_module._global_forward_hooks
+        or _torch_module._global_forward_pre_hooks
+        or _torch_module._global_backward_hooks
+        or _torch_module._global_backward_pre_hooks
+    )

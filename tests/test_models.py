@@ -15,12 +15,18 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import GymWrapper
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
+from torchrl.modules import MLP, ConvNet, IndependentNormal, ProbabilisticActor, TanhNormal
 
 from rl_pg import ReinforceLoss
 from rl_pg.distributions import BoundedBeta
 from rl_pg.envs import GridWorldEnv, gym_env
-from rl_pg.lean import LeanCategoricalActor, LeanCategoricalPolicy, lean_policy
+from rl_pg.lean import (
+    DirectSequential,
+    LeanCategoricalActor,
+    LeanCategoricalPolicy,
+    direct_network,
+    lean_policy,
+)
 from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
 from rl_pg.normalization import RunningNorm, update_running_norms
 
@@ -380,3 +386,67 @@ class TestLeanCategoricalActor:
         td = env.reset()
         expected = torch.distributions.Categorical(logits=actor.module[0](td.clone())["logits"])
         torch.testing.assert_close(actor.get_dist(td).logits, expected.logits)
+
+
+class TestDirectSequential:
+    """``direct_network``: a stack of layers run without nn.Module's call machinery,
+    computing exactly what the stack computes."""
+
+    @staticmethod
+    def _networks():
+        torch.manual_seed(0)
+        yield MLP(in_features=5, out_features=3, num_cells=[16, 16], activation_class=nn.Tanh)
+        yield MLP(in_features=5, out_features=3, num_cells=[16], activation_class=nn.ReLU)
+        yield nn.Sequential(  # direct layers mixed with ones left to nn.Module
+            nn.Linear(5, 16), nn.ELU(), nn.LayerNorm(16), nn.Linear(16, 8),
+            nn.ReLU(inplace=True), nn.Sigmoid(), nn.Linear(8, 3),
+        )  # fmt: skip
+
+    def test_same_outputs_and_gradients_as_the_network(self):
+        x = torch.randn(7, 5)
+        for network in self._networks():
+            direct = direct_network(network)
+            assert isinstance(direct, DirectSequential)
+            reference = copy.deepcopy(network)
+            got, expected = direct(x), reference(x)
+            assert torch.equal(got, expected)
+            got.square().sum().backward()
+            expected.square().sum().backward()
+            for p, q in zip(network.parameters(), reference.parameters(), strict=True):
+                assert torch.equal(p.grad, q.grad)
+
+    def test_weights_are_read_at_each_call(self):
+        network = next(self._networks())
+        direct, x = direct_network(network), torch.randn(3, 5)
+        with torch.no_grad():
+            network[0].weight.add_(1.0)  # an optimiser's in-place step
+        assert torch.equal(direct(x), network(x))
+        zeros = TensorDict.from_module(network).apply(torch.zeros_like)
+        with zeros.to_module(network):  # what a functional loss does
+            assert torch.equal(direct(x), torch.zeros(3, 3))
+        assert not torch.equal(direct(x), torch.zeros(3, 3))
+
+    def test_hooks_and_several_inputs_go_through_nn_module(self):
+        network = next(self._networks())
+        direct, x = direct_network(network), torch.randn(3, 5)
+        calls = []
+        handle = network[1].register_forward_hook(lambda m, i, o: calls.append(m) or o * 0)
+        assert torch.equal(direct(x), network(x)) and len(calls) == 2
+        handle.remove()
+        handle = network.register_forward_pre_hook(lambda m, i: (i[0] * 2,))
+        assert torch.equal(direct(x), network(x))
+        handle.remove()
+        handle = nn.modules.module.register_module_forward_hook(lambda m, i, o: o + 1)
+        try:
+            assert torch.equal(direct(x), network(x))
+        finally:
+            handle.remove()
+        two = MLP(in_features=5, out_features=3, num_cells=[8])
+        assert torch.equal(direct_network(two)(x[:, :2], x[:, 2:]), two(x[:, :2], x[:, 2:]))
+
+    def test_other_networks_are_kept_as_they_are(self):
+        reshaped = MLP(in_features=5, out_features=(3, 2), num_cells=[8])
+        conv = ConvNet(num_cells=[4], kernel_sizes=3, strides=1)
+        linear = nn.Linear(5, 3)
+        for network in (reshaped, conv, linear):
+            assert direct_network(network) is network
