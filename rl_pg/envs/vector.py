@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -275,7 +276,8 @@ class EnvPoolEnv(VectorGymEnv):
         num_envs (int): environments in all.
 
     Keyword Args:
-        groups (int): 1, or 2 for two separately steppable halves (``num_envs`` >= 2).
+        groups (int): 1, or 2 for two separately steppable halves (``num_envs`` >= 2),
+            which share the cores' threads (unless ``num_threads`` is given).
             Defaults to 1.
         device (torch.device, optional): where the tensors are put. Defaults to the CPU.
         **kwargs: passed to ``envpool.make_gymnasium`` (e.g. ``num_threads``).
@@ -323,6 +325,10 @@ class EnvPoolEnv(VectorGymEnv):
                 f"groups={groups!r} for num_envs={num_envs}."
             )
         self._task_id = task_id
+        if groups > 1 and "num_threads" not in kwargs:
+            # EnvPool gives each pool a thread per core; two pools would run twice as
+            # many threads as cores, and each step's send wakes more of them.
+            kwargs["num_threads"] = max(1, len(os.sched_getaffinity(0)) // groups)
         self.group_sizes = [(num_envs + g) // groups for g in reversed(range(groups))]
         """Environments in each group, in order (the larger first)."""
         firsts = [sum(self.group_sizes[:g]) for g in range(groups)]
