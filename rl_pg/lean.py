@@ -225,7 +225,9 @@ def direct_network(network: torch.nn.Module):
     """``network``, or for a plain stack of layers (an ``nn.Sequential``, or TorchRL's
     ``MLP``) a callable that computes exactly what it does with less Python: see
     [`DirectSequential`][rl_pg.lean.DirectSequential]."""
-    if type(network) is torch.nn.Sequential or (type(network) is MLP and not network._reshape_out):
+    if type(network) is torch.nn.Sequential or (
+        type(network) is MLP and getattr(network, "_reshape_out", True) is False
+    ):
         return DirectSequential(network)
     return network
 
@@ -250,13 +252,14 @@ class DirectSequential:
 
     def __init__(self, network: torch.nn.Sequential) -> None:
         self.network = network
-        self._steps = [(layer, _direct_function(layer)) for layer in network]
 
     def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
-        if len(inputs) != 1 or _hooked(self.network) or _hooked_globally():
-            return self.network(*inputs)
+        network = self.network
+        if len(inputs) != 1 or _hooked(network) or _hooked_globally():
+            return network(*inputs)
         out = inputs[0]
-        for layer, function in self._steps:
+        for layer in network._modules.values():  # read at each call: layers may be replaced
+            function = _direct_function(layer)
             if function is None or _hooked(layer):
                 out = layer(out)
             elif function is F.linear:

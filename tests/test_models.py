@@ -421,6 +421,8 @@ class TestDirectSequential:
         with torch.no_grad():
             network[0].weight.add_(1.0)  # an optimiser's in-place step
         assert torch.equal(direct(x), network(x))
+        network[2] = nn.Linear(16, 16)  # a layer replaced
+        assert torch.equal(direct(x), network(x))
         zeros = TensorDict.from_module(network).apply(torch.zeros_like)
         with zeros.to_module(network):  # what a functional loss does
             assert torch.equal(direct(x), torch.zeros(3, 3))
