@@ -446,7 +446,7 @@ class _Pools(gym.vector.VectorEnv):
             self._checked[group] = True
             return
         ids = self._ids[group]
-        pool._send([ids, ids, np.asarray(actions, dtype=direct[0])])
+        pool._send([ids, ids, np.ascontiguousarray(actions, dtype=direct[0])])  # as _from
 
     def recv(self, group: int):
         direct = self._direct[group]
