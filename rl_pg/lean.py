@@ -28,6 +28,7 @@ __all__ = [
     "lean_policy",
     "plain_layers",
     "run_plain",
+    "sample_categorical",
 ]
 
 
@@ -69,9 +70,10 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
     """Samples a categorical ``ProbabilisticTensorDictSequential`` as it would, faster.
 
     Runs each ``TensorDictModule`` 's network directly on its inputs, then draws the
-    action exactly as ``torch.distributions.Categorical(logits=...).sample()`` does (the
-    same operations on the same random stream, hence the same actions), writing the
-    same entries as the actor. Outside random interaction (e.g. greedy evaluation
+    action as ``torch.distributions.Categorical(logits=...).sample()`` does (the same
+    operations on the same random stream, hence the same actions; the last one by
+    [`sample_categorical`][rl_pg.lean.sample_categorical]), writing the same entries as
+    the actor. Outside random interaction (e.g. greedy evaluation
     under ``set_exploration_type(DETERMINISTIC)``) it defers to the actor itself.
 
     Args:
@@ -130,12 +132,40 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
         if kind != ExplorationType.RANDOM:
             return self.actor(tensordict)
         logits = self._logits(tensordict)
-        # Categorical(logits=logits).sample(), operation for operation.
+        # Categorical(logits=logits).sample(): its probabilities, operation for operation...
         logits = logits - logits.logsumexp(dim=-1, keepdim=True)
         probs = torch.softmax(logits, dim=-1)
-        action = torch.multinomial(probs.reshape(-1, probs.shape[-1]), 1, True).T
-        tensordict.set(self._action_key, action.reshape(probs.shape[:-1]))
+        tensordict.set(self._action_key, sample_categorical(probs))
         return tensordict
+
+
+def sample_categorical(probs: torch.Tensor) -> torch.Tensor:
+    """One draw per row of ``probs`` (categorical distributions over the last dimension):
+    ``torch.multinomial(probs, 1, replacement=True)``, which ``Categorical.sample`` calls,
+    without the checks that cost that call most of its time.
+
+    For one sample ``torch.multinomial`` draws ``q ~ Exp(1)`` of ``probs`` ' shape and
+    returns ``argmax(probs / q)`` (the Gumbel-max trick in exponential form). The same
+    operations on the same generator give the same actions and leave the random stream
+    where it leaves it (``tests/test_models.py`` checks both against the installed
+    PyTorch). Of its checks, the one a softmax's output can fail is kept: NaN
+    probabilities (a diverged network, or NaN in its inputs) raise a ``ValueError``
+    instead of an action.
+
+    Args:
+        probs (torch.Tensor): probabilities, ``[..., num_actions]``, each row summing to 1.
+
+    Returns:
+        torch.Tensor: the sampled indices, shape ``probs.shape[:-1]``, int64.
+    """
+    ratios = probs / torch.empty_like(probs).exponential_(1)
+    if bool(probs.isnan().any()):
+        raise ValueError(
+            f"The policy's action probabilities hold {int(probs.isnan().sum())} NaN value(s): "
+            f"its network's outputs are NaN or +inf. Its parameters diverged (lower the "
+            f"learning rate or clip gradients) or its inputs hold NaN or inf."
+        )
+    return ratios.argmax(dim=-1)
 
 
 class LeanCategoricalActor(ProbabilisticActor):

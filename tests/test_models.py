@@ -10,6 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
@@ -26,6 +28,7 @@ from rl_pg.lean import (
     LeanCategoricalPolicy,
     direct_network,
     lean_policy,
+    sample_categorical,
 )
 from rl_pg.models import mlp_actor, mlp_actor_critic, mlp_critic
 from rl_pg.normalization import RunningNorm, update_running_norms
@@ -301,6 +304,45 @@ class TestLeanPolicy:
         actor = mlp_actor(env, hidden=(8,))
         lean = lean_policy(actor)
         assert {id(p) for p in lean.parameters()} == {id(p) for p in actor.parameters()}
+
+    @settings(max_examples=200, deadline=None)
+    @given(
+        shape=st.lists(st.integers(1, 9), min_size=0, max_size=2),
+        num_actions=st.integers(1, 20),
+        scale=st.floats(0.1, 30.0),
+        masked=st.floats(0.0, 0.9),
+        double=st.booleans(),
+        seed=st.integers(0, 2**31 - 1),
+    )
+    def test_sampling_draws_what_categorical_sample_draws(
+        self, shape, num_actions, scale, masked, double, seed
+    ):
+        gen = torch.Generator().manual_seed(seed)
+        dtype = torch.float64 if double else torch.float32
+        logits = scale * torch.randn(*shape, num_actions, generator=gen, dtype=dtype)
+        hidden = torch.rand(logits.shape, generator=gen) < masked  # actions masked out
+        hidden[..., int(torch.randint(num_actions, (), generator=gen))] = False
+        logits = logits.masked_fill(hidden, -torch.inf)
+        reference = torch.distributions.Categorical(logits=logits)
+        torch.manual_seed(seed)
+        expected, expected_after = reference.sample(), torch.rand(3)
+        torch.manual_seed(seed)
+        got, got_after = sample_categorical(reference.probs), torch.rand(3)
+        assert got.dtype == torch.int64 and got.shape == expected.shape
+        assert torch.equal(got, expected)
+        assert torch.equal(got_after, expected_after)  # the random stream carries on alike
+        assert not hidden.gather(-1, got.unsqueeze(-1)).any()
+
+    def test_nan_probabilities_are_an_error_not_an_action(self):
+        probs = torch.tensor([[0.5, 0.5, 0.0], [float("nan"), 0.5, 0.5]])
+        with pytest.raises(ValueError, match="1 NaN value.*diverged"):
+            sample_categorical(probs)
+        env = GridWorldEnv(batch_size=4)
+        actor = mlp_actor(env, hidden=(8,))
+        with torch.no_grad():
+            actor.module[0].module[0].weight.fill_(torch.nan)
+        with set_exploration_type(ExplorationType.RANDOM), pytest.raises(ValueError, match="NaN"):
+            lean_policy(actor)(env.reset())
 
     def test_other_actors_are_kept_as_they_are(self):
         pendulum = gym_env("Pendulum-v1")
