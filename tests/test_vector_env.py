@@ -141,6 +141,44 @@ def test_dict_observations_are_read_under_their_keys():
     assert rollout["next", "done"].squeeze(-1).tolist() == [[False, False, True, False]] * 2
 
 
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: _vector("CartPole-v1", 6),  # terminations: several resets at one step
+        lambda: _vector("Pendulum-v1", 3, max_episode_steps=30),  # truncations
+        lambda: gym.vector.SyncVectorEnv(
+            [_DictObsEnv] * 2, autoreset_mode=DISABLED["autoreset_mode"]
+        ),
+    ],
+    ids=["cartpole", "pendulum", "dict"],
+)
+def test_resetting_finished_environments_in_place_is_gymnasiums_masked_reset(make):
+    """A SyncVectorEnv's finished environments are reset by VectorGymEnv itself (the
+    sub-environments' own resets); the data are those of gymnasium's masked reset."""
+    direct, masked = VectorGymEnv(make()), VectorGymEnv(make())
+    assert direct._resets_directly
+    masked._resets_directly = False
+    a, b = _collect(direct, seed=5), _collect(masked, seed=5)
+    assert a["next", "done"].sum() >= 6  # many steps reset some environments
+    for key in b.keys(True, True):
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"entry {key}")
+
+
+def test_other_vector_environments_reset_through_gymnasium():
+    wrapped = gym.wrappers.vector.RecordEpisodeStatistics(_vector("CartPole-v1", 2))
+    asynchronous = gym.make_vec(
+        "CartPole-v1", num_envs=2, vectorization_mode="async", vector_kwargs=DISABLED
+    )
+    try:
+        for vector in (wrapped, asynchronous):
+            env = VectorGymEnv(vector)
+            assert not env._resets_directly
+            rollout = env.rollout(40, break_when_any_done=False)
+            assert rollout["next", "done"].any() and not rollout[..., 1:]["done"].any()
+    finally:
+        asynchronous.close()
+
+
 def test_bad_environments_are_refused_with_the_fix():
     with pytest.raises(TypeError, match=r"gymnasium\.vector\.VectorEnv.*make_vec"):
         VectorGymEnv(gym.make("CartPole-v1"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from copy import deepcopy
 from typing import Any
 
 import gymnasium as gym
@@ -31,7 +32,9 @@ class VectorGymEnv(EnvBase):
     take microseconds.
 
     The environments finished at a step are reset alone, by gymnasium's
-    ``reset_mask``: the vector environment's own autoreset must be disabled
+    ``reset_mask`` (for a plain ``SyncVectorEnv``, by the same sub-environment resets
+    done here, without the masked reset's checks and info merging): the vector
+    environment's own autoreset must be disabled
     (``AutoresetMode.DISABLED``), so that no final observation is lost and no step is
     spent on a reset. Seeding follows ``GymWrapper``: ``set_seed(s)`` resets the
     environments with seeds ``s, s + 1, ...``; later resets continue their generators.
@@ -98,6 +101,7 @@ class VectorGymEnv(EnvBase):
             for key in self._obs_keys
         }
         self._seed: int | None = None
+        self._resets_directly = _resets_directly(env)
 
     @staticmethod
     def _check_autoreset(env: gym.vector.VectorEnv) -> None:
@@ -126,7 +130,21 @@ class VectorGymEnv(EnvBase):
 
     def _env_reset_some(self, mask: np.ndarray):
         """Resets the environments where ``mask``; returns every environment's observation."""
-        return self._env.reset(options={"reset_mask": mask})[0]
+        if not self._resets_directly:
+            return self._env.reset(options={"reset_mask": mask})[0]
+        # SyncVectorEnv.reset(options={"reset_mask": mask}) minus its argument checks and
+        # info merging, which cost it three times the reset of one CartPole; the same
+        # sub-environment calls, hence the same observations and random streams.
+        env = self._env
+        for i in np.flatnonzero(mask):
+            env._env_obs[i], _ = env.envs[i].reset(seed=None, options={})
+        env._terminations[mask] = False
+        env._truncations[mask] = False
+        env._autoreset_envs[mask] = False
+        env._observations = gym.vector.utils.concatenate(
+            env.single_observation_space, env._env_obs, env._observations
+        )
+        return deepcopy(env._observations) if env.copy else env._observations
 
     def _spec(self, space: gym.Space):
         spec = _gym_to_torchrl_spec_transform(
@@ -493,6 +511,22 @@ class _Pools(gym.vector.VectorEnv):
     def close(self, **kwargs) -> None:
         for pool in self.pools:
             pool.close()
+
+
+def _resets_directly(env: gym.vector.VectorEnv) -> bool:
+    """Whether ``VectorGymEnv`` may reset some of ``env``'s environments itself: exactly
+    gymnasium's ``SyncVectorEnv`` (a subclass or wrapper may reset otherwise), with
+    the per-environment state its masked reset updates."""
+    return type(env) is gym.vector.SyncVectorEnv and all(
+        isinstance(getattr(env, name, None), kind)
+        for name, kind in (
+            ("_env_obs", list),
+            ("_terminations", np.ndarray),
+            ("_truncations", np.ndarray),
+            ("_autoreset_envs", np.ndarray),
+            ("copy", bool),
+        )
+    )
 
 
 def _direct_layout(pool) -> tuple[np.dtype, list[int]] | None:
