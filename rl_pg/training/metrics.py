@@ -10,6 +10,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.record.loggers import (
@@ -22,6 +23,7 @@ from torchrl.record.loggers import (
 from torchrl.record.loggers.csv import CSVExperiment
 
 from rl_pg._checks import require_extra
+from rl_pg._scan import backward_scan
 from rl_pg.checkpoint import write_atomically
 from rl_pg.functional import discounted_return
 from rl_pg.training.config import TrainConfig, config_dict
@@ -49,23 +51,31 @@ class EpisodeReturns:
         self.partial = None
 
     def add(self, batch: TensorDictBase) -> None:
-        done = batch["next", "done"].reshape(*batch.shape, -1).any(-1).cpu()
+        # Small [environments, T] arrays, once per batch: numpy costs a fraction of
+        # torch's per-operation overhead here.
+        rows = (-1, batch.shape[-1])
+        done = batch.get(("next", "done")).reshape(*batch.shape, -1).cpu().numpy()
+        done = done.any(-1).reshape(rows)
         # Summed in float64 (on the CPU: not every accelerator has it) whatever the
         # rewards' precision: a return of 500 in bfloat16 steps by 2.
-        reward = batch["next", "reward"].reshape(*batch.shape, -1).to("cpu", torch.float64)
-        reward = reward.sum(-1)
-        done = done.reshape(-1, done.shape[-1])  # [environments, T]
-        reward = reward.reshape(done.shape)
+        reward = batch.get(("next", "reward")).reshape(*batch.shape, -1)
+        reward = reward.to("cpu", torch.float64).numpy().sum(-1).reshape(rows)
         if self.partial is not None and self.partial.shape[0] == reward.shape[0]:
-            reward[:, 0] += self.partial
+            reward[:, 0] += self.partial.numpy()
         if not done.any():  # no episode ended (long episodes, short segments): carry all
             if self.carry:
-                self.partial = reward.sum(-1)
+                self.partial = torch.from_numpy(reward.sum(-1))
             return
-        self.ended.append(discounted_return(reward, done, 1.0, time_dim=-1)[done])
+        reward, done_ = torch.from_numpy(reward), torch.from_numpy(done)
+        # The whole-episode return kernel itself: its input checks are for arrays this
+        # method did not build (a non-finite reward goes through them, for their error).
+        returns, finite = backward_scan(reward, done_, None, None, 1.0, whole_episode=True)
+        if not finite:
+            returns = discounted_return(reward, done_, 1.0, time_dim=-1)
+        self.ended.append(returns[done_])
         if self.carry:  # what follows each row's last episode end is still in flight
-            in_flight = done.flip(-1).cumsum(-1).flip(-1) == 0
-            self.partial = (reward * in_flight).sum(-1)
+            in_flight = ~np.logical_or.accumulate(done[:, ::-1], axis=1)[:, ::-1]
+            self.partial = torch.from_numpy((reward.numpy() * in_flight).sum(-1))
 
     def state_dict(self) -> dict:
         return {"partial": self.partial, "ended": list(self.ended)}
