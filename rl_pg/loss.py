@@ -401,11 +401,11 @@ class ReinforceLoss(TorchRLReinforceLoss):
             self._update_value_norm(tensordict)
         dist = self._policy(tensordict)
         log_prob = self._log_prob(dist, tensordict, weights)
-        td_out = TensorDict({"loss_actor": -log_prob * weights}, batch_size=[])
+        out = {"loss_actor": -log_prob * weights}
         if self.entropy_coeff is not None:
             entropy = _per_step(self._entropy(dist), log_prob.shape, "entropies")
-            td_out.set("loss_entropy", -self.entropy_coeff * entropy)
-            td_out.set("entropy", entropy.detach().mean())
+            out["loss_entropy"] = -self.entropy_coeff * entropy
+            out["entropy"] = entropy.detach().mean()
         if self.has_critic:
             if state_value is not None:  # the estimator's pass, still in the graph
                 loss_value = self._critic_distance(
@@ -414,17 +414,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 value_clip_fraction = None
             else:
                 loss_value, value_clip_fraction = self.loss_critic(tensordict)
-            td_out.set("loss_value", self.critic_coeff * loss_value)
+            out["loss_value"] = self.critic_coeff * loss_value
             if value_clip_fraction is not None:
-                td_out.set("value_clip_fraction", value_clip_fraction)
-        td_out.update(diagnostics)
-        td_out = td_out.named_apply(
-            lambda name, value: (
-                self._reduce_loss(value, tensordict).squeeze(-1)
-                if name.startswith("loss_")
-                else value
-            ),
-        )
+                out["value_clip_fraction"] = value_clip_fraction
+        out.update(diagnostics)
+        for name, value in out.items():
+            if name.startswith("loss_"):
+                out[name] = self._reduce_loss(value, tensordict).squeeze(-1)
+        td_out = TensorDict(out, batch_size=[])
         self._clear_weakrefs(
             tensordict,
             td_out,
