@@ -171,15 +171,21 @@ class VectorGymEnv(EnvBase):
         n = len(out["reward"])
         return TensorDict._new_unsafe(out, batch_size=torch.Size([n]), device=self.device)
 
-    def _transition_tensors(self, obs, reward, terminated, truncated) -> dict[str, torch.Tensor]:
+    def _transition_tensors(
+        self, obs, reward, terminated, truncated, done: np.ndarray | None = None
+    ) -> dict[str, torch.Tensor]:
+        """The ``"next"`` tensors of a step (``done``: ``terminated | truncated`` if the
+        caller has it already)."""
         out = self._observations(obs)
-        n = len(reward)
-        shape = (n, 1)
+        shape = (len(reward), 1)
+        terminated = np.asarray(terminated, dtype=bool)
+        truncated = np.asarray(truncated, dtype=bool)
+        if done is None:
+            done = terminated | truncated
         out["reward"] = torch.from_numpy(np.asarray(reward, dtype=np.float32)).view(shape)
-        terminated = torch.from_numpy(np.asarray(terminated, dtype=bool)).view(shape)
-        truncated = torch.from_numpy(np.asarray(truncated, dtype=bool)).view(shape)
-        out["terminated"], out["truncated"] = terminated, truncated
-        out["done"] = terminated | truncated
+        out["terminated"] = torch.from_numpy(terminated).view(shape)
+        out["truncated"] = torch.from_numpy(truncated).view(shape)
+        out["done"] = torch.from_numpy(done).view(shape)
         if self.device is not None and self.device.type != "cpu":
             out = {key: value.to(self.device, non_blocking=True) for key, value in out.items()}
         return out
@@ -202,12 +208,16 @@ class VectorGymEnv(EnvBase):
     def _step_and_roots(self, returned, reset_some):
         """The ``"next"`` tensors of what the vector environment ``returned``, and the
         next root's observations, the finished environments reset by ``reset_some(mask)``."""
-        step = self._transition_tensors(*returned)
-        done = step["done"]
+        obs, reward, terminated, truncated = returned
+        # The flags in numpy first: the partial reset reads them there.
+        done = np.logical_or(terminated, truncated)
+        step = self._transition_tensors(obs, reward, terminated, truncated, done)
         if not done.any():
             return step, {key: step[key] for key in self._obs_keys}
-        observations = self._observations(reset_some(done.reshape(-1).cpu().numpy()))
-        return step, {key: value.to(done.device) for key, value in observations.items()}
+        observations = self._observations(reset_some(done))
+        if self.device is None or self.device.type == "cpu":
+            return step, observations
+        return step, {key: value.to(self.device) for key, value in observations.items()}
 
     def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         # `_step` already writes every done entry and the reward in their spec's shape:
