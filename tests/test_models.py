@@ -335,7 +335,7 @@ class TestLeanPolicy:
 
     def test_nan_probabilities_are_an_error_not_an_action(self):
         probs = torch.tensor([[0.5, 0.5, 0.0], [float("nan"), 0.5, 0.5]])
-        with pytest.raises(ValueError, match="1 NaN value.*diverged"):
+        with pytest.raises(ValueError, match=r"1 NaN value.*diverged"):
             sample_categorical(probs)
         env = GridWorldEnv(batch_size=4)
         actor = mlp_actor(env, hidden=(8,))

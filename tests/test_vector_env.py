@@ -164,6 +164,25 @@ def test_resetting_finished_environments_in_place_is_gymnasiums_masked_reset(mak
         torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=f"entry {key}")
 
 
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_a_vector_env_that_reuses_its_buffers_gives_the_same_data(mode):
+    """copy=False: gymnasium hands back one buffer, overwritten at every step (and, for
+    a synchronous env, at every reset); the batches must still hold each step's own."""
+    kwargs = {"vectorization_mode": mode, "num_envs": 3}
+    copied = VectorGymEnv(gym.make_vec("CartPole-v1", vector_kwargs=DISABLED, **kwargs))
+    shared = VectorGymEnv(
+        gym.make_vec("CartPole-v1", vector_kwargs={**DISABLED, "copy": False}, **kwargs)
+    )
+    try:
+        a, b = _collect(copied, seed=2, batches=2), _collect(shared, seed=2, batches=2)
+        assert a["next", "done"].any()
+        for key in a.keys(True, True):
+            torch.testing.assert_close(b[key], a[key], rtol=0, atol=0, msg=f"entry {key}")
+    finally:
+        copied.close()
+        shared.close()
+
+
 def test_other_vector_environments_reset_through_gymnasium():
     wrapped = gym.wrappers.vector.RecordEpisodeStatistics(_vector("CartPole-v1", 2))
     asynchronous = gym.make_vec(

@@ -102,6 +102,7 @@ class VectorGymEnv(EnvBase):
         }
         self._seed: int | None = None
         self._resets_directly = _resets_directly(env)
+        self._reuses_buffers = getattr(env, "copy", True) is False
 
     @staticmethod
     def _check_autoreset(env: gym.vector.VectorEnv) -> None:
@@ -132,19 +133,27 @@ class VectorGymEnv(EnvBase):
         """Resets the environments where ``mask``; returns every environment's observation."""
         if not self._resets_directly:
             return self._env.reset(options={"reset_mask": mask})[0]
-        # SyncVectorEnv.reset(options={"reset_mask": mask}) minus its argument checks and
-        # info merging, which cost it three times the reset of one CartPole; the same
-        # sub-environment calls, hence the same observations and random streams.
-        env = self._env
-        for i in np.flatnonzero(mask):
+        # SyncVectorEnv.reset(options={"reset_mask": mask}) minus its argument checks, info
+        # merging and restacking of every observation, which cost it three times the
+        # reset of one CartPole; the same sub-environment calls, hence the same
+        # observations and random streams.
+        env, ids = self._env, np.flatnonzero(mask)
+        for i in ids:
             env._env_obs[i], _ = env.envs[i].reset(seed=None, options={})
-        env._terminations[mask] = False
-        env._truncations[mask] = False
-        env._autoreset_envs[mask] = False
-        env._observations = gym.vector.utils.concatenate(
-            env.single_observation_space, env._env_obs, env._observations
-        )
-        return deepcopy(env._observations) if env.copy else env._observations
+        env._terminations[ids] = False
+        env._truncations[ids] = False
+        env._autoreset_envs[ids] = False
+        if not isinstance(env._observations, np.ndarray):  # a Dict space: restacked
+            env._observations = gym.vector.utils.concatenate(
+                env.single_observation_space, env._env_obs, env._observations
+            )
+            return deepcopy(env._observations)
+        # The last step's observations (gymnasium's buffer: the next step restacks it)
+        # with the new first ones: a new array, whatever the vector env's copy flag.
+        observations = env._observations.copy()
+        for i in ids:
+            observations[i] = env._env_obs[i]
+        return observations
 
     def _spec(self, space: gym.Space):
         spec = _gym_to_torchrl_spec_transform(
@@ -155,8 +164,11 @@ class VectorGymEnv(EnvBase):
     def _observations(self, obs) -> dict[str, torch.Tensor]:
         if len(self._obs_keys) == 1 and not isinstance(obs, dict):
             obs = {self._obs_keys[0]: obs}
+        # A vector env built with copy=False hands back the same buffer at every step:
+        # its observations are copied, or every step of a batch would show the last.
+        read = np.array if self._reuses_buffers else np.asarray
         return {
-            key: torch.from_numpy(np.asarray(obs[key])).to(dtype).reshape(-1, *shape[1:])
+            key: torch.from_numpy(read(obs[key])).to(dtype).reshape(-1, *shape[1:])
             for key, (dtype, shape) in self._formats.items()
         }
 
@@ -534,7 +546,6 @@ def _resets_directly(env: gym.vector.VectorEnv) -> bool:
             ("_terminations", np.ndarray),
             ("_truncations", np.ndarray),
             ("_autoreset_envs", np.ndarray),
-            ("copy", bool),
         )
     )
 
