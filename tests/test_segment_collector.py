@@ -117,3 +117,20 @@ def test_total_frames_ends_the_iteration():
     assert [b.batch_size for b in collector] == [torch.Size([2, 4])] * 3
     collector.shutdown()
     assert env.is_closed
+
+
+def test_done_flags_a_policy_writes_into_its_input_are_kept():
+    """The roots' done flags are one shared all-False tensor that the batch rebuilds in
+    one go; a policy that writes flags of its own keeps them in the batch."""
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+
+    env = gym_env("CartPole-v1", num_envs=3)
+    actor = mlp_actor(env, hidden=(4,))
+    flags = TensorDictModule(lambda obs: obs[..., :1] > 0, ["observation"], ["truncated"])
+    collector = SegmentCollector(env, TensorDictSequential(actor, flags), frames_per_batch=30)
+    batch = collector.next()
+    written = batch["observation"][..., :1] > 0
+    assert written.any() and not written.all()
+    assert torch.equal(batch["truncated"], written)
+    assert not batch["done"].any() and not batch["terminated"].any()
+    collector.shutdown()
