@@ -77,6 +77,15 @@ class EpisodeReturns:
             in_flight = ~np.logical_or.accumulate(done[:, ::-1], axis=1)[:, ::-1]
             self.partial = torch.from_numpy((reward.numpy() * in_flight).sum(-1))
 
+    @staticmethod
+    def warm_up() -> None:
+        """Compiles (or loads from numba's cache) the return kernel for the arrays
+        ``add`` gives it, which differ in type from a loss's: before a clock starts."""
+        ends = torch.tensor([[False, True]])
+        backward_scan(
+            torch.ones(1, 2, dtype=torch.float64), ends, None, None, 1.0, whole_episode=True
+        )
+
     def state_dict(self) -> dict:
         return {"partial": self.partial, "ended": list(self.ended)}
 
