@@ -133,6 +133,11 @@ class Config:
     rl_pg on CartPole, 1M on LunarLander)."""
     threads: int = 1
     """torch threads for every tool (tiny MLPs run fastest on one)."""
+    repeats: int = 3
+    """Timed runs of every tool and seed, interleaved; a seed's time to solve is their
+    median (its frames to solve are the same in every run: every tool is seeded). One
+    seed's run decides a tool's median, and this VM's speed moves by a tenth from one
+    second to the next; LunarLander's runs take minutes: ``--repeats 1`` there."""
     json_path: Path | None = None
     """Where the results are written (None: benchmarks/results/time_to_solve.json for
     CartPole, time_to_solve_lunarlander.json for LunarLander)."""
@@ -211,17 +216,33 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict:
 
 
 def main(cfg: Config) -> dict:
+    if cfg.repeats < 1:
+        raise SystemExit(f"--repeats must be at least 1, got {cfg.repeats}.")
     torch.set_num_threads(cfg.threads)
+    walls: dict[str, dict[int, list[float]]] = {tool: {} for tool in cfg.tools}
     runs: dict[str, dict[int, dict]] = {tool: {} for tool in cfg.tools}
-    for seed in cfg.seeds:
-        for tool in cfg.tools:
-            run = run_rl_pg(seed, cfg) if tool == "rl_pg" else run_sb3(tool, seed, cfg)
-            runs[tool][seed] = run
-            print(
-                f"seed {seed} {tool:8s} solved at {run['solved_at_frames']} frames, "
-                f"{run['train_wall_s']:.2f} s",
-                flush=True,
-            )
+    for _ in range(cfg.repeats):
+        for seed in cfg.seeds:
+            for tool in cfg.tools:
+                run = run_rl_pg(seed, cfg) if tool == "rl_pg" else run_sb3(tool, seed, cfg)
+                first = runs[tool].setdefault(seed, run)
+                if run["solved_at_frames"] != first["solved_at_frames"]:
+                    raise RuntimeError(
+                        f"{tool}, seed {seed}: solved at {first['solved_at_frames']} frames "
+                        f"in one run and {run['solved_at_frames']} in another. Its runs are "
+                        f"not reproducible, so their times cannot be pooled: run with "
+                        f"--repeats 1."
+                    )
+                walls[tool].setdefault(seed, []).append(run["train_wall_s"])
+                print(
+                    f"seed {seed} {tool:8s} solved at {run['solved_at_frames']} frames, "
+                    f"{run['train_wall_s']:.2f} s",
+                    flush=True,
+                )
+    for tool, by_seed in runs.items():
+        for seed, run in by_seed.items():
+            run["train_wall_s"] = statistics.median(walls[tool][seed])
+            run["train_wall_s_runs"] = walls[tool][seed]
     result = summarise(runs, cfg.seeds)
     name = "time_to_solve" if cfg.task == "cartpole" else f"time_to_solve_{cfg.task}"
     json_path = cfg.json_path or REPO / f"benchmarks/results/{name}.json"

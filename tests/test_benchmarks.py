@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import json
+import statistics
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -97,12 +98,16 @@ def test_comparisons_with_sb3(script, tmp_path):
                 eval_episodes=2,
                 threshold=threshold,
                 budget_frames=2_048,
+                repeats=2 if task == "cartpole" else 1,
                 json_path=tmp_path / f"{task}.json",
             )
             out = module.main(cfg)
             assert set(out["runs"]) == {"rl_pg", "sb3_a2c", "sb3_ppo"}
             runs = json.loads((tmp_path / f"{task}.json").read_text())["runs"]
-            assert all(run["0"]["train_wall_s"] > 0 for run in runs.values())
+            for run in runs.values():  # a seed's time: the median of its timed runs
+                timed = run["0"]["train_wall_s_runs"]
+                assert len(timed) == cfg.repeats and all(t > 0 for t in timed)
+                assert run["0"]["train_wall_s"] == statistics.median(timed)
             if (
                 task == "lunarlander"
             ):  # any return passes: every tool solves at its first evaluation
@@ -337,3 +342,17 @@ def test_torchrl_compat_runs_the_tests_on_each_class(tmp_path):
     for bad in (compat.Config(repo=tmp_path), compat.Config(repo=tmp_path / "rl", rev="nope")):
         with pytest.raises(SystemExit, match="not a git clone of pytorch/rl"):
             compat.main(bad)
+
+
+def test_time_to_solve_refuses_to_pool_runs_that_solve_at_different_frames(monkeypatch):
+    module = _script("time_to_solve")
+    solved_at = iter([5_000, 10_000])
+    monkeypatch.setattr(
+        module,
+        "run_rl_pg",
+        lambda seed, cfg: {"solved_at_frames": next(solved_at), "train_wall_s": 1.0},
+    )
+    with pytest.raises(RuntimeError, match=r"seed 0: solved at 5000 frames.*--repeats 1"):
+        module.main(module.Config(seeds=[0], tools=["rl_pg"], repeats=2))
+    with pytest.raises(SystemExit, match="--repeats must be at least 1"):
+        module.main(module.Config(repeats=0))
