@@ -541,13 +541,17 @@ def _resets_directly(env: gym.vector.VectorEnv) -> bool:
     """Whether ``VectorGymEnv`` may reset some of ``env``'s environments itself: exactly
     gymnasium's ``SyncVectorEnv`` (a subclass or wrapper may reset otherwise), with
     the per-environment state its masked reset updates."""
-    return type(env) is gym.vector.SyncVectorEnv and all(
-        isinstance(getattr(env, name, None), kind)
-        for name, kind in (
-            ("_env_obs", list),
-            ("_terminations", np.ndarray),
-            ("_truncations", np.ndarray),
-            ("_autoreset_envs", np.ndarray),
+    return (
+        type(env) is gym.vector.SyncVectorEnv
+        and hasattr(env, "_observations")
+        and all(
+            isinstance(getattr(env, name, None), kind)
+            for name, kind in (
+                ("_env_obs", list),
+                ("_terminations", np.ndarray),
+                ("_truncations", np.ndarray),
+                ("_autoreset_envs", np.ndarray),
+            )
         )
     )
 
