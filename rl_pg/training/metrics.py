@@ -23,7 +23,6 @@ from torchrl.record.loggers import (
 from torchrl.record.loggers.csv import CSVExperiment
 
 from rl_pg._checks import require_extra
-from rl_pg._scan import backward_scan
 from rl_pg.checkpoint import write_atomically
 from rl_pg.functional import discounted_return
 from rl_pg.training.config import TrainConfig, config_dict
@@ -35,8 +34,8 @@ class EpisodeReturns:
     """Undiscounted returns of the training episodes that end in the batches.
 
     With segments an episode spans batches: each environment's unfinished sum is
-    carried into its next segment's first reward, and the same whole-episode return
-    kernel reads every ended episode. (A per-step transform such as TorchRL's
+    carried into its next segment's first reward, and each batch's rows are summed
+    episode by episode in one ``np.add.reduceat``. (A per-step transform such as TorchRL's
     ``RewardSum`` does this at every environment step and cost ~15 % of CartPole's
     collection time.)
     """
@@ -66,25 +65,21 @@ class EpisodeReturns:
             if self.carry:
                 self.partial = torch.from_numpy(reward.sum(-1))
             return
-        reward, done_ = torch.from_numpy(reward), torch.from_numpy(done)
-        # The whole-episode return kernel itself: its input checks are for arrays this
-        # method did not build (a non-finite reward goes through them, for their error).
-        returns, finite = backward_scan(reward, done_, None, None, 1.0, whole_episode=True)
-        if not finite:
-            returns = discounted_return(reward, done_, 1.0, time_dim=-1)
-        self.ended.append(returns[done_])
+        # The rows laid end to end, cut at every row's start and after every episode's
+        # end: each piece is one episode's rewards (or the part of it in this batch).
+        cut = np.empty_like(done)
+        cut[:, 0], cut[:, 1:] = True, done[:, :-1]
+        steps, flat = reward.shape[1], reward.reshape(-1)
+        ends, starts = np.flatnonzero(done), np.flatnonzero(cut)
+        sums = np.add.reduceat(flat, starts)
+        if not np.isfinite(sums).all():  # the return function's clear error
+            discounted_return(torch.from_numpy(reward), torch.from_numpy(done), 1.0, time_dim=-1)
+        self.ended.append(torch.from_numpy(sums[np.searchsorted(starts, ends, "right") - 1]))
         if self.carry:  # what follows each row's last episode end is still in flight
-            in_flight = ~np.logical_or.accumulate(done[:, ::-1], axis=1)[:, ::-1]
-            self.partial = torch.from_numpy((reward.numpy() * in_flight).sum(-1))
-
-    @staticmethod
-    def warm_up() -> None:
-        """Compiles (or loads from numba's cache) the return kernel for the arrays
-        ``add`` gives it, which differ in type from a loss's: before a clock starts."""
-        ends = torch.tensor([[False, True]])
-        backward_scan(
-            torch.ones(1, 2, dtype=torch.float64), ends, None, None, 1.0, whole_episode=True
-        )
+            last = np.arange(steps - 1, flat.size, steps)
+            tail = sums[np.searchsorted(starts, last, "right") - 1]
+            tail[done[:, -1]] = 0.0
+            self.partial = torch.from_numpy(tail)
 
     def state_dict(self) -> dict:
         return {"partial": self.partial, "ended": list(self.ended)}
