@@ -22,6 +22,11 @@ from rl_pg.lean import plain_layers, run_plain
 
 __all__ = ["DiscountedReturn", "RewardToGo"]
 
+REUSE_MIN_WORK = 1 << 21
+"""Steps times value-network parameters from which the estimator looks for next
+observations it can take from the following step instead of running the network on
+them: below it, the check costs about what the pass it saves does."""
+
 
 class _MonteCarloReturn(ValueEstimatorBase):
     """What the two estimators share: only the return function differs."""
@@ -59,6 +64,7 @@ class _MonteCarloReturn(ValueEstimatorBase):
         # float64 so that .item() gives back the number the user wrote.
         self.register_buffer("gamma", torch.tensor(gamma, dtype=torch.float64, device=self._device))
         self.time_dim = time_dim
+        self._network_size: int | None = None  # the value network's parameters, counted once
 
     @property
     def in_keys(self):
@@ -183,11 +189,27 @@ class _MonteCarloReturn(ValueEstimatorBase):
         def inputs(*prefix):
             return {key: data.get((*prefix, key)) for key in keys}
 
-        if graph:
-            attached = values_at(inputs(), tensordict.shape)
-            with torch.no_grad():
-                next_value = values_at(inputs("next"), tensordict.shape)
+        need = None if self.differentiable else self._next_steps_to_evaluate(tensordict, data)
+        if graph or need is not None:
+            with nullcontext() if graph else torch.no_grad():
+                attached = values_at(inputs(), tensordict.shape)
             value = attached.detach()
+            with torch.no_grad():
+                if need is not None and value.shape[: tensordict.ndim] == tensordict.shape:
+                    # Where an episode goes on within the segment, V(s_{t+1}) is the
+                    # following step's V(s_t): the network runs on the other next
+                    # observations only (each row's last step, the episodes' ends).
+                    rows = need.reshape(-1).nonzero().squeeze(1)
+                    ends = {
+                        key: data.get(("next", key)).flatten(0, tensordict.ndim - 1)[rows]
+                        for key in keys
+                    }
+                    next_value = value.roll(-1, tensordict.ndim - 1)
+                    flat = next_value.view(-1, *value.shape[tensordict.ndim :])
+                    flat[rows] = values_at(ends, rows.shape)
+                else:
+                    next_value = values_at(inputs("next"), tensordict.shape)
+            attached = attached if graph else None
         else:
             n = tensordict.shape[0]
             both = {key: torch.cat([data.get(key), data.get(("next", key))]) for key in keys}
@@ -200,6 +222,36 @@ class _MonteCarloReturn(ValueEstimatorBase):
         tensordict.set(value_key, value)
         tensordict.set(("next", value_key), next_value)
         return value, next_value, attached
+
+    def _next_steps_to_evaluate(self, tensordict: TensorDictBase, data: TensorDictBase):
+        """The steps whose next observation the value network must see, as a mask of
+        the batch's shape, or None to run it on all of them.
+
+        A segment collected in time order (time the last batch dimension) shows each
+        next observation again as the following step's observation, unless an episode
+        ended in between; that is checked, entry by entry, before anything is reused.
+        """
+        steps = tensordict.shape[-1] if tensordict.batch_dims else 0
+        if steps < 2 or self._get_time_dim(None, tensordict) != tensordict.ndim - 1:
+            return None
+        if self._network_size is None:
+            self._network_size = sum(p.numel() for p in self.value_network.parameters())
+        if tensordict.numel() * self._network_size < REUSE_MIN_WORK:
+            return None
+        done = tensordict.get(("next", self.tensor_keys.done), None)
+        if not isinstance(done, torch.Tensor) or done.numel() != tensordict.numel():
+            return None
+        done = done.reshape(tensordict.shape)
+        ends = (done if done.dtype == torch.bool else done != 0)[..., :-1]
+        for key in self.value_network.in_keys:
+            root, next_ = data.get(key), data.get(("next", key))
+            if root.shape != next_.shape or root.shape[: tensordict.ndim] != tensordict.shape:
+                return None
+            time_dim = tensordict.ndim - 1
+            same = next_.narrow(time_dim, 0, steps - 1) == root.narrow(time_dim, 1, steps - 1)
+            if not bool((same.reshape(*ends.shape, -1).all(-1) | ends).all()):
+                return None
+        return torch.cat([ends, torch.ones_like(ends[..., :1])], -1)
 
     def value_estimate(
         self,

@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 import torch
 from conftest import N_ACT, make_batch, make_critic
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from test_functional import reference_returns
+from torch import nn
+from torchrl.modules import ValueOperator
 
 from rl_pg import DiscountedReturn, RewardToGo
 
@@ -152,6 +155,75 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(
             hooked["next", "state_value"], plain["next", "state_value"] + 1.0
         )
+
+    @pytest.mark.parametrize("graph", [False, True])
+    @pytest.mark.parametrize("broken", [None, "observation", "time_first"])
+    def test_next_values_taken_from_the_following_step_match_a_full_pass(
+        self, cls, fn, monkeypatch, graph, broken
+    ):
+        """In a segment collected in time order, V(s_{t+1}) is the following step's
+        V(s_t) unless an episode ended at t: the critic then runs on the segment's last
+        steps and the episode ends only. Values, targets and advantages are those of a
+        full pass; a batch that is not such a segment (a next observation that differs
+        from the following one, time first) gets the full pass."""
+        monkeypatch.setattr("rl_pg.estimators.REUSE_MIN_WORK", 0)
+        generator = torch.Generator().manual_seed(3)
+        envs, steps = 4, 11
+        states = torch.randn(envs, steps + 1, 3, generator=generator)
+        done = torch.rand(envs, steps, 1, generator=generator) < 0.25
+        next_obs = states[:, 1:].clone()
+        # After an episode's end the following observation is a fresh reset's.
+        next_obs[done.squeeze(-1)] = torch.randn(int(done.sum()), 3, generator=generator)
+        terminated = done & (torch.rand(envs, steps, 1, generator=generator) < 0.5)
+        batch = TensorDict(
+            {
+                "observation": states[:, :-1],
+                "next": {
+                    "observation": next_obs,
+                    "reward": torch.randn(envs, steps, 1, generator=generator),
+                    "done": done,
+                    "terminated": terminated,
+                },
+            },
+            batch_size=[envs, steps],
+        )
+        if broken == "observation":  # not the following step's, though no episode ended
+            t = int((~done[0, :-1, 0]).nonzero()[0])
+            batch["next", "observation"][0, t] += 1.0
+        torch.manual_seed(0)
+        critic = ValueOperator(
+            nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 1)), in_keys=["observation"]
+        )
+        with torch.no_grad():
+            value = critic(batch.select("observation").clone())["state_value"]
+            next_value = critic(batch["next"].select("observation").clone())["state_value"]
+        expected = fn(
+            batch["next", "reward"],
+            batch["next", "done"],
+            0.9,
+            terminated=batch["next", "terminated"],
+            next_value=next_value,
+        )
+        if broken == "time_first":
+            batch = batch.transpose(0, 1).contiguous()
+            batch.names = ["time", None]
+            value, next_value, expected = (x.transpose(0, 1) for x in (value, next_value, expected))
+        seen = []
+        critic.module[0].register_forward_hook(lambda m, args, out: seen.append(out.shape[:-1].numel()))
+        estimator = cls(gamma=0.9, value_network=critic)
+        attached = estimator._estimate(batch, value_graph=graph)
+        torch.testing.assert_close(batch["state_value"], value, rtol=0, atol=1e-6)
+        torch.testing.assert_close(batch["next", "state_value"], next_value, rtol=0, atol=1e-6)
+        torch.testing.assert_close(batch["value_target"], expected, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(batch["advantage"], expected - value, rtol=1e-5, atol=1e-5)
+        if graph:
+            assert attached.requires_grad
+            torch.testing.assert_close(attached.detach(), value)
+        rows = sum(seen)
+        if broken is None:  # every row's last step, and the ends before it
+            assert rows == envs * steps + envs + int(done[:, :-1].sum())
+        else:
+            assert rows == 2 * envs * steps
 
     def test_named_time_dimension(self, cls, fn, batch):
         time_major = batch.transpose(0, 1).contiguous()
