@@ -18,6 +18,13 @@ After each update the loss's forward pass is run and timed once more, at once, o
 same batch: the same work with its code and data still in the caches, beside what it
 costs inside the loop.
 
+The environments' piece is also split (not in the total): the vector environment's own
+step (gymnasium's ``SyncVectorEnv.step``; the plain loop's resets its finished
+environments inside it), rl_pg's resets of finished environments made apart from the
+step, and the rest (numpy to tensors, done flags). With the episodes ended per update:
+how often the environments reset depends on each loop's policy, and a reset can cost
+more than a step (a LunarLander builds its terrain and bodies).
+
 rl_pg's collection is ``rl_pg.collectors.SegmentCollector``'s own steps (its lean path,
 the one the recipes take), timed between its calls. The plain contender is
 ``throughput.py``'s plain-PyTorch loop cut into the same pieces: gymnasium's vector env
@@ -78,6 +85,13 @@ PIECES = (
 )
 # Not a piece of the loop: the loss's forward pass run again right after the update.
 REPEATED = "loss forward, repeated at once"
+# The environments' piece split (its parts are in it already, so not in the total).
+ENV_PARTS = (
+    "the vector env's step",
+    "resets apart from the step",
+    "around them (tensors, flags)",
+)
+EPISODES = "episodes ended"
 
 
 class _Timer:
@@ -94,9 +108,32 @@ class _Timer:
     def per_update(self, updates: int) -> dict[str, float]:
         return {
             piece: self.ns[piece] / updates / 1000
-            for piece in (*PIECES, REPEATED)
+            for piece in (*PIECES, REPEATED, *ENV_PARTS)
             if piece in self.ns
         }
+
+
+def _timed_calls(owner, name: str, timers: list, piece: str) -> None:
+    """Times every call of ``owner.name`` into ``timers[0]`` (the current round's
+    timer) under ``piece``, by an attribute of ``owner`` that shadows the method."""
+    method = getattr(owner, name)
+
+    def timed(*args):
+        start = time.perf_counter_ns()
+        try:
+            return method(*args)
+        finally:
+            timers[0].ns[piece] += time.perf_counter_ns() - start
+
+    setattr(owner, name, timed)
+
+
+def _split_environments(times: dict[str, float], episodes: int, updates: int) -> None:
+    """Adds to ``times`` the environments' piece less the two parts timed inside it,
+    and the episodes ended per update."""
+    inside = times.get(ENV_PARTS[0], 0.0) + times.get(ENV_PARTS[1], 0.0)
+    times[ENV_PARTS[2]] = times["collection: environments"] - inside
+    times[EPISODES] = episodes / updates
 
 
 def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
@@ -147,11 +184,16 @@ def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, 
     logger = BufferedCSVLogger(exp_name="csv", log_dir=str(log_dir))  # as the loop logs
     keys = loss.tensor_keys
     estimated = [keys.advantage, keys.value_target, keys.value, ("next", keys.value)]
+    timers = [_Timer()]
+    _timed_calls(env, "_env_step", timers, ENV_PARTS[0])
+    _timed_calls(env, "_env_reset_some", timers, ENV_PARTS[1])
 
     def run(updates: int) -> dict[str, float]:
-        timer = _Timer()
+        timer = timers[0] = _Timer()
+        ended = 0
         for step in range(updates):
             batch = timed_segment(collector, timer)
+            ended += int(batch.get(("next", "done")).sum())
             t = time.perf_counter_ns()
             metrics = update(cfg, loss, optimizer, batch, lr=cfg.lr)
             whole, forward = time.perf_counter_ns() - t, clock["forward"]
@@ -167,7 +209,9 @@ def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, 
             # that it estimates again): the piece with its code and data already cached.
             loss(batch.exclude(*estimated))
             timer.add(REPEATED, t)
-        return timer.per_update(updates)
+        times = timer.per_update(updates)
+        _split_environments(times, ended, updates)
+        return times
 
     return run
 
@@ -175,9 +219,12 @@ def rl_pg_contender(recipe, n: int, log_dir: Path) -> Callable[[int], dict[str, 
 def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
     """``throughput.py``'s plain-PyTorch loop, its pieces timed apart."""
     plain = PlainLoop(recipe, n)
+    timers = [_Timer()]
+    _timed_calls(plain.envs, "step", timers, ENV_PARTS[0])  # resets inside it
 
     def run(updates: int) -> dict[str, float]:
-        timer = _Timer()
+        timer = timers[0] = _Timer()
+        ended = 0
         for _ in range(updates):
             segment = []
             for _ in range(plain.cfg.segment_length):
@@ -186,6 +233,7 @@ def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
                 t = timer.add("collection: policy", t)
                 segment.append(plain.step(*acted))
                 timer.add("collection: environments", t)
+                ended += int(segment[-1][-1].sum())
             t = time.perf_counter_ns()
             batch = plain.batch(segment)
             t = timer.add("collection: building the batch", t)
@@ -195,7 +243,9 @@ def plain_contender(recipe, n: int) -> Callable[[int], dict[str, float]]:
             t = timer.add("update: backward, clip, optimiser step, metrics", t)
             plain.loss(*batch)
             timer.add(REPEATED, t)
-        return timer.per_update(updates)
+        times = timer.per_update(updates)
+        _split_environments(times, ended, updates)
+        return times
 
     return run
 
@@ -252,6 +302,13 @@ def main(cfg: Config) -> dict:
             repeated = {
                 who: statistics.median(r[REPEATED] for r in rounds[who]) for who in contenders
             }
+            environments = {
+                part: {
+                    who: statistics.median(r.get(part, 0.0) for r in rounds[who])
+                    for who in contenders
+                }
+                for part in (*ENV_PARTS, EPISODES)
+            }
             results[label] = {
                 "parts": parts,
                 "plain_over_rl_pg": totals["plain PyTorch"] / totals["rl_pg"],
@@ -260,12 +317,16 @@ def main(cfg: Config) -> dict:
                 "loss_forward_in_loop_over_repeated": {
                     who: parts["update: loss forward"][who] / repeated[who] for who in contenders
                 },
+                "environments": environments,
             }
             rows = [[piece, *values.values()] for piece, values in parts.items()]
             rows.append([REPEATED + " (not in the total)", *repeated.values()])
             print(f"\n{label}: microseconds per update")
             print(table(rows, ["piece", *contenders]))
             print(f"plain / rl_pg: {results[label]['plain_over_rl_pg']:.2f}")
+            rows = [[part, *values.values()] for part, values in environments.items()]
+            print(f"\n{label}: the environments' piece, microseconds (episodes) per update")
+            print(table(rows, ["part", *contenders]))
     return write_json(cfg.json_path, cfg, tasks=results)
 
 

@@ -265,6 +265,9 @@ def test_distributed(tmp_path):
     assert out["model_checks"]["2 Ray workers"]["predicted"] > 0
 
 
+ENV_REST = "around them (tensors, flags)"
+
+
 def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
     """The breakdown takes SegmentCollector's lean path apart to time it: its batches
     must be the collector's, value for value, and the collector carries on from them."""
@@ -307,6 +310,16 @@ def test_breakdown_times_the_segment_collectors_own_steps(tmp_path):
     assert set(repeated) == {"rl_pg", "plain PyTorch"} and min(repeated.values()) > 0
     for who, ratio in result["loss_forward_in_loop_over_repeated"].items():
         assert ratio == pytest.approx(parts["update: loss forward"][who] / repeated[who])
+    # The environments' piece split: its parts add up to it (one round: no medians
+    # between them); the plain loop resets inside gymnasium's step.
+    split = result["environments"]
+    assert set(split) == {*breakdown.ENV_PARTS, breakdown.EPISODES}
+    for who in ("rl_pg", "plain PyTorch"):
+        inside = sum(split[part][who] for part in breakdown.ENV_PARTS)
+        assert inside == pytest.approx(parts["collection: environments"][who])
+        assert split["the vector env's step"][who] > 0 and split[ENV_REST][who] > 0
+        assert split[breakdown.EPISODES][who] >= 0
+    assert split["resets apart from the step"]["plain PyTorch"] == 0
 
 
 def test_torchrl_compat_runs_the_tests_on_each_class(tmp_path):
