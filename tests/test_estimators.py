@@ -54,6 +54,22 @@ def _truncate(batch):
     return batch
 
 
+def _full_pass(fn, critic, batch):
+    """The critic's values at every observation and next observation, and the returns
+    ``fn`` bootstraps from them: what an estimator with that critic must write."""
+    with torch.no_grad():
+        value = critic(batch.select("observation").clone())["state_value"]
+        next_value = critic(batch["next"].select("observation").clone())["state_value"]
+    expected = fn(
+        batch["next", "reward"],
+        batch["next", "done"],
+        0.9,
+        terminated=batch["next", "terminated"],
+        next_value=next_value,
+    )
+    return value, next_value, expected
+
+
 @pytest.mark.parametrize(("cls", "fn"), PAIRS)
 class TestMonteCarloEstimators:
     """What RewardToGo and DiscountedReturn share; each only differs by its return."""
@@ -74,17 +90,8 @@ class TestMonteCarloEstimators:
         torch.manual_seed(0)
         critic = make_critic()
         batch = _truncate(batch)
+        value, _, expected = _full_pass(fn, critic, batch)
         cls(gamma=0.9, value_network=critic)(batch)
-        with torch.no_grad():
-            value = critic(batch.select("observation"))["state_value"]
-            next_value = critic(batch["next"].select("observation"))["state_value"]
-        expected = fn(
-            batch["next", "reward"],
-            batch["next", "done"],
-            0.9,
-            terminated=batch["next", "terminated"],
-            next_value=next_value,
-        )
         torch.testing.assert_close(batch["value_target"], expected)
         torch.testing.assert_close(batch["advantage"], expected - value)
         assert not batch["value_target"].requires_grad
@@ -194,22 +201,15 @@ class TestMonteCarloEstimators:
         critic = ValueOperator(
             nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 1)), in_keys=["observation"]
         )
-        with torch.no_grad():
-            value = critic(batch.select("observation").clone())["state_value"]
-            next_value = critic(batch["next"].select("observation").clone())["state_value"]
-        expected = fn(
-            batch["next", "reward"],
-            batch["next", "done"],
-            0.9,
-            terminated=batch["next", "terminated"],
-            next_value=next_value,
-        )
+        value, next_value, expected = _full_pass(fn, critic, batch)
         if broken == "time_first":
             batch = batch.transpose(0, 1).contiguous()
             batch.names = ["time", None]
             value, next_value, expected = (x.transpose(0, 1) for x in (value, next_value, expected))
-        seen = []
-        critic.module[0].register_forward_hook(lambda m, args, out: seen.append(out.shape[:-1].numel()))
+        seen = []  # rows the critic's first layer computes
+        critic.module[0].register_forward_hook(
+            lambda module, args, out: seen.append(out.shape[:-1].numel())
+        )
         estimator = cls(gamma=0.9, value_network=critic)
         attached = estimator._estimate(batch, value_graph=graph)
         torch.testing.assert_close(batch["state_value"], value, rtol=0, atol=1e-6)
