@@ -174,7 +174,9 @@ class _MonteCarloReturn(ValueEstimatorBase):
         to end: cheaper than TorchRL's ``vmap`` over the pair for the small networks and
         batches of on-policy training. With it, ``V(s_t)`` is computed with gradients
         and ``V(s_{t+1})`` without, so that the backward pass covers only the steps a
-        value loss regresses.
+        value loss regresses. Either way, in a large enough segment collected in time
+        order, ``V(s_{t+1})`` is read from the following step's ``V(s_t)`` wherever the
+        episode goes on (see ``_next_steps_to_evaluate``).
         """
         keys = list(self.value_network.in_keys)
         data = self._sanitize_next_obs_nan(tensordict, keys)  # as TorchRL's calls do
