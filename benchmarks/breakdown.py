@@ -21,7 +21,8 @@ costs inside the loop.
 The environments' piece is also split (not in the total): the vector environment's own
 step (gymnasium's ``SyncVectorEnv.step``; the plain loop's resets its finished
 environments inside it), rl_pg's resets of finished environments made apart from the
-step, and the rest (numpy to tensors, done flags). With the episodes ended per update:
+step, and the rest (numpy to tensors, done flags), each call timed by a wrapper that
+adds well under a microsecond to it. With the episodes ended per update:
 how often the environments reset depends on each loop's policy, and a reset can cost
 more than a step (a LunarLander builds its terrain and bodies).
 

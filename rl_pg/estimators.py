@@ -245,11 +245,11 @@ class _MonteCarloReturn(ValueEstimatorBase):
             return None
         done = done.reshape(tensordict.shape)
         ends = (done if done.dtype == torch.bool else done != 0)[..., :-1]
+        time_dim = tensordict.ndim - 1
         for key in self.value_network.in_keys:
             root, next_ = data.get(key), data.get(("next", key))
             if root.shape != next_.shape or root.shape[: tensordict.ndim] != tensordict.shape:
                 return None
-            time_dim = tensordict.ndim - 1
             same = next_.narrow(time_dim, 0, steps - 1) == root.narrow(time_dim, 1, steps - 1)
             if not bool((same.reshape(*ends.shape, -1).all(-1) | ends).all()):
                 return None
