@@ -98,3 +98,34 @@ def scan_parallel(reward, done, terminated, next_value, gamma, whole_episode, ou
             reward, done, terminated, next_value, gamma, whole_episode, out, block
         )
     return finite_check
+
+
+@numba.njit(cache=True, nogil=True)
+def episode_sums(reward, done, carried, tails):
+    """Each episode's sum of ``reward`` ``[R, T, F]`` over its steps and features, rows
+    read one after the other, each starting from its ``carried`` sum (an episode begun
+    in an earlier segment); an episode ends after a step where any of ``done[r, t]``
+    is set. Returns the sums of the episodes that ended, row by row, and the ``x - x``
+    check of every sum (NaN if one is not finite); ``tails`` gets each row's sum after
+    its last episode end (0 where the row's last step ended one)."""
+    rows, steps, features = reward.shape
+    flags = done.shape[2]
+    ended = np.empty(rows * steps, dtype=np.float64)
+    count = 0
+    check = 0.0
+    for i in range(rows):
+        total = carried[i]
+        for t in range(steps):
+            for f in range(features):
+                total += reward[i, t, f]
+            end = False
+            for f in range(flags):
+                end = end or done[i, t, f]
+            if end:
+                ended[count] = total
+                count += 1
+                check += total - total
+                total = 0.0
+        tails[i] = total
+        check += total - total
+    return ended[:count], check

@@ -807,6 +807,21 @@ def test_training_episode_returns_match_a_plain_loop_over_the_stream(
         popped_since = hi
 
 
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("ends", [False, True])
+def test_training_episode_returns_refuse_a_non_finite_reward(bad, ends):
+    """Inside an episode that ends in the batch or one still in flight: the error names
+    the reward and where it is, instead of a NaN mean in the logs."""
+    reward = torch.ones(2, 5, 1)
+    reward[1, 2] = bad
+    done = torch.zeros(2, 5, 1, dtype=torch.bool)
+    done[1, 4] = ends
+    tracker = EpisodeReturns(carry=True)
+    batch = TensorDict({"next": {"reward": reward, "done": done}}, batch_size=[2, 5])
+    with pytest.raises(ValueError, match=r"reward holds 1 non-finite value\(s\) .*\(1, 2\)"):
+        tracker.add(batch)
+
 _HOLD_THE_LOCK = textwrap.dedent(
     """
     import sys, time
