@@ -176,7 +176,7 @@ class VectorGymEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
-        return self._transition(*self._env_step(action.detach().cpu().numpy()))
+        return self._transition(*self._env_step(action.numpy(force=True)))
 
     def _transition(self, obs, reward, terminated, truncated) -> TensorDictBase:
         """The ``next`` entries of a step, from what the vector environment returned
@@ -216,7 +216,7 @@ class VectorGymEnv(EnvBase):
         Args:
             action (torch.Tensor): every environment's action, batch size first.
         """
-        returned = self._env_step(action.detach().cpu().numpy())
+        returned = self._env_step(action.numpy(force=True))
         return self._step_and_roots(returned, self._env_reset_some)
 
     def _step_and_roots(self, returned, reset_some):
@@ -448,7 +448,7 @@ class EnvPoolEnv(VectorGymEnv):
                 f"Group {group} is already stepping: call step_recv({group}) or "
                 f"recv_tensors({group}) before sending it another action."
             )
-        self._env.send(group, action.detach().cpu().numpy())
+        self._env.send(group, action.numpy(force=True))
         self._sent[group] = action
 
     def recv_tensors(self, group: int) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
