@@ -2,7 +2,10 @@
 
 One run, every contender timed in turn, repetitions interleaved (so machine noise hits
 all alike), medians of frames/s reported with ratios to the floor measured in the same
-run at the same number of environments:
+run at the same number of environments. The learning loops of one task and number of
+environments (rl_pg's and the plain-PyTorch ones) train the same frames per repetition,
+repetition k from seed k: how fast a loop runs depends on where its training is (short
+early episodes reset the environments more often) and on the seed's trajectory.
 
 * rl_pg's training loop: a recipe with its defaults except the number of environments
   and the backend (collection, returns, loss, optimiser step; evaluation excluded),
@@ -78,12 +81,16 @@ class Config:
     """Where the results are written."""
 
 
-def recipe_training(recipe, **overrides) -> Callable[[int], float]:
-    def run(frames: int) -> float:
+def recipe_training(recipe, **overrides) -> Callable[..., float]:
+    """The recipe's training loop for ``frames`` from ``seed`` (default 0): frames per
+    second of its training wall-clock."""
+
+    def run(frames: int, seed: int = 0) -> float:
         with tempfile.TemporaryDirectory() as run_dir:
             summary = recipe.train(
                 recipe.config(
                     run_dir=Path(run_dir),
+                    seed=seed,
                     total_frames=frames,
                     threshold=None,
                     eval_interval=10**12,  # one evaluation, at the end, outside the timer
@@ -161,8 +168,9 @@ class PlainLoop:
     ``optimise``) are methods so that ``breakdown.py`` can time them apart.
     """
 
-    def __init__(self, recipe, n: int) -> None:
+    def __init__(self, recipe, n: int, seed: int = 0) -> None:
         self.cfg = cfg = recipe.config(num_envs=n)
+        torch.manual_seed(seed)  # the networks' initialisation and the sampled actions
         sizing = recipe.make_env(cfg)
         actor, critic = recipe.make_models(sizing, cfg)
         sizing.close()
@@ -175,7 +183,7 @@ class PlainLoop:
             vectorization_mode="sync",
             vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
         )
-        self.obs, _ = self.envs.reset(seed=0)
+        self.obs, _ = self.envs.reset(seed=seed)
 
     def act(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The current observations and the actions sampled for them."""
@@ -234,12 +242,12 @@ class BookkeepingLoop(PlainLoop):
     and entropy losses, the explained variance and the frames per second. Still no
     truncation bootstrap (CleanRL has none) and no checkpoints or evaluations."""
 
-    def __init__(self, recipe, n: int, log_dir: str) -> None:
+    def __init__(self, recipe, n: int, log_dir: str, seed: int = 0) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        super().__init__(recipe, n)
+        super().__init__(recipe, n, seed)
         self.envs = gym.wrappers.vector.RecordEpisodeStatistics(self.envs)
-        self.obs, _ = self.envs.reset(seed=0)
+        self.obs, _ = self.envs.reset(seed=seed)
         self.writer = SummaryWriter(log_dir)
         self.frames, self.start = 0, time.perf_counter()
 
@@ -278,15 +286,15 @@ class BookkeepingLoop(PlainLoop):
             self.writer.add_scalar(tag, scalar, self.frames)  # fmt: skip
 
 
-def plain_pytorch_training(recipe, n: int, bookkeeping: bool = False) -> Callable[[int], float]:
+def plain_pytorch_training(recipe, n: int, bookkeeping: bool = False) -> Callable[..., float]:
     """``PlainLoop`` (or with ``bookkeeping``, ``BookkeepingLoop``) trained for
-    ``frames``: frames per second."""
+    ``frames`` from ``seed`` (default 0): frames per second."""
 
-    def run(frames: int) -> float:
+    def run(frames: int, seed: int = 0) -> float:
         with tempfile.TemporaryDirectory() as log_dir:
             if not bookkeeping:
-                return _plain_rate(PlainLoop(recipe, n), frames)
-            loop = BookkeepingLoop(recipe, n, log_dir)
+                return _plain_rate(PlainLoop(recipe, n, seed), frames)
+            loop = BookkeepingLoop(recipe, n, log_dir, seed)
             try:
                 return _plain_rate(loop, frames)
             finally:  # its writer's thread would write into the deleted directory
@@ -367,10 +375,15 @@ def sb3_a2c(frames: int) -> float:
     return model.num_timesteps / (time.perf_counter() - start)
 
 
-def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tuple[str, str]]]:
-    """The runs to time, and the (loop, floor) pairs whose ratio is reported."""
-    runs: dict[str, Callable[[int], float]] = {}
+def contenders(
+    cfg: Config,
+) -> tuple[dict[str, Callable[..., float]], list[tuple[str, str]], dict[str, str]]:
+    """The runs to time, the (loop, floor) pairs whose ratio is reported, and the
+    training loops' cohorts (a task at a number of environments): the loops of one
+    cohort are timed on the same frames from the same seeds."""
+    runs: dict[str, Callable[..., float]] = {}
     pairs: list[tuple[str, str]] = []
+    cohorts: dict[str, str] = {}
     backends = ["gymnasium", "envpool"] if HAS_ENVPOOL else ["gymnasium"]
     for task, recipe, counts in (
         ("CartPole", cartpole, cfg.cartpole_envs),
@@ -380,6 +393,7 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
             for backend in backends:
                 loop = f"{task} x{n} rl_pg training loop ({backend})"
                 runs[loop] = recipe_training(recipe, num_envs=n, backend=backend)
+                cohorts[loop] = f"{task} x{n}"
                 if task == "CartPole":
                     floor = f"{task} x{n} floor: {backend} + MLP, no learning"
                     runs[floor] = cartpole_floor(n, backend)
@@ -396,6 +410,7 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                 runs[overlapped] = recipe_training(
                     recipe, num_envs=n, backend="envpool", overlap=True
                 )
+                cohorts[overlapped] = f"{task} x{n}"
                 pairs.append((overlapped, f"{task} x{n} rl_pg training loop (envpool)"))
                 pairs.append((overlapped, f"{task} x{n} rl_pg training loop (gymnasium)"))
                 pairs.append((overlapped, floor))
@@ -409,18 +424,20 @@ def contenders(cfg: Config) -> tuple[dict[str, Callable[[int], float]], list[tup
                 runs[name] = collection_only(recipe, n, kind)
             pairs.append((collected["SegmentCollector"], collected["TorchRL Collector"]))
             runs[plain] = plain_pytorch_training(recipe, n)
+            cohorts[plain] = f"{task} x{n}"
             pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", plain))
             pairs.append((plain, f"{task} x{n} floor: gymnasium{_floor_kind(task)}"))
             if HAS_TENSORBOARD:  # the plain loop with a CleanRL script's bookkeeping
                 kept = f"{task} x{n} the same in plain PyTorch, CleanRL's bookkeeping (gymnasium)"
                 runs[kept] = plain_pytorch_training(recipe, n, bookkeeping=True)
+                cohorts[kept] = f"{task} x{n}"
                 pairs.append((f"{task} x{n} rl_pg training loop (gymnasium)", kept))
                 pairs.append((kept, plain))
     if cfg.peers:
         runs["CartPole x1 TorchRL Collector(GymEnv), collection only"] = torchrl_collector
         if importlib.util.find_spec("stable_baselines3") is not None:
             runs["CartPole x8 SB3 A2C training loop"] = sb3_a2c
-    return runs, pairs
+    return runs, pairs, cohorts
 
 
 def _floor_kind(task: str) -> str:
@@ -429,16 +446,24 @@ def _floor_kind(task: str) -> str:
 
 def main(cfg: Config) -> dict:
     torch.set_num_threads(cfg.threads)
-    runs, pairs = contenders(cfg)
+    runs, pairs, cohorts = contenders(cfg)
     # Size each contender's repetition to about cfg.seconds from a short probe.
     frames = {
         name: max(cfg.probe_frames, int(run(cfg.probe_frames) * cfg.seconds))
         for name, run in runs.items()
     }
+    # A learning loop's speed depends on where its training is (short early episodes
+    # reset the environments more often) and on its seed: the loops of one cohort
+    # train the same frames (the fewest any was sized to), repetition k from seed k.
+    for cohort in set(cohorts.values()):
+        members = [name for name, of in cohorts.items() if of == cohort]
+        common = min(frames[name] for name in members)
+        frames.update(dict.fromkeys(members, common))
     rates: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(cfg.repeats):
+    for repetition in range(cfg.repeats):
         for name, run in runs.items():
-            rates[name].append(run(frames[name]))
+            seeded = {"seed": repetition} if name in cohorts else {}
+            rates[name].append(run(frames[name], **seeded))
     median = {name: statistics.median(r) for name, r in rates.items()}
 
     print(

@@ -73,7 +73,7 @@ def test_comparisons_with_sb3(script, tmp_path):
     module = _script(script)
     if script == "throughput":
         cfg = module.Config(
-            seconds=0.01,
+            seconds=0.1,  # above the probe's frames: each contender is sized apart
             repeats=1,
             probe_frames=512,
             cartpole_envs=[32],  # the recipe's default: the stock-collector ratio reads it
@@ -88,6 +88,11 @@ def test_comparisons_with_sb3(script, tmp_path):
         assert f"LunarLander x4 {loop} / LunarLander x4 {plain}" in out["ratios"]
         kept = "the same in plain PyTorch, CleanRL's bookkeeping (gymnasium)"
         assert f"CartPole x32 {loop} / CartPole x32 {kept}" in out["ratios"]
+        # The learning loops of a task and number of environments: the same frames.
+        sized = out["frames_per_repeat"]
+        assert len(set(sized.values())) > 2  # sized apart, or this would prove nothing
+        for task in ("CartPole x32", "LunarLander x4"):
+            assert sized[f"{task} {loop}"] == sized[f"{task} {plain}"] == sized[f"{task} {kept}"]
         assert out["rl_pg_over_stock_collector"] > 0
     else:
         for task, threshold in (("cartpole", 12.0), ("lunarlander", -1000.0)):
