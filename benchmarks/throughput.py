@@ -165,12 +165,16 @@ class PlainLoop:
     as the recipe's defaults; one optimiser step per segment. It is a cost reference:
     finished episodes are treated as terminated (no truncation bootstrap) and no
     episode statistics are kept. Its pieces (``act``, ``step``, ``batch``, ``loss``,
-    ``optimise``) are methods so that ``breakdown.py`` can time them apart.
+    ``optimise``) are methods so that ``breakdown.py`` can time them apart. With a
+    ``seed``, torch's generator (the networks' initialisation, the sampled actions) and
+    the environments start from it; without one, the environments from 0 and torch's
+    generator from wherever it is.
     """
 
-    def __init__(self, recipe, n: int, seed: int = 0) -> None:
+    def __init__(self, recipe, n: int, seed: int | None = None) -> None:
         self.cfg = cfg = recipe.config(num_envs=n)
-        torch.manual_seed(seed)  # the networks' initialisation and the sampled actions
+        if seed is not None:  # the networks' initialisation and the sampled actions
+            torch.manual_seed(seed)
         sizing = recipe.make_env(cfg)
         actor, critic = recipe.make_models(sizing, cfg)
         sizing.close()
@@ -183,7 +187,7 @@ class PlainLoop:
             vectorization_mode="sync",
             vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
         )
-        self.obs, _ = self.envs.reset(seed=seed)
+        self.obs, _ = self.envs.reset(seed=seed or 0)
 
     def act(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The current observations and the actions sampled for them."""
@@ -242,12 +246,12 @@ class BookkeepingLoop(PlainLoop):
     and entropy losses, the explained variance and the frames per second. Still no
     truncation bootstrap (CleanRL has none) and no checkpoints or evaluations."""
 
-    def __init__(self, recipe, n: int, log_dir: str, seed: int = 0) -> None:
+    def __init__(self, recipe, n: int, log_dir: str, seed: int | None = None) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         super().__init__(recipe, n, seed)
         self.envs = gym.wrappers.vector.RecordEpisodeStatistics(self.envs)
-        self.obs, _ = self.envs.reset(seed=seed)
+        self.obs, _ = self.envs.reset(seed=seed or 0)
         self.writer = SummaryWriter(log_dir)
         self.frames, self.start = 0, time.perf_counter()
 

@@ -807,7 +807,6 @@ def test_training_episode_returns_match_a_plain_loop_over_the_stream(
         popped_since = hi
 
 
-
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 @pytest.mark.parametrize("ends", [False, True])
 def test_training_episode_returns_refuse_a_non_finite_reward(bad, ends):
@@ -821,6 +820,7 @@ def test_training_episode_returns_refuse_a_non_finite_reward(bad, ends):
     batch = TensorDict({"next": {"reward": reward, "done": done}}, batch_size=[2, 5])
     with pytest.raises(ValueError, match=r"reward holds 1 non-finite value\(s\) .*\(1, 2\)"):
         tracker.add(batch)
+
 
 _HOLD_THE_LOCK = textwrap.dedent(
     """

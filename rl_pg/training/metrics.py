@@ -67,9 +67,7 @@ class EpisodeReturns:
         # small arrays cost several times the arithmetic).
         sums, check = episode_sums(reward, done.numpy(), carried.numpy(), tails)
         if check != 0.0:  # a sum is not finite: the return function's clear error
-            discounted_return(
-                torch.from_numpy(reward.sum(-1)), done.any(-1), 1.0, time_dim=-1
-            )
+            discounted_return(torch.from_numpy(reward.sum(-1)), done.any(-1), 1.0, time_dim=-1)
         if len(sums):
             self.ended.append(torch.from_numpy(sums))
         if self.carry:  # what follows each row's last episode end is still in flight
