@@ -242,7 +242,6 @@ class Run:
             total_frames=cfg.total_frames, initial_frames=self.state.frames, enabled=cfg.progress
         )
         self.episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
-        self.episode_returns.warm_up()
         if saved is not None:  # the environments and counters where the run left them
             self.collection.replay()
             if "episodes" in saved:

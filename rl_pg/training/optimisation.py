@@ -11,6 +11,7 @@ from torchrl.modules import IndependentNormal
 from rl_pg.loss import ReinforceLoss
 from rl_pg.normalization import popart_output, update_running_norms
 from rl_pg.training.config import TrainConfig
+from rl_pg.training.metrics import EpisodeReturns
 
 __all__ = [
     "TrainingDiverged",
@@ -62,8 +63,8 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
 
 
 def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
-    """Compiles (or loads from numba's cache) the loss's return kernel before the clock
-    starts.
+    """Compiles (or loads from numba's cache) the numba kernels before the clock starts:
+    the loss's return kernel and the training-episode returns' sums.
 
     The first calls cost up to a second; timing them would charge the training loop
     with set-up, as if timing ``import torch``.
@@ -73,6 +74,7 @@ def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
     with torch.no_grad():
         for _ in range(2):  # the second call still pays for thread-pool start-up
             loss.value_estimator(batch)
+    EpisodeReturns.warm_up()
 
 
 def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
