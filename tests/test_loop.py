@@ -1185,6 +1185,34 @@ class TestInterruptedRun:
         assert resumed["interrupted"] is False
         assert_same_run(resumed, run, tmp_path / "straight")
 
+    @pytest.mark.parametrize("where", ["stop_training", "checkpoint_due"])
+    def test_a_stop_landing_anywhere_in_an_update_still_leaves_its_checkpoint(
+        self, tmp_path, where
+    ):
+        # A signal can land between any two bytecodes; here it lands in a callback called
+        # after the loop decided the update (`stop_training`) or while it asks whether a
+        # checkpoint is due (`checkpoint_due`). Either way the run must end on a
+        # checkpoint of the update its summary reports.
+        class SignalAt(Callback):
+            def _maybe_signal(self, run, name):
+                if name == where and run.state.updates == 2:
+                    os.kill(os.getpid(), signal.SIGTERM)
+                return False
+
+            def stop_training(self, run):
+                return self._maybe_signal(run, "stop_training")
+
+            def checkpoint_due(self, run):
+                return self._maybe_signal(run, "checkpoint_due")
+
+        cfg = _cfg(tmp_path, total_updates=50, checkpoint_interval=1_000)
+        with pytest.raises(KeyboardInterrupt):
+            _train(cfg, callbacks=[SignalAt()])
+        summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+        assert summary["interrupted"] is True and summary["updates"] in (2, 3)
+        saved = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+        assert saved["state"]["updates"] == summary["updates"]
+
     @pytest.mark.parametrize(
         ("first", "second"),
         [

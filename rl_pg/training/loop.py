@@ -150,6 +150,7 @@ def train(
     ):
         saved = directory.open(cfg, recipe, recipe_module)
         run = Run(cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries, hooks)
+        interrupted = False  # the run stopped on a signal before its budget was spent
         try:
             for batch in run.collection:
                 batch = run.collection.join(batch, segments_per_update(cfg, run.state.frames))
@@ -165,6 +166,9 @@ def train(
                     run.evaluate()
                     hooks.on_evaluation(run, run.state.last_eval)
                 done = hooks.stop_training(run) or done
+                # Read once: a signal landing after this read (during the calls below)
+                # stops the run after the next update, which then checkpoints.
+                stop = done or interrupt.requested
                 run.console.update(
                     run.state.frames,
                     run.spent,
@@ -172,9 +176,10 @@ def train(
                     run.state.last_eval,
                     evaluated=evaluated,
                 )
-                if done or interrupt.requested or run.checkpoint_due() or hooks.checkpoint_due(run):
+                if stop or run.checkpoint_due() or hooks.checkpoint_due(run):
                     run.checkpoint()
-                if done or interrupt.requested:
+                if stop:
+                    interrupted = not done
                     break
         finally:
             try:
@@ -185,10 +190,10 @@ def train(
         try:
             extra = summarise(run_dir) if summarise is not None else None
         except Exception:  # the recipe's own fields failed: the run's summary still stands
-            directory.finish(run.state, interrupted=interrupt.requested)
+            directory.finish(run.state, interrupted=interrupted)
             raise
-        summary = directory.finish(run.state, interrupted=interrupt.requested, extra=extra)
-    if interrupt.requested:
+        summary = directory.finish(run.state, interrupted=interrupted, extra=extra)
+    if interrupted:
         print(
             f"Interrupted ({interrupt.signal_name}) at {run.state.frames} frames; checkpoint "
             f"and summary saved in "
