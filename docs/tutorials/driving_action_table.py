@@ -78,9 +78,10 @@ for episode in episodes:
     print(f"{len(episode):4d} steps, route completion {completion:.2f}, ended by {ended}")
 
 # %% [markdown]
-# A random driver leaves the road or crashes within a few hundred steps. How noisy is
-# the gradient it would learn from? One episode is one unit of `GradientStatistics`;
-# with $\gamma = 0.99$, reward-to-go against whole-episode returns:
+# A random driver goes nowhere: it covers a few percent of its route before it leaves
+# the road or runs out of steps. How noisy is the gradient it would learn from? One
+# episode is one unit of `GradientStatistics`; with $\gamma = 0.99$, reward-to-go
+# against whole-episode returns:
 
 # %%
 loss = ReinforceLoss(policy, baseline="none")

@@ -112,7 +112,7 @@ for name, (estimator, baseline) in VARIANTS.items():
         collector = Collector(
             env,
             actor,
-            frames_per_batch=2 * EPISODES,  # how often it checks for finished episodes
+            frames_per_batch=10 * EPISODES,  # how often it checks for finished episodes
             total_frames=-1,
             trajs_per_batch=EPISODES,
             traj_format="cat",
