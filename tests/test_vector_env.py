@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -226,7 +228,12 @@ def test_gym_env_builds_it_for_several_environments():
 @pytest.mark.parametrize("env_id", ["CartPole-v1", "LunarLander-v3", "Pendulum-v1"])
 def test_envpool_has_the_specs_of_gymnasium(env_id):
     pytest.importorskip("envpool")
-    ours = gym_env(env_id, num_envs=3, backend="envpool")
+    with warnings.catch_warnings(record=True) as caught:  # nothing for a user to act on
+        warnings.simplefilter("always", UserWarning)  # what a user sees by default
+        ours = gym_env(env_id, num_envs=3, backend="envpool")
+        ours.set_seed(1)  # builds its pools again
+        ours.rollout(3)
+    assert not [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     reference = gym_env(env_id, num_envs=3)
     assert isinstance(ours, EnvPoolEnv)
     assert ours.observation_spec == reference.observation_spec

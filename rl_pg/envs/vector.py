@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from copy import deepcopy
 from typing import Any
 
@@ -472,8 +473,12 @@ class _Pools(gym.vector.VectorEnv):
         self.pools = pools
         self.sizes = [pool.config["num_envs"] for pool in pools]
         self.num_envs = sum(self.sizes)
-        self.single_observation_space = pools[0].single_observation_space
-        self.single_action_space = pools[0].single_action_space
+        with warnings.catch_warnings():
+            # EnvPool builds float32 Boxes from float64 bounds, which gymnasium reports
+            # for every pool; the bounds are the task's own, nothing for a user to fix.
+            warnings.filterwarnings("ignore", ".*Box .* precision lowered", UserWarning)
+            self.single_observation_space = pools[0].single_observation_space
+            self.single_action_space = pools[0].single_action_space
         self.metadata = {}
         self._ids = [np.arange(size, dtype=np.int32) for size in self.sizes]
         self._bounds = np.cumsum(self.sizes)[:-1]
