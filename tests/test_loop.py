@@ -1213,6 +1213,19 @@ class TestInterruptedRun:
         saved = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
         assert saved["state"]["updates"] == summary["updates"]
 
+    def test_a_stop_once_the_budget_is_spent_lets_the_run_finish(self, tmp_path, capsys):
+        # Landing during the last update's evaluation, the signal cuts nothing short: the
+        # run ends as it would have, not as one to resume.
+        class SignalAtTheEnd(Callback):
+            def on_evaluation(self, run, metrics):
+                if run.budget_spent():
+                    os.kill(os.getpid(), signal.SIGTERM)
+
+        summary = _train(_cfg(tmp_path, total_updates=3), callbacks=[SignalAtTheEnd()])
+        assert summary["interrupted"] is False and summary["updates"] == 3
+        assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["state"]["updates"] == 3
+        assert "Interrupted" not in capsys.readouterr().err
+
     @pytest.mark.parametrize(
         ("first", "second"),
         [
