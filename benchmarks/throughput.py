@@ -175,6 +175,7 @@ class PlainLoop:
         self.cfg = cfg = recipe.config(num_envs=n)
         if seed is not None:  # the networks' initialisation and the sampled actions
             torch.manual_seed(seed)
+        self.env_seed = seed or 0
         sizing = recipe.make_env(cfg)
         actor, critic = recipe.make_models(sizing, cfg)
         sizing.close()
@@ -187,7 +188,7 @@ class PlainLoop:
             vectorization_mode="sync",
             vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
         )
-        self.obs, _ = self.envs.reset(seed=seed or 0)
+        self.obs, _ = self.envs.reset(seed=self.env_seed)
 
     def act(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The current observations and the actions sampled for them."""
@@ -251,7 +252,7 @@ class BookkeepingLoop(PlainLoop):
 
         super().__init__(recipe, n, seed)
         self.envs = gym.wrappers.vector.RecordEpisodeStatistics(self.envs)
-        self.obs, _ = self.envs.reset(seed=seed or 0)
+        self.obs, _ = self.envs.reset(seed=self.env_seed)
         self.writer = SummaryWriter(log_dir)
         self.frames, self.start = 0, time.perf_counter()
 
