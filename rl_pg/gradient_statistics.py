@@ -219,7 +219,7 @@ class GradientStatistics:
             data = batch.copy()
             for key in (loss.tensor_keys.advantage, loss.tensor_keys.value_target):
                 data.pop(key, None)
-            psi, _, _ = loss._policy_weights(data)
+            psi, *_ = loss._policy_weights(data)
         finally:
             if baseline is not None:
                 baseline.train(training)

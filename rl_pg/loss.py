@@ -396,7 +396,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
                 " there is no step to learn from. Collect at least one step."
             )
-        weights, diagnostics, state_value = self._policy_weights(tensordict)
+        weights, diagnostics, state_value, valid = self._policy_weights(tensordict)
         if self.value_norm is not None:
             self._update_value_norm(tensordict)
         dist = self._policy(tensordict)
@@ -418,10 +418,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
             if value_clip_fraction is not None:
                 out["value_clip_fraction"] = value_clip_fraction
         out.update(diagnostics)
+        # The padding mask, if the batch has one, was found above: without one there is
+        # nothing for the reduction to look up in the batch again, term after term.
+        masked = tensordict if valid is not None else None
         for name, value in out.items():
             if name.startswith("loss_"):
-                out[name] = self._reduce_loss(value, tensordict).squeeze(-1)
-        td_out = TensorDict(out, batch_size=[])
+                out[name] = self._reduce_loss(value, masked).squeeze(-1)
+        # Every entry is a tensor computed here: nothing for TensorDict to validate.
+        td_out = TensorDict._new_unsafe(out, batch_size=torch.Size([]))
         self._clear_weakrefs(
             tensordict,
             td_out,
@@ -467,8 +471,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
 
     def _policy_weights(self, tensordict: TensorDictBase):
-        """The detached `Ψ_t` that weights ``log pi``, diagnostics, and the critic's
-        ``V(s_t)`` with its graph when the estimator computed it here (else None)."""
+        """The detached `Ψ_t` that weights ``log pi``, diagnostics, the critic's
+        ``V(s_t)`` with its graph when the estimator computed it here (else None), and
+        the padding mask shaped like `Ψ_t` (None when the batch has none)."""
         key = (
             self.tensor_keys.advantage
             if self.baseline == "critic"
@@ -525,7 +530,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 diagnostics["explained_variance"] = explained
         if self.normalize_advantage:
             psi = (psi - diagnostics["advantage_mean"]) / (diagnostics["advantage_std"] + 1e-8)
-        return psi, diagnostics, state_value
+        return psi, diagnostics, state_value, valid
 
     def _valid_steps(self, tensordict: TensorDictBase, like: torch.Tensor):
         """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""
@@ -573,8 +578,10 @@ class ReinforceLoss(TorchRLReinforceLoss):
         target = tensordict.get(self.tensor_keys.value_target, None)
         if value is None or target is None or value.shape != target.shape:
             return None
-        error = (target - value).detach()
-        target = target.detach()
+        error = target - value
+        # The estimator writes them detached; a batch may hold them otherwise.
+        if error.requires_grad:
+            error, target = error.detach(), target.detach()
         if valid is not None:
             error, target = error[valid], target[valid]
         variance = target.var(unbiased=False)
@@ -608,7 +615,16 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"collect it or rename the key with loss.set_keys(action=...)."
                 )
             _check_support(dist, action, self.tensor_keys.action, self._declares_bounds)
-        log_prob = dist.log_prob(action)
+        if (
+            type(dist) is torch.distributions.Categorical
+            and not action.is_floating_point()
+            and action.shape == dist.batch_shape
+        ):
+            # What Categorical.log_prob computes, without broadcasting the actions
+            # against the logits first (their shapes match) or re-checking the support.
+            log_prob = dist.logits.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+        else:
+            log_prob = dist.log_prob(action)
         if is_tensor_collection(log_prob):
             log_prob = log_prob.sum(dim="feature", reduce=True)  # over the action's entries
         log_prob = _per_step(log_prob, weights.shape, "log-probabilities")

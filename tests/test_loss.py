@@ -436,6 +436,25 @@ class TestReinforceLossBadInput:
         as_float = ReinforceLoss(categorical_actor)(categorical_batch)
         torch.testing.assert_close(as_float["loss_actor"], as_int["loss_actor"])
 
+    def test_integer_actions_are_scored_as_categorical_log_prob_scores_them(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        # Integer actions are looked up in the logits directly; integral floats go through
+        # Categorical.log_prob. Bit for bit the same loss and the same gradients.
+        outputs, grads = [], []
+        for action in (categorical_batch["action"], categorical_batch["action"].double()):
+            batch = categorical_batch.clone()
+            batch["action"] = action
+            loss = ReinforceLoss(categorical_actor, critic, entropy_coeff=0.01)
+            out = loss(batch)
+            categorical_actor.zero_grad()
+            critic.zero_grad()
+            (out["loss_actor"] + out["loss_entropy"] + out["loss_value"]).backward()
+            outputs.append(out)
+            grads.append([p.grad.clone() for p in loss.parameters()])
+        assert (outputs[0] == outputs[1]).all()
+        assert all(torch.equal(g, h) for g, h in zip(*grads, strict=True))
+
     @pytest.mark.parametrize("bad", [-1, N_ACT])
     def test_categorical_action_out_of_range(self, categorical_actor, categorical_batch, bad):
         categorical_batch["action"][0, 0] = bad
