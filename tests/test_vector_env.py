@@ -225,12 +225,13 @@ def test_gym_env_builds_it_for_several_environments():
     assert not isinstance(gym_env("CartPole-v1"), VectorGymEnv)
 
 
+@pytest.mark.parametrize("groups", [1, 2])
 @pytest.mark.parametrize("env_id", ["CartPole-v1", "LunarLander-v3", "Pendulum-v1"])
-def test_envpool_has_the_specs_of_gymnasium(env_id):
+def test_envpool_has_the_specs_of_gymnasium(env_id, groups):
     pytest.importorskip("envpool")
     with warnings.catch_warnings(record=True) as caught:  # nothing for a user to act on
         warnings.simplefilter("always", UserWarning)  # what a user sees by default
-        ours = gym_env(env_id, num_envs=3, backend="envpool")
+        ours = gym_env(env_id, num_envs=3, backend="envpool", groups=groups)
         ours.set_seed(1)  # builds its pools again
         ours.rollout(3)
     assert not [str(w.message) for w in caught if issubclass(w.category, UserWarning)]

@@ -477,8 +477,10 @@ class _Pools(gym.vector.VectorEnv):
             # EnvPool builds float32 Boxes from float64 bounds, which gymnasium reports
             # for every pool; the bounds are the task's own, nothing for a user to fix.
             warnings.filterwarnings("ignore", ".*Box .* precision lowered", UserWarning)
-            self.single_observation_space = pools[0].single_observation_space
-            self.single_action_space = pools[0].single_action_space
+            # Every pool's: each builds them once, at the first reading (its reset's too).
+            for pool in reversed(pools):
+                self.single_observation_space = pool.single_observation_space
+                self.single_action_space = pool.single_action_space
         self.metadata = {}
         self._ids = [np.arange(size, dtype=np.int32) for size in self.sizes]
         self._bounds = np.cumsum(self.sizes)[:-1]
