@@ -54,7 +54,7 @@ from tensordict import TensorDictBase
 from throughput import PlainLoop
 from torchrl.envs.utils import set_exploration_type
 
-from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _root, _segment
+from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _segment
 from rl_pg.envs import VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
@@ -149,7 +149,7 @@ def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
     with torch.no_grad(), set_exploration_type(collector.exploration_type):
         for _ in range(collector.frames_per_batch // env.batch_size.numel()):
             t = time.perf_counter_ns()
-            root = collector._act(_root(observations, clear, env.batch_size, env.device))
+            root = collector._policy_at(observations, clear, env.batch_size)
             action = collector._action(root)
             t = timer.add("collection: policy", t)
             next_step, observations = env.step_tensors(action)
@@ -157,7 +157,7 @@ def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
             roots.append(root)
             nexts.append(next_step)
         t = time.perf_counter_ns()
-        batch = _segment(roots, nexts, env.device)
+        batch = _segment(roots, nexts, env.batch_size, env.device)
         timer.add("collection: building the batch", t)
     collector._observations = observations
     collector._frames += collector.frames_per_batch

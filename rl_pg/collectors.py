@@ -12,6 +12,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
+from rl_pg.lean import LeanCategoricalPolicy, _hooked, _hooked_globally
 
 __all__ = ["DoubleBufferedCollector", "SegmentCollector"]
 
@@ -44,6 +45,15 @@ class _Segments:
         self.device = None if device is None else torch.device(device)
         if self.device == (env.device or torch.device("cpu")):
             self.device = None  # no copies
+        # Where the environment hands back plain tensors, the policy may act on them: a
+        # lean policy that writes the environment's action from the observations alone,
+        # on their device (a subclass says whether the environment does).
+        self._on_tensors = (
+            type(policy) is LeanCategoricalPolicy
+            and self.device is None
+            and policy._action_key == env.action_key
+            and policy.acts_on(env.observation_spec.keys())
+        )
         self._frames = 0
 
     def set_seed(self, seed: int) -> int:
@@ -69,6 +79,18 @@ class _Segments:
 
     def _collect(self, horizon: int) -> TensorDictBase:
         raise NotImplementedError
+
+    def _policy_at(
+        self, observations: dict, clear: torch.Tensor, size: torch.Size
+    ) -> TensorDictBase | dict:
+        """A root of batch size ``size`` (``observations`` and the cleared done flags)
+        with the policy's outputs: a dict of tensors where the policy acts on them, else
+        a TensorDict."""
+        if self._on_tensors and not (_hooked(self.policy) or _hooked_globally()):
+            root = {**observations, "done": clear, "terminated": clear, "truncated": clear}
+            if self.policy.act(root) is not None:
+                return root
+        return self._act(_root(observations, clear, size, self.env.device))
 
     def _act(self, root: TensorDictBase) -> TensorDictBase:
         """The policy's outputs at ``root`` (on the policy's device, if it has one)."""
@@ -107,9 +129,12 @@ class SegmentCollector(_Segments):
     [`VectorGymEnv`][rl_pg.envs.VectorGymEnv] or a one-group
     [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv] the environment hands back plain tensors
     (``step_tensors``) and the batch is built once, at its end; any other environment is
-    stepped by its ``step_and_maybe_reset``. For environments that take microseconds a
-    step, that work is what a training loop over TorchRL's collector spends beyond a
-    hand-written one.
+    stepped by its ``step_and_maybe_reset``. A
+    [`LeanCategoricalPolicy`][rl_pg.lean.LeanCategoricalPolicy] (what
+    [`lean_policy`][rl_pg.lean.lean_policy] makes of the recipes' categorical actors) then
+    acts on those tensors too, without a TensorDict per step. For environments that take
+    microseconds a step, that work is what a training loop over TorchRL's collector
+    spends beyond a hand-written one.
 
     Each batch holds ``frames_per_batch / num_envs`` consecutive steps of every
     environment, batch size ``[*env.batch_size, T]`` (time last), and the environments
@@ -146,6 +171,7 @@ class SegmentCollector(_Segments):
         # Exactly our vector environments: a subclass may step otherwise, and a
         # TransformedEnv passes its base's step_tensors on but would skip its transforms.
         self._lean = type(env) in (VectorGymEnv, EnvPoolEnv) and getattr(env, "groups", 1) == 1
+        self._on_tensors = self._on_tensors and self._lean
         self._root: TensorDictBase | None = None
         self._observations: dict[str, torch.Tensor] | None = None
 
@@ -167,12 +193,12 @@ class SegmentCollector(_Segments):
         observations, clear = self._observations, _cleared(env.batch_size, env.device)
         roots, nexts = [], []
         for _ in range(horizon):
-            root = self._act(_root(observations, clear, env.batch_size, env.device))
+            root = self._policy_at(observations, clear, env.batch_size)
             step, observations = env.step_tensors(self._action(root))
             roots.append(root)
             nexts.append(step)
         self._observations = observations
-        return _segment(roots, nexts, env.device)
+        return _segment(roots, nexts, env.batch_size, env.device)
 
 
 def _observations_of(env: EnvBase, root: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -190,10 +216,14 @@ def _root(observations: dict, clear: torch.Tensor, size: torch.Size, device) -> 
     return TensorDict._new_unsafe(entries, batch_size=size, device=device)
 
 
-def _segment(roots: list[TensorDictBase], nexts: list[dict], env_device) -> TensorDictBase:
-    """The batch ``[environments, T]`` of a segment's roots (with the policy's outputs)
-    and ``"next"`` entries, as TorchRL's collectors lay it out."""
-    batch = _stack(roots, cleared=("done", "terminated", "truncated"))  # policy's device
+def _segment(
+    roots: list[TensorDictBase | dict], nexts: list[dict], size: torch.Size, env_device
+) -> TensorDictBase:
+    """The batch ``[environments, T]`` of a segment's roots (with the policy's outputs;
+    TensorDicts, or dicts of tensors of batch size ``size`` on ``env_device``) and
+    ``"next"`` entries, as TorchRL's collectors lay it out."""
+    # On the policy's device.
+    batch = _stack(roots, size, env_device, cleared=("done", "terminated", "truncated"))
     following = TensorDict._new_unsafe(
         {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
         batch_size=batch.batch_size,
@@ -202,19 +232,26 @@ def _segment(roots: list[TensorDictBase], nexts: list[dict], env_device) -> Tens
     return batch.set("next", following.to(batch.device) if batch.device else following)
 
 
-def _stack(roots: list[TensorDictBase], cleared: tuple[str, ...] = ()) -> TensorDictBase:
+def _stack(
+    roots: list[TensorDictBase | dict], size: torch.Size, device, cleared: tuple[str, ...] = ()
+) -> TensorDictBase:
     """``torch.stack(roots, dim=1)``, entry by entry when every entry is a tensor at the
     top level (a tenth of the time for a batch of small steps). The ``cleared`` entries
     are the same all-False tensor in every root (``_root``'s done flags): one new
-    tensor of the stacked shape stands for them."""
+    tensor of the stacked shape stands for them. Roots that are dicts of tensors are
+    those of batch size ``size`` on ``device``."""
     first = roots[0]
-    # A plain TensorDict's own mapping: its entries without a get() call each, which
-    # for a segment of small steps cost more than the stacking.
-    entries = (
-        [root._tensordict for root in roots]
-        if all(type(root) is TensorDict for root in roots)
-        else [dict(root.items()) for root in roots]
-    )
+    if isinstance(first, dict):
+        entries = roots
+    else:
+        # A plain TensorDict's own mapping: its entries without a get() call each, which
+        # for a segment of small steps cost more than the stacking.
+        entries = (
+            [root._tensordict for root in roots]
+            if all(type(root) is TensorDict for root in roots)
+            else [dict(root.items()) for root in roots]
+        )
+        size, device = first.batch_size, first.device
     values = entries[0]
     if not all(isinstance(value, torch.Tensor) for value in values.values()):
         return torch.stack(roots, dim=1)
@@ -226,7 +263,7 @@ def _stack(roots: list[TensorDictBase], cleared: tuple[str, ...] = ()) -> Tensor
         else:
             stacked[key] = torch.stack([e[key] for e in entries], dim=1)
     return TensorDict._new_unsafe(
-        stacked, batch_size=torch.Size([first.batch_size[0], len(roots)]), device=first.device
+        stacked, batch_size=torch.Size([size[0], len(roots)]), device=device
     )
 
 
@@ -294,6 +331,7 @@ class DoubleBufferedCollector(_Segments):
                 f"The environment's batch size must be [num_envs], got {env.batch_size}."
             )
         super().__init__(env, policy, frames_per_batch, **kwargs)
+        self._on_tensors = self._on_tensors and type(env) is EnvPoolEnv
         self._first = env.group_sizes[0]  # environments of group 0; group 1 has the rest
         # Where each group stands between batches: its roots, or for an EnvPoolEnv
         # (which hands back plain tensors) its observations.
@@ -320,8 +358,7 @@ class DoubleBufferedCollector(_Segments):
         nexts: tuple[list, list] = ([], [])
 
         def send(group: int) -> None:
-            root = _root(observations[group], cleared[group], sizes[group], env.device)
-            root = self._act(root)
+            root = self._policy_at(observations[group], cleared[group], sizes[group])
             env.send_action(self._action(root), group)
             roots[group].append(root)
 
@@ -336,7 +373,9 @@ class DoubleBufferedCollector(_Segments):
             if t + 1 < horizon:  # on-policy: nothing is sent past the batch's end
                 send(0)  # ...while group 0 acts
             receive(1)
-        return torch.cat([_segment(roots[g], nexts[g], env.device) for g in (0, 1)], dim=0)
+        return torch.cat(
+            [_segment(roots[g], nexts[g], sizes[g], env.device) for g in (0, 1)], dim=0
+        )
 
     def _collect_tensordicts(self, horizon: int) -> TensorDictBase:
         if self._roots is None:

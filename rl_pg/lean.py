@@ -128,15 +128,49 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
         return tensordict.get(self._logits_key)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        kind = exploration_type() or self._default
-        if kind != ExplorationType.RANDOM:
+        if not self._samples():
             return self.actor(tensordict)
-        logits = self._logits(tensordict)
-        # Categorical(logits=logits).sample(): its probabilities, operation for operation...
-        logits = logits - logits.logsumexp(dim=-1, keepdim=True)
-        probs = torch.softmax(logits, dim=-1)
-        tensordict.set(self._action_key, sample_categorical(probs))
+        tensordict.set(self._action_key, _sample(self._logits(tensordict)))
         return tensordict
+
+    def acts_on(self, keys) -> bool:
+        """Whether [`act`][rl_pg.lean.LeanCategoricalPolicy.act] can run on a dict of
+        tensors at ``keys`` alone: every network reads one of them, or an earlier
+        network's output."""
+        known = set(keys)
+        for _, in_keys, out_key in self._layers:
+            if not known.issuperset(in_keys):
+                return False
+            known.add(out_key)
+        return True
+
+    def act(self, values: dict) -> dict | None:
+        """``forward`` on a dict of tensors instead of a TensorDict, for a caller that
+        builds its batch itself (a [`SegmentCollector`][rl_pg.collectors.SegmentCollector]):
+        adds to ``values`` what ``forward`` writes, each network's output and the sampled
+        action (the same operations on the same random stream), and returns it. Returns
+        None outside random interaction, where ``forward`` defers to the actor: call the
+        policy on a TensorDict then.
+
+        Args:
+            values (dict): the inputs, keyed as the actor reads them (see
+                [`acts_on`][rl_pg.lean.LeanCategoricalPolicy.acts_on]).
+        """
+        if not self._samples():
+            return None
+        run_plain(self._layers, values)
+        values[self._action_key] = _sample(values[self._logits_key])
+        return values
+
+    def _samples(self) -> bool:
+        return (exploration_type() or self._default) == ExplorationType.RANDOM
+
+
+def _sample(logits: torch.Tensor) -> torch.Tensor:
+    """``Categorical(logits=logits).sample()``: its probabilities, operation for
+    operation, then its draw (see ``sample_categorical``)."""
+    logits = logits - logits.logsumexp(dim=-1, keepdim=True)
+    return sample_categorical(torch.softmax(logits, dim=-1))
 
 
 def sample_categorical(probs: torch.Tensor) -> torch.Tensor:

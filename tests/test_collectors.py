@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType
 
 from rl_pg.collectors import DoubleBufferedCollector
 from rl_pg.envs import EnvPoolEnv, gym_env
+from rl_pg.lean import lean_policy
 from rl_pg.models import mlp_actor
 from rl_pg.recipes import load
 
@@ -78,14 +79,17 @@ def test_two_groups_step_as_one_pool():
         assert _same(*steps)
 
 
-def test_every_action_is_sampled_from_the_current_policy():
+@pytest.mark.parametrize("lean", [False, True], ids=["actor", "lean-policy"])
+def test_every_action_is_sampled_from_the_current_policy(lean):
     """Strictly on-policy: after the policy changes, the next batch's actions all come
     from the new policy (stored logits are the policy's on the stored observations), and
     they are distributed as its probabilities say."""
     torch.manual_seed(1)
     env = EnvPoolEnv("CartPole-v1", 6, groups=2)
     actor = mlp_actor(env, hidden=(16,))
-    collector = DoubleBufferedCollector(env, actor, frames_per_batch=6 * 200, total_frames=-1)
+    policy = lean_policy(actor) if lean else actor
+    collector = DoubleBufferedCollector(env, policy, frames_per_batch=6 * 200, total_frames=-1)
+    assert collector._on_tensors == lean  # the lean policy acts on EnvPool's tensors
     counts, expected = np.zeros(2), np.zeros(2)
     for _ in range(3):
         batch = next(iter(collector))
@@ -100,6 +104,29 @@ def test_every_action_is_sampled_from_the_current_policy():
                 p.add_(torch.randn_like(p))
     assert stats.chisquare(counts, expected).pvalue > 1e-4
     collector.shutdown()
+
+
+def test_a_lean_policy_samples_the_same_on_tensors_as_on_tensordicts():
+    """The lean policy acting on the groups' tensors draws what it draws when it is
+    called on a TensorDict at each step (a forward hook makes the collector do so):
+    the same batches from the same random stream."""
+    batches = []
+    for hooked in (False, True):
+        torch.manual_seed(2)
+        env = EnvPoolEnv("CartPole-v1", 5, groups=2)
+        policy = lean_policy(mlp_actor(env, hidden=(16,)))
+        handle = policy.register_forward_hook(lambda *_: None) if hooked else None
+        env.set_seed(4)
+        collector = DoubleBufferedCollector(env, policy, frames_per_batch=5 * 60, total_frames=-1)
+        batches.append([collector.next() for _ in range(3)])
+        collector.shutdown()
+        if handle is not None:
+            handle.remove()
+    for tensors, tensordicts in zip(*batches, strict=True):
+        assert set(tensors.keys(True, True)) == set(tensordicts.keys(True, True))
+        for key in tensors.keys(True, True):
+            assert torch.equal(tensors[key], tensordicts[key]), key
+    assert int(batches[0][-1]["next", "done"].sum()) > 0
 
 
 def test_an_environment_in_one_group_is_refused():

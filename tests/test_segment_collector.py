@@ -53,6 +53,8 @@ def test_sampled_batches_are_those_of_torchrls_collector(kind, num_envs, steps, 
     kwargs = {"frames_per_batch": num_envs * steps}
     reference = Collector(reference_env, policy, total_frames=-1, track_traj_ids=False, **kwargs)
     collector = SegmentCollector(env, policy, **kwargs)
+    # The lean policy acts on the vector environments' tensors, without a TensorDict.
+    assert collector._on_tensors == (lean and kind.endswith(("gymnasium", "envpool")))
     ends = 0
     for seed in (3, 4):
         reference.set_seed(seed)
@@ -134,3 +136,37 @@ def test_done_flags_a_policy_writes_into_its_input_are_kept():
     assert torch.equal(batch["truncated"], written)
     assert not batch["done"].any() and not batch["terminated"].any()
     collector.shutdown()
+
+
+@pytest.mark.parametrize("where", ["policy", "everywhere"])
+def test_a_hooked_lean_policy_is_called_at_every_step(where):
+    """A forward hook on the lean policy (or on every module) still sees every step,
+    and the batches stay those of the policy without the hook."""
+    envs = [gym_env("CartPole-v1", num_envs=3) for _ in range(2)]
+    torch.manual_seed(0)
+    policy = lean_policy(mlp_actor(envs[0], hidden=(8,)))
+    plain, hooked = (SegmentCollector(env, policy, frames_per_batch=30) for env in envs)
+    for collector in (plain, hooked):
+        collector.set_seed(1)
+    torch.manual_seed(1)
+    expected = plain.next()
+    calls = []
+
+    def hook(module, args, output):
+        if module is policy:
+            calls.append(args[0].batch_size)
+
+    if where == "policy":
+        handle = policy.register_forward_hook(hook)
+    else:
+        handle = torch.nn.modules.module.register_module_forward_hook(hook)
+    try:
+        torch.manual_seed(1)
+        batch = hooked.next()
+    finally:
+        handle.remove()
+    assert calls == [torch.Size([3])] * 10
+    for key in expected.keys(True, True):
+        assert torch.equal(batch[key], expected[key]), key
+    for collector in (plain, hooked):
+        collector.shutdown()
