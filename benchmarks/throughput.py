@@ -51,6 +51,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
 from rl_pg.collectors import SegmentCollector
+from rl_pg.envs.vector import BOX_CAST_WARNING
 from rl_pg.functional import reward_to_go
 from rl_pg.lean import lean_policy
 from rl_pg.recipes import load
@@ -451,10 +452,15 @@ def _floor_kind(task: str) -> str:
 
 
 def main(cfg: Config) -> dict:
+    # EnvPool's own API (the raw floors) builds its spaces again at every receive, and
+    # gymnasium warns of the same cast each time.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", BOX_CAST_WARNING, UserWarning)
+        return _main(cfg)
+
+
+def _main(cfg: Config) -> dict:
     torch.set_num_threads(cfg.threads)
-    # EnvPool's own API builds its float32 Boxes from float64 bounds at every receive
-    # (the raw floors), and gymnasium reports each cast: nothing to act on here.
-    warnings.filterwarnings("ignore", ".*Box .* precision lowered", UserWarning)
     runs, pairs, cohorts = contenders(cfg)
     # Size each contender's repetition to about cfg.seconds from a short probe.
     frames = {

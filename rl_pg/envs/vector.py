@@ -464,6 +464,11 @@ class EnvPoolEnv(VectorGymEnv):
         )
 
 
+# EnvPool builds its float32 Boxes from float64 bounds, and gymnasium warns of the cast
+# for every pool: the bounds are the task's own, nothing for a user to fix.
+BOX_CAST_WARNING = ".*Box .* precision lowered"
+
+
 class _Pools(gym.vector.VectorEnv):
     """One or more EnvPool pools as one vector environment (the groups of an
     [`EnvPoolEnv`][rl_pg.envs.EnvPoolEnv]), remembering each pool's last observations so
@@ -474,13 +479,11 @@ class _Pools(gym.vector.VectorEnv):
         self.sizes = [pool.config["num_envs"] for pool in pools]
         self.num_envs = sum(self.sizes)
         with warnings.catch_warnings():
-            # EnvPool builds float32 Boxes from float64 bounds, which gymnasium reports
-            # for every pool; the bounds are the task's own, nothing for a user to fix.
-            warnings.filterwarnings("ignore", ".*Box .* precision lowered", UserWarning)
-            # Every pool's: each builds them once, at the first reading (its reset's too).
-            for pool in reversed(pools):
-                self.single_observation_space = pool.single_observation_space
-                self.single_action_space = pool.single_action_space
+            warnings.filterwarnings("ignore", BOX_CAST_WARNING, UserWarning)
+            # Read from every pool: each builds them once, at the first reading (else at
+            # its first reset, outside this filter).
+            spaces = [(pool.single_observation_space, pool.single_action_space) for pool in pools]
+        self.single_observation_space, self.single_action_space = spaces[0]
         self.metadata = {}
         self._ids = [np.arange(size, dtype=np.int32) for size in self.sizes]
         self._bounds = np.cumsum(self.sizes)[:-1]
