@@ -29,12 +29,34 @@ settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
+# One torch thread per test process: pytest-xdist runs one test process per core, and two
+# processes of two threads each on two cores made the in-process tests 2-3x slower
+# (the threads of one wait, spinning, on those of the other). What a test needs more of
+# it sets itself, as the training loop does (TrainConfig.threads).
+torch.set_num_threads(1)
+
 # Worker processes started in this process (collectors, ParallelEnv, evaluation workers)
 # fork from a server that has imported torch, TorchRL and rl_pg once, instead of paying
 # those imports in every worker (5-10 s here). The tests that run the command line start
 # fresh interpreters, so the default users get, spawn, stays covered.
 multiprocessing.set_start_method("forkserver", force=True)
 multiprocessing.set_forkserver_preload(["rl_pg.recipes", "rl_pg.training", "rl_pg.evaluation"])
+
+
+# The test files whose tests take longest (processes, notebooks, trainings), longest
+# first. They start the run and each worker takes its next test only when it is nearly
+# idle (`--maxschedchunk` in pyproject.toml), so that the run ends on short tests on
+# both workers instead of one worker finishing a notebook while the other waits.
+SLOW_FIRST = (
+    "test_tutorials", "test_benchmarks", "test_loop", "test_docs", "test_site",
+    "test_cli", "test_metadrive", "test_tuning", "test_agents", "test_exact_gradients",
+    "test_evaluation", "test_segment_collector", "test_recipes", "test_callbacks",
+)  # fmt: skip
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
 
 
 def make_categorical_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticActor:
