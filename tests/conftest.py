@@ -43,19 +43,24 @@ multiprocessing.set_start_method("forkserver", force=True)
 multiprocessing.set_forkserver_preload(["rl_pg.recipes", "rl_pg.training", "rl_pg.evaluation"])
 
 
-# The test files whose tests take longest (processes, notebooks, trainings), longest
-# first. They start the run and each worker takes its next test only when it is nearly
-# idle (`--maxschedchunk` in pyproject.toml), so that the run ends on short tests on
-# both workers instead of one worker finishing a notebook while the other waits.
-SLOW_FIRST = (
-    "test_tutorials", "test_benchmarks", "test_loop", "test_docs", "test_site",
-    "test_cli", "test_metadrive", "test_tuning", "test_agents", "test_exact_gradients",
-    "test_evaluation", "test_segment_collector", "test_recipes", "test_callbacks",
+# The order of the run. First the kernels' tests: between them they compile every
+# signature of the numba kernels (about 2 s each), which numba caches on disk, so that
+# the processes started later load them instead of each compiling its own (CI starts
+# with an empty cache). Then the test files whose tests take longest (processes,
+# notebooks, trainings), longest first, before the many short ones: each worker takes
+# its next test only when it is nearly idle (`--maxschedchunk` in pyproject.toml), so
+# the run ends on short tests on both workers instead of one finishing a notebook while
+# the other waits.
+RUN_FIRST = (
+    "test_scan", "test_functional",
+    "test_tutorials", "test_benchmarks", "test_loop", "test_docs", "test_site", "test_cli",
+    "test_metadrive", "test_tuning", "test_agents", "test_exact_gradients", "test_evaluation",
+    "test_segment_collector", "test_recipes", "test_callbacks",
 )  # fmt: skip
 
 
 def pytest_collection_modifyitems(items):
-    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    rank = {name: i for i, name in enumerate(RUN_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
 
 
