@@ -60,6 +60,9 @@ RUN_FIRST = (
 
 
 def pytest_collection_modifyitems(items):
+    missing = [name for name in RUN_FIRST if not Path(__file__).with_name(f"{name}.py").is_file()]
+    if missing:  # a renamed file would silently fall back to the end of the run
+        raise pytest.UsageError(f"tests/conftest.py RUN_FIRST names no test file: {missing}")
     rank = {name: i for i, name in enumerate(RUN_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
 
