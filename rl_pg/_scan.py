@@ -90,6 +90,33 @@ def _scan_torch(reward, done, terminated, next_value, gamma, whole_episode):
     return value
 
 
+def kernel_args(reward, done, terminated, next_value, gamma, whole_episode):
+    """The numba kernels' arguments for ``backward_scan``'s (CPU tensors), and the tensor
+    the kernel writes into. The argument types are narrowed (see
+    ``rl_pg._scan_kernels``): each new combination of them is a compilation."""
+    if isinstance(gamma, torch.Tensor) and gamma.numel() == 1:
+        gamma = gamma.item()
+    if isinstance(gamma, torch.Tensor):
+        gamma = np.ascontiguousarray(gamma.to(reward.dtype).expand_as(reward).numpy())
+    else:
+        # In the rewards' precision, so that float32 batches are not promoted per step.
+        gamma = _as_numpy(reward[:0]).dtype.type(gamma)
+    if next_value is not None:
+        next_value = next_value.to(reward.dtype)
+    out = torch.empty_like(reward, memory_format=torch.contiguous_format)
+    end = done if terminated is None else done | terminated
+    args = (
+        _as_numpy(reward),
+        _as_numpy(end),
+        _as_numpy(done if terminated is None else terminated),
+        _as_numpy(next_value),
+        gamma,
+        whole_episode,
+        out.numpy(),
+    )
+    return args, out
+
+
 def backward_scan(
     reward: torch.Tensor,
     done: torch.Tensor,
@@ -114,23 +141,7 @@ def backward_scan(
         out = _scan_torch(reward, done, terminated, next_value, gamma, whole_episode)
         return out, bool(torch.isfinite(out).all())
 
-    if isinstance(gamma, torch.Tensor):
-        gamma = gamma.to(reward.dtype).expand_as(reward).numpy()
-    else:
-        # In the rewards' precision, so that float32 batches are not promoted per step.
-        gamma = _as_numpy(reward[:0]).dtype.type(gamma)
-    if next_value is not None:
-        next_value = next_value.to(reward.dtype)
-    out = torch.empty_like(reward, memory_format=torch.contiguous_format)
-    args = (
-        _as_numpy(reward),
-        _as_numpy(done),
-        _as_numpy(terminated),
-        _as_numpy(next_value),
-        gamma,
-        whole_episode,
-        out.numpy(),
-    )
+    args, out = kernel_args(reward, done, terminated, next_value, gamma, whole_episode)
     import numba
 
     from rl_pg import _scan_kernels

@@ -1,6 +1,12 @@
 """The numba kernels of ``rl_pg._scan``, in a module of their own: numba is imported,
 and the kernels loaded, only by a process that runs them (a worker process that only
 collects never does).
+
+The kernels read ``end = done | terminated`` (where an episode ends) in their hot loop
+and ``terminated`` only at those ends. numba compiles a kernel once per combination of
+argument types (1-3 s each), so the caller narrows them: ``terminated`` is always an
+array (``done`` when there is no mask), ``gamma`` a number or a C-contiguous array;
+``next_value=None`` stays a case of its own, since it saves a memory stream.
 """
 
 from __future__ import annotations
@@ -26,17 +32,14 @@ def _gamma_at_impl(gamma, i, t):
 
 
 @numba.njit(inline="always")
-def _bootstrap(done, terminated, next_value, i, t):
-    # Without a terminated mask every done step is a termination.
-    if next_value is None:
-        return 0.0
-    if terminated[i, t] if terminated is not None else done[i, t]:
+def _bootstrap(terminated, next_value, i, t):
+    if next_value is None or terminated[i, t]:
         return 0.0
     return next_value[i, t]
 
 
 @numba.njit(inline="always", nogil=True)
-def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out, block):
+def _scan_block(reward, end, terminated, next_value, gamma, whole_episode, out, block):
     """Rows ``[16 * block, 16 * block + 16)``; returns the sum of ``x - x`` over them."""
     n_rows, n_steps = reward.shape
     lo = block * ROWS_PER_BLOCK
@@ -48,7 +51,7 @@ def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out,
     last = n_steps - 1
     for j in range(hi - lo):
         i = lo + j
-        boot = _bootstrap(done, terminated, next_value, i, last)
+        boot = _bootstrap(terminated, next_value, i, last)
         carry[j] = reward[i, last] + _gamma_at(gamma, i, last) * boot
         out[i, last] = carry[j]
         lane_check[j] += carry[j] - carry[j]
@@ -56,11 +59,11 @@ def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out,
     for t in range(n_steps - 2, -1, -1):
         for j in range(hi - lo):
             i = lo + j
-            ended = done[i, t] or (terminated is not None and terminated[i, t])
+            ended = end[i, t]
             if next_value is None:
                 following = carry[j] * (1 - ended)
             else:
-                following = _bootstrap(done, terminated, next_value, i, t) if ended else carry[j]
+                following = _bootstrap(terminated, next_value, i, t) if ended else carry[j]
             carry[j] = reward[i, t] + _gamma_at(gamma, i, t) * following
             out[i, t] = carry[j]
             lane_check[j] += carry[j] - carry[j]
@@ -69,7 +72,7 @@ def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out,
             i = lo + j
             first = out[i, 0]
             for t in range(1, n_steps):
-                if done[i, t - 1] or (terminated is not None and terminated[i, t - 1]):
+                if end[i, t - 1]:
                     first = out[i, t]
                 else:
                     out[i, t] = first
@@ -79,23 +82,23 @@ def _scan_block(reward, done, terminated, next_value, gamma, whole_episode, out,
 # Two entry points over one body: the serial one runs in the caller's thread, so that
 # a busy machine cannot stall it on worker threads the OS has descheduled.
 @numba.njit(cache=True, nogil=True)
-def scan_serial(reward, done, terminated, next_value, gamma, whole_episode, out):
+def scan_serial(reward, end, terminated, next_value, gamma, whole_episode, out):
     n_blocks = (reward.shape[0] + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     finite_check = 0.0
     for block in range(n_blocks):
         finite_check += _scan_block(
-            reward, done, terminated, next_value, gamma, whole_episode, out, block
+            reward, end, terminated, next_value, gamma, whole_episode, out, block
         )
     return finite_check
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def scan_parallel(reward, done, terminated, next_value, gamma, whole_episode, out):
+def scan_parallel(reward, end, terminated, next_value, gamma, whole_episode, out):
     n_blocks = (reward.shape[0] + ROWS_PER_BLOCK - 1) // ROWS_PER_BLOCK
     finite_check = 0.0
     for block in numba.prange(n_blocks):
         finite_check += _scan_block(
-            reward, done, terminated, next_value, gamma, whole_episode, out, block
+            reward, end, terminated, next_value, gamma, whole_episode, out, block
         )
     return finite_check
 

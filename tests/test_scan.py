@@ -53,16 +53,9 @@ def _expected(reward, done, terminated_full, next_value, gamma, whole_episode):
 
 def _kernel_args(reward, done, terminated, next_value, gamma, whole_episode, dtype):
     """The arguments backward_scan hands the kernels, for a kernel called directly."""
-    reward = reward.to(dtype)
-    out = torch.empty_like(reward)
-    if isinstance(gamma, torch.Tensor):
-        gamma = gamma.to(dtype).numpy()
-    else:
-        gamma = np.dtype(reward.numpy().dtype).type(gamma)
-    as_np = _scan._as_numpy
     nv = None if next_value is None else next_value.to(dtype)
-    return (as_np(reward), as_np(done), as_np(terminated), as_np(nv), gamma, whole_episode,
-            out.numpy()), out  # fmt: skip
+    gamma = gamma.to(dtype) if isinstance(gamma, torch.Tensor) else gamma
+    return _scan.kernel_args(reward.to(dtype), done, terminated, nv, gamma, whole_episode)
 
 
 def _tolerance(dtype):
@@ -106,6 +99,29 @@ def test_both_kernels_match_the_loop_on_every_block(
         whole_episode,
     )
     torch.testing.assert_close(torch_out.double(), expected, **_tolerance(dtype))
+
+
+def test_the_ways_to_pass_masks_and_discounts_share_few_kernel_signatures():
+    # numba compiles each new combination of argument types (1-3 s, on a user's first
+    # call and in every fresh cache): whatever form a mask or a discount arrives in, one
+    # precision needs at most four (next_value or not, a number or a per-step gamma).
+    n_rows, n_steps = 3, 5
+    reward = torch.randn(n_rows, n_steps)
+    done = torch.rand(n_rows, n_steps) < 0.3
+    gammas = [
+        0.9, torch.tensor(0.9), torch.full((n_rows, 1), 0.9),
+        torch.rand(n_rows, n_steps), torch.rand(n_steps, n_rows).T,
+    ]  # fmt: skip
+    signatures = set()
+    for terminated in (None, done & (torch.rand(n_rows, n_steps) < 0.5)):
+        for next_value in (None, torch.randn(n_rows, n_steps, dtype=torch.float64)):
+            for gamma in gammas:
+                for whole_episode in (False, True):
+                    args, _ = _scan.kernel_args(
+                        reward, done, terminated, next_value, gamma, whole_episode
+                    )
+                    signatures.add(tuple(numba.typeof(arg) for arg in args))
+    assert len(signatures) == 4, sorted(map(str, signatures))
 
 
 def test_a_batch_past_the_parallel_threshold_runs_the_parallel_kernel_and_matches_the_loop(
