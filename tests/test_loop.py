@@ -565,7 +565,11 @@ class TestTrain:
         cfg = _cfg(tmp_path, workers=2, ray=ray, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU, normalize=True)
+        user_path = os.environ.get("PYTHONPATH")
         collection = Collection(cfg, env, make_grid, actor, updates=0)
+        # Ray's local instance got this process's sys.path (the actors import make_grid
+        # from this file), and this process's environment is left as it was.
+        assert os.environ.get("PYTHONPATH") == user_path
         try:
             batches = iter(collection)
             update_running_norms(actor, next(batches))  # as the training loop does

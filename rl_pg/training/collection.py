@@ -254,19 +254,29 @@ def _start_ray(workers: int) -> bool:
 
     if ray.is_initialized():
         return False
-    options = {
-        # Actors import the recipe's make_env the way this process does.
-        "runtime_env": {"env_vars": {"PYTHONPATH": os.pathsep.join(sys.path)}},
-        # Their output stays in Ray's logs: Ray would prefix every line of it with the
-        # collector's repr, dozens of lines each (an actor's error still reaches here).
-        "log_to_driver": False,
-    }
+    # Actors import the recipe's make_env the way this process does: they need its
+    # sys.path. Their output stays in Ray's logs: Ray would prefix every line of it with
+    # the collector's repr, dozens of lines each (an actor's error still reaches here).
+    path = os.pathsep.join(sys.path)
     address = os.environ.get("RAY_ADDRESS", "")
     if not address:
-        ray.init(address="local", num_cpus=workers, include_dashboard=False, **options)
+        # A local instance's processes inherit this environment, so the path goes there
+        # rather than into a runtime_env: Ray would set up a worker process of its own
+        # for each actor and leave the ones it starts with (one per CPU) idle.
+        previous = os.environ.get("PYTHONPATH")
+        os.environ["PYTHONPATH"] = path
+        try:
+            ray.init(address="local", num_cpus=workers, include_dashboard=False,
+                     log_to_driver=False)  # fmt: skip
+        finally:
+            if previous is None:
+                del os.environ["PYTHONPATH"]
+            else:
+                os.environ["PYTHONPATH"] = previous
         return True
     _check_reachable(address)
-    ray.init(address=address, **options)
+    ray.init(address=address, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
     nodes = [node for node in ray.nodes() if node["Alive"]]
     cpus = sum(node["Resources"].get("CPU", 0) for node in nodes)
     print(
