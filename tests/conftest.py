@@ -18,6 +18,7 @@ from torchrl.data import Unbounded
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 
 from rl_pg.checkpoint import load_checkpoint
+from rl_pg.recipes.cli import WORKER_IMPORTS
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
 
 N_OBS = 3
@@ -36,11 +37,12 @@ if os.environ.get("CI"):
 torch.set_num_threads(1)
 
 # Worker processes started in this process (collectors, ParallelEnv, evaluation workers)
-# fork from a server that has imported torch, TorchRL and rl_pg once, instead of paying
-# those imports in every worker (5-10 s here). The tests that run the command line start
-# fresh interpreters, so the default users get, spawn, stays covered.
+# fork from a server that has imported torch, TorchRL and rl_pg once, as the rl-pg
+# command's do, instead of paying those imports in every worker (5-10 s here). The
+# scripts that import rl_pg (tests/test_docs.py runs the docs' scripts) keep TorchRL's
+# default, spawn.
 multiprocessing.set_start_method("forkserver", force=True)
-multiprocessing.set_forkserver_preload(["rl_pg.recipes", "rl_pg.training", "rl_pg.evaluation"])
+multiprocessing.set_forkserver_preload(WORKER_IMPORTS)
 
 
 # The order of the run. First the kernels' tests: between them they compile every

@@ -278,6 +278,23 @@ def test_a_run_that_cannot_be_rebuilt_says_what_play_needs(tmp_path, capsys):
     assert "rl_pg.training.load_models(saved, actor, critic)" in err
 
 
+def test_the_command_forks_its_workers_from_a_server_that_imported_rl_pg(monkeypatch):
+    # TorchRL sets "spawn" when imported; the command's own process replaces it, so that
+    # a worker does not import torch, TorchRL and rl_pg again.
+    import contextlib
+    import multiprocessing
+
+    from rl_pg.recipes import cli
+
+    calls = []
+    monkeypatch.setattr(multiprocessing, "set_start_method", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr(multiprocessing, "set_forkserver_preload", calls.append)
+    monkeypatch.setattr(cli, "main", lambda argv: calls.append(argv))
+    monkeypatch.setattr(cli, "frozen_heap", contextlib.nullcontext)  # for a whole process only
+    cli.run(["list"])
+    assert calls == [("forkserver",), cli.WORKER_IMPORTS, ["list"]]
+
+
 def test_checkout_scripts_are_the_command(tmp_path):
     # recipes/metadrive.py must not shadow the metadrive package from its own folder.
     expected = {"metadrive": "rl-pg train metadrive", "play": "rl-pg play"}

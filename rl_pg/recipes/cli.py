@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import inspect
 import itertools
+import multiprocessing
 import re
 import sys
 import textwrap
@@ -251,8 +252,26 @@ def run(argv: Sequence[str] | None = None) -> None:
     with the imports' objects kept out of the garbage collector's walks, and none left
     for the interpreter's teardown (see ``rl_pg._process.frozen_heap``). The console
     script, ``python -m rl_pg.recipes`` and a checkout's ``recipes/*.py`` start here."""
+    _fork_workers_from_a_preloaded_server()
     with frozen_heap():
         main(argv)
+
+
+# What a worker process (a collector's, an evaluation's) imports to build its
+# environment and policy: torch, tensordict and TorchRL with them.
+WORKER_IMPORTS = ["rl_pg.recipes", "rl_pg.training", "rl_pg.evaluation"]
+
+
+def _fork_workers_from_a_preloaded_server() -> None:
+    """Worker processes start by a fork of one server process that imported
+    ``WORKER_IMPORTS`` once, instead of each starting a fresh interpreter that imports
+    them again (5-6 s of CPU each here). Unlike a fork of this process, the server runs
+    no thread and holds no environment, so the workers start as clean as spawned ones
+    (Python 3.14 makes it the default on Linux). Only for this command's own process:
+    TorchRL sets "spawn" when it is imported, which code that imports rl_pg keeps."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        multiprocessing.set_start_method("forkserver", force=True)
+        multiprocessing.set_forkserver_preload(WORKER_IMPORTS)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
