@@ -1,9 +1,11 @@
 """Segment collectors: synchronous with little work per step, or overlapping the
-environments' step with the policy's; both strictly on-policy."""
+environments' step with the policy's; both strictly on-policy. And whole-episode
+batches over any segment collector, every episode drawn from the current policy."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -11,10 +13,11 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from rl_pg._checks import check_bool, check_int
 from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, _hooked, _hooked_globally
 
-__all__ = ["DoubleBufferedCollector", "SegmentCollector"]
+__all__ = ["DoubleBufferedCollector", "EpisodeCollector", "SegmentCollector"]
 
 
 class _Segments:
@@ -393,3 +396,127 @@ class DoubleBufferedCollector(_Segments):
             step, roots[1] = env.step_recv(1)
             steps[1].append(step)
         return torch.cat([torch.stack(group, dim=1) for group in steps], dim=0)
+
+
+class EpisodeCollector:
+    """Batches of exactly ``episodes`` complete episodes, each one an independent draw
+    from the current policy, taken from a collector of segments.
+
+    Handing over the first ``episodes`` episodes to end, as
+    ``Collector(trajs_per_batch=episodes)`` does, favours short episodes: an environment
+    whose episodes end quickly finishes two or three while another is still on its
+    first, and the batch fills before the long one ends. The policy gradient of such a
+    batch is not the policy's (``tests/test_collectors.py`` measures how far on the 4x4
+    gridworld, against the exact gradient). Keeping the episodes in flight for the next
+    batch adds episodes that the previous policy began.
+
+    Here every environment contributes a number of episodes fixed in advance:
+    ``episodes`` shared out over the environments as evenly as they allow (the first
+    ``episodes mod n`` environments one more), each environment's first ones after the
+    batch starts. Those are independent draws whatever their lengths. The price is the
+    wait for each environment's last episode: the steps an environment takes beyond its
+    share are collected and dropped (they count in :attr:`frames`). With as many
+    environments as episodes, each plays one episode per batch.
+
+    Args:
+        collector: a collector of segments (TorchRL's ``Collector`` or multi-process
+            collector with ``frames_per_batch``, a
+            [`SegmentCollector`][rl_pg.collectors.SegmentCollector], ...): batches of
+            batch size ``[*environments, T]`` (time last), with ``("next", "done")``,
+            whose environments continue from one batch to the next until it is reset.
+            Its ``frames_per_batch`` is how often the episodes' ends are checked: the
+            steps of its last batch past the last share are dropped too.
+        episodes (int): complete episodes per batch.
+
+    Keyword Args:
+        reset (bool): reset the collector's environments after each batch, so that the
+            next batch begins new episodes under the policy as it is then. Defaults to
+            True. A caller that resets (or reseeds) them itself between batches passes
+            False.
+
+    Each batch is flat, batch size ``[total steps]``: the episodes one after the other
+    (those of the first environment first), each ending on ``("next", "done")``, as
+    TorchRL's ``traj_format="cat"`` lays them out.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.collectors import Collector
+        >>> from rl_pg.collectors import EpisodeCollector
+        >>> from rl_pg.envs import GridWorldEnv
+        >>> from rl_pg.models import mlp_actor
+        >>> env = GridWorldEnv(batch_size=4)
+        >>> segments = Collector(env, mlp_actor(env), frames_per_batch=4 * 8, total_frames=-1,
+        ...                      auto_register_policy_transforms=False)
+        >>> collector = EpisodeCollector(segments, episodes=6)
+        >>> batch = next(iter(collector))
+        >>> int(batch["next", "done"].sum())
+        6
+        >>> collector.shutdown()
+    """
+
+    def __init__(self, collector: Any, episodes: int, *, reset: bool = True) -> None:
+        if getattr(collector, "trajs_per_batch", None) is not None:
+            raise ValueError(
+                "EpisodeCollector assembles episodes from segments itself: build the "
+                "collector with frames_per_batch only (no trajs_per_batch)."
+            )
+        self.collector = collector
+        self.episodes = check_int("episodes", episodes, low=1)
+        self.reset_each_batch = check_bool("reset", reset)
+        self._segments: Iterator[TensorDictBase] | None = None
+        self.frames = 0
+        """Environment steps collected so far, the dropped ones included."""
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        while True:
+            try:
+                batch = self.next()
+            except StopIteration:  # the collector's total_frames is spent
+                return
+            yield batch
+
+    def next(self) -> TensorDictBase:
+        """Collects one batch (``StopIteration`` when the collector has no more)."""
+        if self._segments is None:
+            self._segments = iter(self.collector)
+        segments, keeps = [], []
+        share = ended = None
+        while share is None or bool((ended < share).any()):
+            segment = next(self._segments)
+            self.frames += segment.numel()
+            if segment.ndim == 0:
+                raise ValueError("The collector's batches must have a time dimension.")
+            rows = segment.reshape(-1, segment.shape[-1])  # [environments, T]
+            done = rows.get(("next", "done")).reshape(*rows.shape, -1).any(-1)
+            if share is None:
+                n = rows.shape[0]
+                share = torch.full((n,), self.episodes // n, device=done.device)
+                share[: self.episodes % n] += 1
+                ended = torch.zeros(n, dtype=torch.long, device=done.device)
+            # An environment's step belongs to its k-th episode of the batch, k counted
+            # from 0: keep it while k is below the environment's share.
+            before = ended[:, None] + done.long().cumsum(-1) - done.long()
+            keeps.append(before < share[:, None])
+            segments.append(rows)
+            ended = ended + done.sum(-1)
+        rows = torch.cat(segments, dim=1) if len(segments) > 1 else segments[0]
+        batch = rows[torch.cat(keeps, dim=1)]  # row-major: environment after environment
+        if self.reset_each_batch:
+            self.reset()
+        return batch
+
+    def reset(self) -> None:
+        """Resets the environments: the next batch begins new episodes."""
+        self.collector.reset()
+
+    def set_seed(self, seed: int) -> int:
+        """Seeds the collector's environments (as its own ``set_seed`` does)."""
+        return self.collector.set_seed(seed)
+
+    def state_dict(self) -> dict:
+        """The collector's state (its frame count)."""
+        return self.collector.state_dict()
+
+    def shutdown(self) -> None:
+        """Shuts the collector down."""
+        self.collector.shutdown()

@@ -528,3 +528,90 @@ class TestGridworldNoiseStatistics:
             trace, se = gridworld_reference[name]
             z, _ = _trace_check(g, 1.25 * trace, se)
             assert abs(z) > Z_MAX, name
+
+
+# ------------------------------------------------- episodes from a collector ---
+def _collected(logits, batches_of, n_batches, n_episodes, exact):
+    """REINFORCE (whole-episode return, no baseline) on ``n_batches`` batches of
+    ``n_episodes`` episodes that ``batches_of(env, actor)`` collects from 16 gridworlds
+    stepped as one batch: the z-scores of the mean estimate, and the batches' mean
+    episode length."""
+    from rl_pg.envs import GridWorldEnv
+
+    cells = {"start": START, "goal": GOAL, "pit": PIT}
+    env = GridWorldEnv(batch_size=16, max_steps=100_000,
+                       **{name: divmod(cell, SIDE) for name, cell in cells.items()})  # fmt: skip
+    assert torch.equal(env.next_cell, NEXT_STATE)  # the grid of the exact gradient
+    actor = _tabular_actor(SIDE * SIDE, len(MOVES), logits).float()
+    loss = _make_loss(actor, None, DiscountedReturn, "none")
+    batches = batches_of(env, actor)
+    weight = loss.actor_network_params["module", "0", "module", "weight"]
+    estimates, steps = [], 0
+    for _, batch in zip(range(n_batches), batches, strict=False):
+        assert int(batch["next", "done"].sum()) == n_episodes  # complete episodes only
+        (grad,) = torch.autograd.grad(loss(batch)["loss_actor"], weight)
+        estimates.append(-grad.flatten().double() / n_episodes)
+        steps += batch.numel()
+    batches.shutdown()
+    z, length = _z_scores(torch.stack(estimates), exact), steps / (n_batches * n_episodes)
+    print(f"mean episode length {length:.1f}, max |z| {z.abs().max():.1f}")
+    return z, length
+
+
+class _FirstToEnd:
+    """TorchRL's trajs_per_batch: the first episodes to end, the environments reset
+    after every batch as a training loop would (else a batch also holds episodes that
+    the previous policy began)."""
+
+    def __init__(self, env, actor, episodes):
+        from torchrl.collectors import Collector
+
+        self.collector = Collector(env, actor, frames_per_batch=16 * 4, total_frames=-1,
+                                   trajs_per_batch=episodes, traj_format="cat",
+                                   auto_register_policy_transforms=False)  # fmt: skip
+
+    def __iter__(self):
+        for batch in self.collector:
+            yield batch
+            self.collector.reset()
+
+    def shutdown(self):
+        self.collector.shutdown()
+
+
+class TestCollectedEpisodes:
+    """Whole-episode batches from a collector of 16 gridworlds, against the exact
+    gradient and the policy's mean episode length."""
+
+    EPISODES = 16
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def grid(cls):
+        torch.manual_seed(0)
+        logits = (0.5 * torch.randn(SIDE * SIDE, len(MOVES))).double()  # float32-exact
+        theta = logits.clone().requires_grad_(True)
+        (exact,) = torch.autograd.grad(_state_values(theta)[START], theta)
+        _, _, _, _, valid = _gridworld_episodes(logits, 20_000, seed=3)  # independent ones
+        return logits, exact.T.contiguous(), valid.sum().item() / 20_000
+
+    def test_episode_collector_batches_give_the_exact_gradient(self, grid):
+        from rl_pg.collectors import EpisodeCollector, SegmentCollector
+        from rl_pg.lean import lean_policy
+
+        def batches_of(env, actor):
+            segments = SegmentCollector(env, lean_policy(actor), frames_per_batch=16 * 4)
+            return EpisodeCollector(segments, episodes=self.EPISODES)
+
+        logits, exact, mean_length = grid
+        torch.manual_seed(1)
+        z, length = _collected(logits, batches_of, 100, self.EPISODES, exact)
+        assert z.abs().max() <= Z_MAX and length == pytest.approx(mean_length, rel=0.1)
+
+    def test_the_first_episodes_to_end_are_short_and_give_another_gradient(self, grid):
+        # Negative control, and why EpisodeCollector exists.
+        logits, exact, mean_length = grid
+        torch.manual_seed(1)
+        first = lambda env, actor: _FirstToEnd(env, actor, self.EPISODES)  # noqa: E731
+        z, length = _collected(logits, first, 30, self.EPISODES, exact)
+        assert z.abs().max() > Z_MAX and length < 0.8 * mean_length

@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.data import Categorical
 from torchrl.modules import ValueOperator
 from torchrl.record.loggers import CSVLogger
 
@@ -53,6 +54,20 @@ from rl_pg.training.seeds import evaluation_seed
 
 def make_grid():
     return GridWorldEnv(batch_size=8, max_steps=30)
+
+
+class NumberedGrids(GridWorldEnv):
+    """Eight gridworlds, each observing its own number."""
+
+    def __init__(self):
+        super().__init__(batch_size=8, max_steps=30)
+        self.observation_spec["grid"] = Categorical(8, shape=self.batch_size)
+
+    def _reset(self, tensordict=None, **kwargs):
+        return super()._reset(tensordict, **kwargs).set("grid", torch.arange(8))
+
+    def _step(self, tensordict):
+        return super()._step(tensordict).set("grid", torch.arange(8))
 
 
 def make_grid_models(env):
@@ -594,9 +609,27 @@ class TestTrain:
             recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
         torch.testing.assert_close(recomputed, batch["logits"])
 
-    def test_multi_process_collection(self, tmp_path):
-        summary = _train(_cfg(tmp_path, workers=2, total_updates=3))
-        assert summary["updates"] == 3 and summary["frames"] > 0
+    @pytest.mark.parametrize("workers", [1, 2])
+    def test_whole_episode_batches_are_new_episodes_of_each_environment(self, tmp_path, workers):
+        # Every batch holds exactly the episodes asked for, each environment's share
+        # fixed in advance: 8 episodes from 8 grids (per worker) are one from each grid
+        # (of the first worker), whatever their lengths. The first episodes to end would
+        # take two from a grid whose episodes are short and none from a slow one.
+        class Batches(Callback):
+            def __init__(self):
+                self.grids, self.lengths = [], []
+
+            def on_batch(self, run, batch):
+                done = batch["next", "done"].squeeze(-1)
+                self.grids.append(batch["grid"][done].tolist())
+                self.lengths.append(batch.numel())
+
+        seen = Batches()
+        cfg = _cfg(tmp_path, workers=workers, total_updates=4)
+        summary = train(cfg, recipe="grid", make_env=NumberedGrids, make_models=make_grid_models,
+                        callbacks=[seen])  # fmt: skip
+        assert summary["updates"] == 4 and seen.grids == [list(range(8))] * 4
+        assert summary["frames"] >= sum(seen.lengths)
 
     @pytest.mark.parametrize(
         ("override", "message"),

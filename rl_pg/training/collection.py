@@ -28,7 +28,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
-from rl_pg.collectors import DoubleBufferedCollector, SegmentCollector
+from rl_pg.collectors import DoubleBufferedCollector, EpisodeCollector, SegmentCollector
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
@@ -87,19 +87,15 @@ class Collection:
                 actor = _ReplayingPolicy(actor, self._action_key)
             if cfg.overlap:
                 self.collector = _overlapped(env, actor, kwargs["frames_per_batch"], device)
-            elif cfg.batch_mode == "segments":
+            else:
                 # TorchRL's Collector's batches, with less work around each step.
                 self.collector = SegmentCollector(
                     env, actor, kwargs["frames_per_batch"], device=device
                 )
-            else:
-                # An environment without a device makes CPU tensors: a CPU policy needs no
-                # device arguments, which would copy every step's data twice.
-                if device is not None and device != (env.device or torch.device("cpu")):
-                    kwargs.update(
-                        policy_device=device, storing_device=device, env_device=env.device
+                if cfg.batch_mode == "episodes":  # restarted after every update
+                    self.collector = EpisodeCollector(
+                        self.collector, cfg.episodes_per_batch, reset=False
                     )
-                self.collector = Collector(env, actor, total_frames=-1, **kwargs, **inner)
             self._batches = self._record(iter(self.collector))
             self._restart(resumed["restarted_at"] if resumed else updates)
             if resumed:
@@ -130,17 +126,16 @@ class Collection:
         # torch.distributed gloo group for Ray actors).
         self._sync_weights = self.collector.update_policy_weights_
         self._sync_weights()  # the workers start from the learner's weights
+        if cfg.batch_mode == "episodes":  # reset after every update
+            self.collector = EpisodeCollector(self.collector, cfg.episodes_per_batch, reset=False)
         self._batches = iter(self.collector)
 
     def _batching(self, n_envs: int) -> dict:
         if self.cfg.batch_mode == "episodes":
-            return {
-                # Polling granularity only (with trajs_per_batch): about 64 steps, a whole
-                # number of steps of the batched environment.
-                "frames_per_batch": n_envs * max(1, round(64 / n_envs)),
-                "trajs_per_batch": self.cfg.episodes_per_batch,
-                "traj_format": "cat",
-            }
+            # How often EpisodeCollector checks for the episodes' ends: about 64 steps of
+            # each worker, a whole number of steps of its batched environment.
+            steps = n_envs * max(1, round(64 / n_envs))
+            return {"frames_per_batch": steps * max(1, self.cfg.workers)}
         frames = self.cfg.segment_length * n_envs * max(1, self.cfg.workers)
         return {"frames_per_batch": frames}
 
@@ -191,23 +186,29 @@ class Collection:
         return {"restarted_at": self._restarted_at, "actions": list(self._actions)}
 
     def frames_spent(self, batch: TensorDictBase) -> int:
-        """Environment steps taken for ``batch`` (dropped in-flight steps included)."""
-        if not self.local:
+        """Environment steps taken for ``batch`` (dropped steps included)."""
+        if isinstance(self.collector, EpisodeCollector):
+            count = self.collector.frames
+        elif self.local:
+            count = self.collector.state_dict()["frames"]
+        else:
             return batch.numel()
-        count = self.collector.state_dict()["frames"]
         spent, self._frames_counted = count - self._frames_counted, count
         return spent
 
     def after_update(self, updates: int) -> bool:
-        """Sends the new weights to the workers, or restarts local environments: after
+        """Sends the new weights to the workers, and restarts the environments: after
         every update with whole-episode batches (the episodes in flight began under the
-        previous policy), every ``env_restart_interval`` updates with segments.
+        previous policy), every ``env_restart_interval`` updates with local segments.
 
         Returns:
             Whether the episodes in flight were dropped.
         """
         if self._sync_weights is not None:
             self._sync_weights()
+            if self.cfg.batch_mode == "episodes":
+                self.collector.reset()
+                return True
             return False
         if self.replaying and updates % self.cfg.env_restart_interval != 0:
             return False

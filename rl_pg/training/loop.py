@@ -6,9 +6,10 @@ collect (a TorchRL collector) -> returns (the loss's value estimator) ->
 Two ways to batch experience:
 
 * ``batch_mode="episodes"``: ``episodes_per_batch`` complete episodes per update,
-  REINFORCE as the textbook states it. With one worker the loop is strictly on-policy:
-  after each update the collector drops the episode in flight (whose first steps the
-  previous policy chose); those frames still count as spent.
+  REINFORCE as the textbook states it: each an independent episode of the current
+  policy (an [`EpisodeCollector`][rl_pg.collectors.EpisodeCollector]: every environment
+  plays a share fixed in advance, and the environments restart after each update, so
+  no episode began under the previous policy). The dropped steps count as spent.
 * ``batch_mode="segments"``: ``segment_length`` steps from every environment per
   update; unfinished episodes bootstrap from the critic (the Pong recipe's set-up).
 

@@ -1,0 +1,108 @@
+"""EpisodeCollector: whole episodes, each environment's share, from a collector of
+segments. (Its batches against the exact policy gradient: tests/test_exact_gradients.py.)"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torchrl.collectors import Collector
+
+from rl_pg.collectors import EpisodeCollector, SegmentCollector
+from rl_pg.envs import GridWorldEnv
+from rl_pg.models import mlp_actor
+
+
+def _episodes_of(rows) -> list[list[int]]:
+    """Each environment's episodes, as lists of step counts (the gridworld observes them)."""
+    out = []
+    for row in rows:
+        episodes, current = [], []
+        for step, done in zip(row["step_count"].tolist(), row["next", "done"].squeeze(-1).tolist(),
+                              strict=True):  # fmt: skip
+            current.append(step)
+            if done:
+                episodes.append(current)
+                current = []
+        out.append(episodes)
+    return out
+
+
+@pytest.mark.parametrize(("envs", "episodes"), [(4, 4), (4, 6), (3, 10), (5, 2)])
+def test_each_environment_gives_its_first_episodes_of_the_batch(envs, episodes):
+    """The batch is, environment after environment, each one's first episodes since the
+    batch began: ``episodes // envs`` each and one more for the first ``episodes % envs``."""
+    torch.manual_seed(0)
+    env = GridWorldEnv(batch_size=envs, max_steps=30)
+    actor = mlp_actor(env, hidden=(8,))
+    raw = SegmentCollector(env, actor, frames_per_batch=envs * 200)
+    torch.manual_seed(1)
+    expected = _episodes_of(raw.next())  # 200 steps of each environment, from a reset
+    shares = [episodes // envs + (i < episodes % envs) for i in range(envs)]
+    assert all(len(found) >= share for found, share in zip(expected, shares, strict=True))
+    raw.reset()
+    collector = EpisodeCollector(
+        SegmentCollector(env, actor, frames_per_batch=envs * 3), episodes=episodes
+    )
+    torch.manual_seed(1)
+    batch = collector.next()
+    assert batch.ndim == 1 and int(batch["next", "done"].sum()) == episodes
+    assert bool(batch["next", "done"][-1])  # nothing after the last episode's end
+    flat = [step for found, share in zip(expected, shares, strict=True)
+            for episode in found[:share] for step in episode]  # fmt: skip
+    assert batch["step_count"].tolist() == flat
+    assert collector.frames >= batch.numel() and collector.frames % (envs * 3) == 0
+    collector.shutdown()
+
+
+def test_every_batch_begins_new_episodes_unless_the_caller_resets():
+    env = GridWorldEnv(batch_size=3, max_steps=8)
+    actor = mlp_actor(env, hidden=(8,))
+    for reset in (True, False):
+        collector = EpisodeCollector(
+            SegmentCollector(env, actor, frames_per_batch=3 * 5), episodes=3, reset=reset
+        )
+        starts = []
+        for _ in range(6):
+            batch = collector.next()
+            done = batch["next", "done"].squeeze(-1)
+            first = torch.cat([torch.ones(1, dtype=torch.bool), done[:-1]])
+            starts.append(batch["step_count"][first].tolist())
+        # Reset: each episode starts at step 0. Without: the environments carry on, so
+        # some batch starts mid-episode (one that began in the previous batch).
+        assert all(s == [0, 0, 0] for s in starts) is reset
+        collector.shutdown()
+
+
+def test_torchrls_collector_and_the_end_of_its_frames():
+    env = GridWorldEnv(batch_size=2, max_steps=5)
+    actor = mlp_actor(env, hidden=(8,))
+    segments = Collector(env, actor, frames_per_batch=2 * 5, total_frames=2 * 5 * 4,
+                         auto_register_policy_transforms=False)  # fmt: skip
+    batches = list(EpisodeCollector(segments, episodes=2))
+    # Episodes of at most 5 steps, one per environment per batch, a reset after each:
+    # one segment of 5 steps per batch, until the collector's 40 frames are spent.
+    assert len(batches) == 4
+    assert all(int(b["next", "done"].sum()) == 2 for b in batches)
+
+
+def test_an_environment_of_batch_size_one_or_none():
+    env = GridWorldEnv(max_steps=6)  # batch size []
+    actor = mlp_actor(env, hidden=(8,))
+    collector = EpisodeCollector(SegmentCollector(env, actor, frames_per_batch=4), episodes=3)
+    batch = collector.next()
+    assert int(batch["next", "done"].sum()) == 3 and bool(batch["next", "done"][-1])
+
+
+def test_what_it_cannot_use_is_refused():
+    env = GridWorldEnv(batch_size=2)
+    actor = mlp_actor(env, hidden=(8,))
+    trajectories = Collector(env, actor, frames_per_batch=8, total_frames=-1, trajs_per_batch=2,
+                             traj_format="cat", auto_register_policy_transforms=False)  # fmt: skip
+    with pytest.raises(ValueError, match="frames_per_batch only"):
+        EpisodeCollector(trajectories, episodes=2)
+    trajectories.shutdown()
+    segments = SegmentCollector(env, actor, frames_per_batch=8)
+    with pytest.raises(ValueError, match="episodes must be an integer >= 1"):
+        EpisodeCollector(segments, episodes=0)
+    with pytest.raises(TypeError, match="reset"):
+        EpisodeCollector(segments, episodes=2, reset="yes")
