@@ -439,7 +439,6 @@ class EpisodeCollector:
     TorchRL's ``traj_format="cat"`` lays them out.
 
     Examples:
-        >>> import torch
         >>> from torchrl.collectors import Collector
         >>> from rl_pg.collectors import EpisodeCollector
         >>> from rl_pg.envs import GridWorldEnv
