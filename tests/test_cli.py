@@ -576,6 +576,9 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     runs_on = json.loads(stored.read_text())
     for run in runs_on["runs"]:
         run["config"]["stop_when_solved"] = False
+    # evaluated at other frames (a whole-episode batch's frames depend on its episodes)
+    late = runs_on["runs"][1]["curve"]
+    late["frames"] = [frames + 777 for frames in late["frames"]]
     trained_on.write_text(json.dumps(runs_on))
     no_evaluation = tmp_path / "no_evaluation.json"
     bare = json.loads(stored.read_text())
