@@ -533,13 +533,13 @@ class TestGridworldNoiseStatistics:
 # ------------------------------------------------- episodes from a collector ---
 def _collected(logits, batches_of, n_batches, n_episodes, exact):
     """REINFORCE (whole-episode return, no baseline) on ``n_batches`` batches of
-    ``n_episodes`` episodes that ``batches_of(env, actor)`` collects from 16 gridworlds
-    stepped as one batch: the z-scores of the mean estimate, and the batches' mean
-    episode length."""
+    ``n_episodes`` episodes that ``batches_of(env, actor)`` collects from as many
+    gridworlds stepped as one batch: the z-scores of the mean estimate, and the batches'
+    mean episode length."""
     from rl_pg.envs import GridWorldEnv
 
     cells = {"start": START, "goal": GOAL, "pit": PIT}
-    env = GridWorldEnv(batch_size=16, max_steps=100_000,
+    env = GridWorldEnv(batch_size=n_episodes, max_steps=100_000,
                        **{name: divmod(cell, SIDE) for name, cell in cells.items()})  # fmt: skip
     assert torch.equal(env.next_cell, NEXT_STATE)  # the grid of the exact gradient
     actor = _tabular_actor(SIDE * SIDE, len(MOVES), logits).float()
@@ -566,7 +566,7 @@ class _FirstToEnd:
     def __init__(self, env, actor, episodes):
         from torchrl.collectors import Collector
 
-        self.collector = Collector(env, actor, frames_per_batch=16 * 4, total_frames=-1,
+        self.collector = Collector(env, actor, frames_per_batch=episodes * 4, total_frames=-1,
                                    trajs_per_batch=episodes, traj_format="cat",
                                    auto_register_policy_transforms=False)  # fmt: skip
 
@@ -580,32 +580,32 @@ class _FirstToEnd:
 
 
 class TestCollectedEpisodes:
-    """Whole-episode batches from a collector of 16 gridworlds, against the exact
+    """Whole-episode batches from a collector of 64 gridworlds, against the exact
     gradient and the policy's mean episode length."""
 
-    EPISODES = 16
+    EPISODES = 64  # one from each gridworld
 
     @pytest.fixture(scope="class")
     @classmethod
-    def grid(cls):
-        torch.manual_seed(0)
-        logits = (0.5 * torch.randn(SIDE * SIDE, len(MOVES))).double()  # float32-exact
+    def grid(cls, gridworld):
+        logits = gridworld[0].float().double()  # what the float32 policy holds
         theta = logits.clone().requires_grad_(True)
         (exact,) = torch.autograd.grad(_state_values(theta)[START], theta)
-        _, _, _, _, valid = _gridworld_episodes(logits, 20_000, seed=3)  # independent ones
-        return logits, exact.T.contiguous(), valid.sum().item() / 20_000
+        batches = gridworld[3]  # 6 000 independent episodes of the same policy
+        mean_length = sum(batch.numel() for batch in batches) / (len(batches) * GRID_EPISODES)
+        return logits, exact.T.contiguous(), mean_length
 
     def test_episode_collector_batches_give_the_exact_gradient(self, grid):
         from rl_pg.collectors import EpisodeCollector, SegmentCollector
         from rl_pg.lean import lean_policy
 
         def batches_of(env, actor):
-            segments = SegmentCollector(env, lean_policy(actor), frames_per_batch=16 * 4)
+            segments = SegmentCollector(env, lean_policy(actor), frames_per_batch=64 * 4)
             return EpisodeCollector(segments, episodes=self.EPISODES)
 
         logits, exact, mean_length = grid
         torch.manual_seed(1)
-        z, length = _collected(logits, batches_of, 100, self.EPISODES, exact)
+        z, length = _collected(logits, batches_of, 25, self.EPISODES, exact)
         assert z.abs().max() <= Z_MAX and length == pytest.approx(mean_length, rel=0.1)
 
     def test_the_first_episodes_to_end_are_short_and_give_another_gradient(self, grid):
@@ -613,5 +613,5 @@ class TestCollectedEpisodes:
         logits, exact, mean_length = grid
         torch.manual_seed(1)
         first = lambda env, actor: _FirstToEnd(env, actor, self.EPISODES)  # noqa: E731
-        z, length = _collected(logits, first, 30, self.EPISODES, exact)
+        z, length = _collected(logits, first, 8, self.EPISODES, exact)
         assert z.abs().max() > Z_MAX and length < 0.8 * mean_length
