@@ -83,7 +83,10 @@ def main(cfg: Config) -> dict:
         )
     if cfg.repeats < 1:
         raise SystemExit(f"--repeats {cfg.repeats}: at least one repetition is needed.")
-    context = mp.get_context("spawn")  # a fresh interpreter, and engine, per measurement
+    # A process of its own, and a fresh engine, per measurement (memory is compared
+    # within it), forked from a server that imported MetaDrive and rl_pg once.
+    context = mp.get_context("forkserver")
+    context.set_forkserver_preload(["rl_pg.envs.metadrive"])
     runs: dict[str, list[dict[str, float]]] = {"store_map": [], "no store_map": []}
     with context.Pool(1, maxtasksperchild=1) as pool:
         for _ in range(cfg.repeats):
