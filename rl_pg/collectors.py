@@ -406,8 +406,8 @@ class EpisodeCollector:
     ``Collector(trajs_per_batch=episodes)`` does, favours short episodes: an environment
     whose episodes end quickly finishes two or three while another is still on its
     first, and the batch fills before the long one ends. The policy gradient of such a
-    batch is not the policy's (``tests/test_collectors.py`` measures how far on the 4x4
-    gridworld, against the exact gradient). Keeping the episodes in flight for the next
+    batch is not the policy's (``tests/test_exact_gradients.py`` measures how far on the
+    4x4 gridworld, against the exact gradient). Keeping the episodes in flight for the next
     batch adds episodes that the previous policy began.
 
     Here every environment contributes a number of episodes fixed in advance:
@@ -415,7 +415,7 @@ class EpisodeCollector:
     ``episodes mod n`` environments one more), each environment's first ones after the
     batch starts. Those are independent draws whatever their lengths. The price is the
     wait for each environment's last episode: the steps an environment takes beyond its
-    share are collected and dropped (they count in :attr:`frames`). With as many
+    share are collected and dropped (they count in ``frames``). With as many
     environments as episodes, each plays one episode per batch.
 
     Args:
