@@ -482,11 +482,11 @@ class EpisodeCollector:
         share = ended = None
         while share is None or bool((ended < share).any()):
             segment = next(self._segments)
-            self.frames += segment.numel()
             if segment.ndim == 0:
                 raise ValueError("The collector's batches must have a time dimension.")
+            self.frames += segment.numel()
             rows = segment.reshape(-1, segment.shape[-1])  # [environments, T]
-            done = rows.get(("next", "done")).reshape(*rows.shape, -1).any(-1)
+            done = rows.get(("next", "done")).reshape(*rows.shape, -1).any(-1).long()
             if share is None:
                 n = rows.shape[0]
                 share = torch.full((n,), self.episodes // n, device=done.device)
@@ -494,7 +494,7 @@ class EpisodeCollector:
                 ended = torch.zeros(n, dtype=torch.long, device=done.device)
             # An environment's step belongs to its k-th episode of the batch, k counted
             # from 0: keep it while k is below the environment's share.
-            before = ended[:, None] + done.long().cumsum(-1) - done.long()
+            before = ended[:, None] + done.cumsum(-1) - done
             keeps.append(before < share[:, None])
             segments.append(rows)
             ended = ended + done.sum(-1)
