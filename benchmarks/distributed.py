@@ -6,8 +6,8 @@ excluded) of a recipe's defaults with:
 
 * one worker in the training process (the local collector),
 * ``--workers N`` worker processes (TorchRL's multi-process collector),
-* ``--ray --workers N`` Ray actors (TorchRL's Ray collector, on a local Ray instance;
-  with ``RAY_ADDRESS`` set, on that cluster),
+* ``--ray --workers N`` Ray actors (TorchRL's Ray collector, on one local Ray instance
+  that every Ray run shares; with ``RAY_ADDRESS`` set, on that cluster),
 
 for N in ``workers``. Then the costs that the scaling model is made of, each measured
 alone: the seconds one worker takes to collect one segment (its environment and the
@@ -42,6 +42,7 @@ from torchrl.collectors import Collector
 
 from rl_pg.lean import lean_policy
 from rl_pg.recipes import load
+from rl_pg.training.collection import _start_ray
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
 
 
@@ -129,9 +130,18 @@ def main(cfg: Config) -> dict:
     # (One worker process is the in-process collector: the process backend starts at 2.)
     runs["1 Ray worker"] = {"workers": 1, "ray": True}
     rates: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(cfg.repeats):
-        for name, overrides in runs.items():
-            rates[name].append(recipe_training(recipe, **overrides)(cfg.frames))
+    # One Ray instance for every Ray run (each would start and stop its own otherwise:
+    # seconds each, outside the training clock all the same).
+    started = _start_ray(max(cfg.workers))
+    try:
+        for _ in range(cfg.repeats):
+            for name, overrides in runs.items():
+                rates[name].append(recipe_training(recipe, **overrides)(cfg.frames))
+    finally:
+        if started:
+            import ray
+
+            ray.shutdown()
     median = {name: statistics.median(r) for name, r in rates.items()}
     cost = costs(recipe, cfg.cost_segments, max(cfg.workers))
 
