@@ -1,11 +1,13 @@
 """The heap of a process that rl_pg runs from start to end: the ``rl-pg`` command, an
-evaluation worker."""
+evaluation worker, a collector's worker."""
 
 from __future__ import annotations
 
 import gc
-from collections.abc import Iterator
+import multiprocessing
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 
 @contextmanager
@@ -30,3 +32,28 @@ def frozen_heap() -> Iterator[None]:
         yield
     finally:
         gc.freeze()
+
+
+class FrozenInWorkers:
+    """An environment factory that, called in a worker process (as TorchRL's
+    multi-process collector calls its factories), first freezes what the process holds:
+    the imports it made or inherited from the server it forked from, which live as long
+    as the worker does (see ``frozen_heap``). Full collections there (those a
+    simulator's allocations trigger as it steps, the two ``gc.collect()`` MetaDrive
+    calls when it closes its engine) then walk what the environment builds, not the
+    hundreds of thousands of objects the imports made.
+
+    Called in the main process (TorchRL calls factories there to read specs), it only
+    builds the environment: that heap is the caller's. Picklable when ``make_env`` is.
+
+    Args:
+        make_env (callable): the factory to wrap.
+    """
+
+    def __init__(self, make_env: Callable[[], Any]) -> None:
+        self.make_env = make_env
+
+    def __call__(self) -> Any:
+        if multiprocessing.parent_process() is not None:
+            gc.freeze()
+        return self.make_env()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import gc
 import importlib.util
 import io
 import itertools
@@ -15,6 +16,7 @@ import sys
 import textwrap
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -1380,6 +1382,36 @@ def test_worker_factories_leave_the_main_process_ctrl_c_alone():
         assert signal.getsignal(signal.SIGINT) is before
         os.kill(os.getpid(), signal.SIGINT)
         assert interrupt.requested
+
+
+def _grid_noting_its_frozen_heap(folder: Path):
+    """make_grid, after writing how many objects this process has frozen to a file
+    named after it."""
+    folder.mkdir(exist_ok=True)
+    (folder / str(os.getpid())).write_text(str(gc.get_freeze_count()))
+    return make_grid()
+
+
+def test_collector_workers_freeze_what_they_hold_and_the_main_process_does_not(tmp_path):
+    from rl_pg.training.collection import Collection
+
+    cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+    env = make_grid()
+    frozen_here = gc.get_freeze_count()
+    heaps = tmp_path / "heaps"
+    collection = Collection(
+        cfg, env, partial(_grid_noting_its_frozen_heap, heaps), mlp_actor(env), updates=0
+    )
+    try:
+        next(iter(collection))
+    finally:
+        collection.shutdown()
+    counts = {int(path.name): int(path.read_text()) for path in heaps.iterdir()}
+    workers = [count for pid, count in counts.items() if pid != os.getpid()]
+    # Each worker froze its imports (torch, TorchRL, ...) before building its grid.
+    assert len(workers) == 2 and min(workers) > 100_000, counts
+    # The caller's heap is its own: nothing of it newly frozen (frozen objects may die).
+    assert gc.get_freeze_count() <= frozen_here
 
 
 class TestSessions:

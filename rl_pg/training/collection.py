@@ -28,6 +28,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
+from rl_pg._process import FrozenInWorkers
 from rl_pg.collectors import DoubleBufferedCollector, EpisodeCollector, SegmentCollector
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
@@ -111,8 +112,10 @@ class Collection:
             backend_options = inner
             kwargs["total_frames"] = -1
         self.collector = Collector(
-            # Worker processes leave Ctrl-C to this one, which shuts them down.
-            [make_env if cfg.ray else MainProcessInterrupts(make_env)] * cfg.workers,
+            # Worker processes leave Ctrl-C to this one, which shuts them down, and
+            # keep what they imported out of their garbage collector's walks.
+            [make_env if cfg.ray else MainProcessInterrupts(FrozenInWorkers(make_env))]
+            * cfg.workers,
             actor,
             backend="ray" if cfg.ray else "process",
             num_collectors=cfg.workers,
