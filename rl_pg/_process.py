@@ -4,7 +4,8 @@ evaluation worker, a collector's worker."""
 from __future__ import annotations
 
 import gc
-import multiprocessing
+import os
+import socket
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -35,16 +36,17 @@ def frozen_heap() -> Iterator[None]:
 
 
 class FrozenInWorkers:
-    """An environment factory that, called in a worker process (as TorchRL's
-    multi-process collector calls its factories), first freezes what the process holds:
+    """An environment factory that, called in a worker process (one of TorchRL's
+    multi-process collector, or a Ray actor), first freezes what the process holds:
     the imports it made or inherited from the server it forked from, which live as long
     as the worker does (see ``frozen_heap``). Full collections there (those a
     simulator's allocations trigger as it steps, the two ``gc.collect()`` MetaDrive
     calls when it closes its engine) then walk what the environment builds, not the
     hundreds of thousands of objects the imports made.
 
-    Called in the main process (TorchRL calls factories there to read specs), it only
-    builds the environment: that heap is the caller's. Picklable when ``make_env`` is.
+    A worker is any process but the one that made the factory: called there (TorchRL
+    calls factories in the main process to read specs), it only builds the
+    environment, that heap being the caller's. Picklable when ``make_env`` is.
 
     Args:
         make_env (callable): the factory to wrap.
@@ -52,8 +54,14 @@ class FrozenInWorkers:
 
     def __init__(self, make_env: Callable[[], Any]) -> None:
         self.make_env = make_env
+        self._maker = _this_process()
 
     def __call__(self) -> Any:
-        if multiprocessing.parent_process() is not None:
+        if _this_process() != self._maker:
             gc.freeze()
         return self.make_env()
+
+
+def _this_process() -> tuple[str, int]:
+    """This process, among those of every machine of a cluster."""
+    return socket.gethostname(), os.getpid()

@@ -15,7 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_int, require_extra
-from rl_pg._process import frozen_heap
+from rl_pg._process import FrozenInWorkers, frozen_heap
 from rl_pg.evaluation import EpisodeRequest, episode_shares, play_episodes, policy_device
 
 __all__ = ["EpisodeWorkers"]
@@ -208,7 +208,7 @@ class EpisodeWorkers:
                 scheduling_strategy=NodeAffinitySchedulingStrategy(
                     nodes[i % len(nodes)], soft=False
                 ),
-            ).remote(make_env)
+            ).remote(FrozenInWorkers(make_env))  # as frozen_heap does for a process
             for i, make_env in enumerate(self.make_envs)
         ]
         ready = self._ray_get([worker.specs.remote() for worker in self._workers])

@@ -72,6 +72,14 @@ class NumberedGrids(GridWorldEnv):
         return super()._step(tensordict).set("grid", torch.arange(8))
 
 
+def _grid_noting_its_frozen_heap(folder: Path):
+    """make_grid, after writing how many objects this process has frozen to a file
+    named after it."""
+    folder.mkdir(exist_ok=True)
+    (folder / str(os.getpid())).write_text(str(gc.get_freeze_count()))
+    return make_grid()
+
+
 def make_grid_models(env):
     kwargs = {"hidden": (32,), "activation": nn.ReLU}
     return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
@@ -576,14 +584,16 @@ class TestTrain:
             ),
         ],
     )
-    def test_new_weights_and_statistics_reach_the_worker_processes(self, tmp_path, ray):
+    def test_workers_freeze_their_imports_and_get_new_weights_and_statistics(self, tmp_path, ray):
         from rl_pg.training.collection import Collection
 
         cfg = _cfg(tmp_path, workers=2, ray=ray, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU, normalize=True)
         user_path = os.environ.get("PYTHONPATH")
-        collection = Collection(cfg, env, make_grid, actor, updates=0)
+        frozen_here, heaps = gc.get_freeze_count(), tmp_path / "heaps"
+        make_env = partial(_grid_noting_its_frozen_heap, heaps)
+        collection = Collection(cfg, env, make_env, actor, updates=0)
         # Ray's local instance got this process's sys.path (the actors import make_grid
         # from this file), and this process's environment is left as it was.
         assert os.environ.get("PYTHONPATH") == user_path
@@ -601,6 +611,13 @@ class TestTrain:
             batch = next(batches)
         finally:
             collection.shutdown()
+        # Each worker froze its imports (torch, TorchRL, ...) before building its grid;
+        # this process, which reads the specs from the factory too, froze nothing new
+        # (frozen objects may die).
+        counts = {int(path.name): int(path.read_text()) for path in heaps.iterdir()}
+        workers = [count for pid, count in counts.items() if pid != os.getpid()]
+        assert len(workers) == 2 and min(workers) > 100_000, counts
+        assert gc.get_freeze_count() <= frozen_here
         actions = batch["action"]
         if actions.shape[-1] == 4:  # one-hot
             actions = actions.argmax(-1)
@@ -1382,36 +1399,6 @@ def test_worker_factories_leave_the_main_process_ctrl_c_alone():
         assert signal.getsignal(signal.SIGINT) is before
         os.kill(os.getpid(), signal.SIGINT)
         assert interrupt.requested
-
-
-def _grid_noting_its_frozen_heap(folder: Path):
-    """make_grid, after writing how many objects this process has frozen to a file
-    named after it."""
-    folder.mkdir(exist_ok=True)
-    (folder / str(os.getpid())).write_text(str(gc.get_freeze_count()))
-    return make_grid()
-
-
-def test_collector_workers_freeze_what_they_hold_and_the_main_process_does_not(tmp_path):
-    from rl_pg.training.collection import Collection
-
-    cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
-    env = make_grid()
-    frozen_here = gc.get_freeze_count()
-    heaps = tmp_path / "heaps"
-    collection = Collection(
-        cfg, env, partial(_grid_noting_its_frozen_heap, heaps), mlp_actor(env), updates=0
-    )
-    try:
-        next(iter(collection))
-    finally:
-        collection.shutdown()
-    counts = {int(path.name): int(path.read_text()) for path in heaps.iterdir()}
-    workers = [count for pid, count in counts.items() if pid != os.getpid()]
-    # Each worker froze its imports (torch, TorchRL, ...) before building its grid.
-    assert len(workers) == 2 and min(workers) > 100_000, counts
-    # The caller's heap is its own: nothing of it newly frozen (frozen objects may die).
-    assert gc.get_freeze_count() <= frozen_here
 
 
 class TestSessions:

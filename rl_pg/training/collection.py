@@ -111,11 +111,11 @@ class Collection:
         else:
             backend_options = inner
             kwargs["total_frames"] = -1
+        # The workers keep what they imported out of their garbage collector's walks;
+        # worker processes leave Ctrl-C to this one, which shuts them down.
+        factory = FrozenInWorkers(make_env)
         self.collector = Collector(
-            # Worker processes leave Ctrl-C to this one, which shuts them down, and
-            # keep what they imported out of their garbage collector's walks.
-            [make_env if cfg.ray else MainProcessInterrupts(FrozenInWorkers(make_env))]
-            * cfg.workers,
+            [factory if cfg.ray else MainProcessInterrupts(factory)] * cfg.workers,
             actor,
             backend="ray" if cfg.ray else "process",
             num_collectors=cfg.workers,
