@@ -11,6 +11,11 @@ is built (latex2mathml): browsers render MathML themselves, so the maths needs n
 and no network. The tutorials (notebooks that mkdocs-jupyter renders to HTML itself) get
 the same in their Markdown cells, and their links to other pages (written as relative
 ``.md`` files, which also work in Jupyter) point at the built pages.
+
+The build is where the tutorials run (mkdocs-jupyter executes each one in a Jupyter
+kernel, and an error in a cell fails it): a tutorial that also prints to stderr (a
+warning a learner would take for a fault) or draws no figure is a warning here, which
+the strict build turns into a failure.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import html
 import importlib
+import logging
 import posixpath
 import re
 import warnings
@@ -49,6 +55,15 @@ HTML_CODE = re.compile(
 )
 HTML_DISPLAY_MATH = re.compile(r"<p>\$\$\n(.+?)\n\$\$</p>", re.DOTALL)
 MARKDOWN_LINK = re.compile(r'href="(?![a-z]+:|#)([^"#]+)\.(?:md|py)(#[^"]*)?"')
+# An executed notebook's outputs, as nbconvert renders them: a stream to stderr, a figure.
+STDERR_OUTPUT = re.compile(
+    r'<div class="jp-RenderedText[^"]*" data-mime-type="application/vnd\.jupyter\.stderr"'
+    r"[^>]*>\s*<pre>(.*?)</pre>",
+    re.DOTALL,
+)
+FIGURE = re.compile(r'<img [^>]*src="data:image/png;base64,')
+
+log = logging.getLogger(f"mkdocs.hooks.{__name__}")
 
 
 def config_table(recipe: str, name: str | None = None) -> str:
@@ -142,8 +157,23 @@ def notebook_html(content: str, page_dir: str) -> str:
     )
 
 
-def on_page_content(html_text: str, page, **kwargs) -> str:
+def notebook_faults(content: str) -> list[str]:
+    """What an executed notebook's HTML shows that a learner should not see: each
+    output to stderr, and no figure at all."""
+    faults = [
+        "printed to stderr:\n" + html.unescape(re.sub(r"<[^>]+>", "", text)).strip()
+        for text in STDERR_OUTPUT.findall(content)
+    ]
+    if not FIGURE.search(content):
+        faults.append("draws no figure")
+    return faults
+
+
+def on_page_content(html_text: str, page, config, **kwargs) -> str:
     if page.file.src_uri.endswith(".py"):  # a tutorial, rendered by mkdocs-jupyter
+        if config.plugins["mkdocs-jupyter"].config["execute"]:
+            for fault in notebook_faults(html_text):
+                log.warning(f"{page.file.src_uri} {fault}")
         return notebook_html(html_text, posixpath.dirname(page.file.src_uri))
     return html_text
 

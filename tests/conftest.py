@@ -56,9 +56,9 @@ multiprocessing.set_forkserver_preload(WORKER_IMPORTS)
 # the other waits.
 RUN_FIRST = (
     "test_scan", "test_functional",
-    "test_tutorials", "test_benchmarks", "test_loop", "test_docs", "test_site", "test_cli",
-    "test_metadrive", "test_tuning", "test_agents", "test_exact_gradients", "test_evaluation",
-    "test_segment_collector", "test_recipes", "test_callbacks",
+    "test_benchmarks", "test_loop", "test_docs", "test_site", "test_cli", "test_metadrive",
+    "test_tuning", "test_agents", "test_exact_gradients", "test_evaluation",
+    "test_segment_collector", "test_recipes", "test_callbacks", "test_tutorials",
 )  # fmt: skip
 
 

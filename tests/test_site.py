@@ -44,8 +44,8 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    """A fresh build of the site (notebooks without their outputs: tests/test_tutorials.py
-    runs them), served on a free port of 127.0.0.1."""
+    """A fresh build of the site (notebooks without their outputs: the full build runs
+    them, see tests/test_tutorials.py), served on a free port of 127.0.0.1."""
     root = tmp_path_factory.mktemp("site")
     env = {**os.environ, "RL_PG_DOCS_EXECUTE": "false", "NO_MKDOCS_2_WARNING": "1"}
     built = subprocess.run(
