@@ -50,10 +50,10 @@ multiprocessing.set_forkserver_preload(WORKER_IMPORTS)
 # signature of the numba kernels (about 2 s each), which numba caches on disk, so that
 # the processes started later load them instead of each compiling its own (CI starts
 # with an empty cache). Then the test files whose tests take longest (processes,
-# notebooks, trainings), longest first, before the many short ones: each worker takes
-# its next test only when it is nearly idle (`--maxschedchunk` in pyproject.toml), so
-# the run ends on short tests on both workers instead of one finishing a notebook while
-# the other waits.
+# trainings, the docs), longest first, before the many short ones: each worker takes
+# its next test only when it has two left (pytest_xdist_make_scheduler), so the run ends
+# on short tests on both workers instead of one finishing a long test while the other
+# waits.
 RUN_FIRST = (
     "test_scan", "test_functional",
     "test_benchmarks", "test_loop", "test_docs", "test_site", "test_cli", "test_metadrive",
@@ -62,12 +62,55 @@ RUN_FIRST = (
 )  # fmt: skip
 
 
+# Tests that share an expensive session- or class-scoped fixture, by the start of their
+# ids: each group runs in one test process, which builds the fixture once, instead of
+# every process that is handed one of them building its own (the gridworld's gradient
+# estimates: 20-30 s each in the suite). pytest-xdist's `xdist_group` mark is meant for
+# this, but under pytest 9.2 it no longer groups anything (pytest-xdist#1386).
+SHARED_FIXTURES = {
+    "gridworld": tuple(
+        f"tests/test_exact_gradients.py::{name}::"
+        for name in (
+            "TestGridworldGradient",
+            "TestGridworldNoiseStatistics",
+            "TestCollectedEpisodes",
+        )
+    ),
+}
+
+
 def pytest_collection_modifyitems(items):
     missing = [name for name in RUN_FIRST if not Path(__file__).with_name(f"{name}.py").is_file()]
     if missing:  # a renamed file would silently fall back to the end of the run
         raise pytest.UsageError(f"tests/conftest.py RUN_FIRST names no test file: {missing}")
+    root = Path(__file__).parents[1]
+    unused = []
+    for prefix in (prefix for prefixes in SHARED_FIXTURES.values() for prefix in prefixes):
+        file, name = prefix.split("::")[:2]
+        if f"\nclass {name}:" not in (root / file).read_text():
+            unused.append(prefix)
+    if unused:  # a renamed class would silently run apart again
+        raise pytest.UsageError(f"tests/conftest.py SHARED_FIXTURES names no test class: {unused}")
     rank = {name: i for i, name in enumerate(RUN_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """pytest-xdist's load scheduling (`-n`), with the groups of SHARED_FIXTURES: every
+    other test is a unit of its own, and a process is handed the next unit in the
+    order of the run when it has two tests or fewer left."""
+    if config.getvalue("dist") != "load":  # another --dist asked for: xdist's own
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SharedFixtureScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            for group, prefixes in SHARED_FIXTURES.items():
+                if nodeid.startswith(prefixes):
+                    return group
+            return nodeid
+
+    return SharedFixtureScheduling(config, log)
 
 
 def pytest_collection_finish(session):

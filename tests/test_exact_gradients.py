@@ -242,7 +242,8 @@ GRID_ESTIMATES, GRID_EPISODES = 375, 16
 
 
 # Session-scoped: a test process (pytest-xdist) that is handed this module's tests in
-# several chunks would otherwise tear these down between chunks and rebuild them.
+# several chunks would otherwise tear these down between chunks and rebuild them. The
+# tests that use them run in one test process (SHARED_FIXTURES in tests/conftest.py).
 @pytest.fixture(scope="session")
 def gridworld():
     torch.manual_seed(0)
