@@ -6,7 +6,8 @@ inline formula stands outside its paragraph.
 Chromium is Debian's package (``apt-get install chromium``), driven by playwright through
 ``executable_path``. Without it the test is skipped, except under CI, where .ci/run
 installs it and a missing browser is a failure. ``RL_PG_SCREENSHOTS=DIR`` keeps
-screenshots of the main pages there.
+screenshots of the main pages there. ``RL_PG_SITE_DIR=DIR`` tests the site built there
+instead of building one (CI builds the site, its tutorials executed, before the tests).
 """
 
 from __future__ import annotations
@@ -44,15 +45,22 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    """A fresh build of the site (notebooks without their outputs: the full build runs
-    them, see tests/test_tutorials.py), served on a free port of 127.0.0.1."""
-    root = tmp_path_factory.mktemp("site")
-    env = {**os.environ, "RL_PG_DOCS_EXECUTE": "false", "NO_MKDOCS_2_WARNING": "1"}
-    built = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(root)],
-        cwd=REPO, env=env, capture_output=True, text=True,
-    )  # fmt: skip
-    assert built.returncode == 0, built.stderr[-3000:]
+    """The site built in ``RL_PG_SITE_DIR``, or a fresh build (notebooks without their
+    outputs: the full build runs them, see tests/test_tutorials.py), served on a free
+    port of 127.0.0.1."""
+    if os.environ.get("RL_PG_SITE_DIR"):
+        root = Path(os.environ["RL_PG_SITE_DIR"])
+        assert (root / "index.html").is_file(), (
+            f"RL_PG_SITE_DIR={root} holds no built site: mkdocs build --site-dir {root}"
+        )
+    else:
+        root = tmp_path_factory.mktemp("site")
+        env = {**os.environ, "RL_PG_DOCS_EXECUTE": "false", "NO_MKDOCS_2_WARNING": "1"}
+        built = subprocess.run(
+            [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(root)],
+            cwd=REPO, env=env, capture_output=True, text=True,
+        )  # fmt: skip
+        assert built.returncode == 0, built.stderr[-3000:]
     handler = functools.partial(_QuietHandler, directory=str(root))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
