@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,6 +44,33 @@ def write_json(path: Path, config: Any, **results: Any) -> dict[str, Any]:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2))
     return result
+
+
+def ratio_interval(
+    numerator: list[float], denominator: list[float], *, level: float = 0.9, draws: int = 4000
+) -> list[float]:
+    """The bootstrap interval (``level``, percentile method) of ``median(numerator) /
+    median(denominator)``, two contenders' rates over the same rounds of a run.
+
+    Repetition k of both ran in round k, one after the other: what slowed the machine
+    during a round slowed both, so rounds are resampled whole, each keeping its pair
+    (an interval of the ratio, not of each rate's drift). Seeded: the same rates give
+    the same interval.
+
+    Examples:
+        >>> ratio_interval([0.9, 1.8, 0.45], [1.0, 2.0, 0.5])  # drift shared by both
+        [0.9, 0.9]
+    """
+    a, b = np.asarray(numerator, dtype=float), np.asarray(denominator, dtype=float)
+    if a.ndim != 1 or a.shape != b.shape or len(a) < 1:
+        raise ValueError(
+            f"two equally long lists of rates, one per round, are needed: got {len(a)} and "
+            f"{len(b)}."
+        )
+    rounds = np.random.default_rng(0).integers(0, len(a), size=(draws, len(a)))
+    ratios = np.median(a[rounds], axis=1) / np.median(b[rounds], axis=1)
+    low, high = np.quantile(ratios, [(1 - level) / 2, (1 + level) / 2])
+    return [round(float(low), 12), round(float(high), 12)]
 
 
 def table(rows: list[list[Any]], header: list[str]) -> str:

@@ -46,7 +46,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 import tyro
-from common import REPO, table, write_json
+from common import REPO, ratio_interval, table, write_json
 from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
@@ -485,8 +485,19 @@ def _main(cfg: Config) -> dict:
         table([[name, rate] for name, rate in median.items()], ["contender", "frames/s (median)"])
     )
     ratios = {f"{loop} / {floor}": median[loop] / median[floor] for loop, floor in pairs}
+    intervals = {
+        f"{loop} / {floor}": ratio_interval(rates[loop], rates[floor]) for loop, floor in pairs
+    }
     print()
-    print(table([[name, ratio] for name, ratio in ratios.items()], ["ratio", "x"]))
+    print(
+        table(
+            [
+                [name, ratio, "{:.3g}–{:.3g}".format(*intervals[name])]
+                for name, ratio in ratios.items()
+            ],
+            ["ratio", "x", "90% interval"],
+        )
+    )
     stock = "CartPole x1 TorchRL Collector(GymEnv), collection only"
     default_loop = f"CartPole x{cartpole.config().num_envs} rl_pg training loop (gymnasium)"
     over_stock = median[default_loop] / median[stock] if stock in median else None
@@ -499,6 +510,7 @@ def _main(cfg: Config) -> dict:
         frames_per_s=rates,
         median_frames_per_s=median,
         ratios=ratios,
+        ratio_intervals=intervals,
         rl_pg_over_stock_collector=over_stock,
     )
 

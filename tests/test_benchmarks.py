@@ -94,6 +94,11 @@ def test_comparisons_with_sb3(script, tmp_path):
         for task in ("CartPole x32", "LunarLander x4"):
             assert sized[f"{task} {loop}"] == sized[f"{task} {plain}"] == sized[f"{task} {kept}"]
         assert out["rl_pg_over_stock_collector"] > 0
+        assert out["ratio_intervals"].keys() == out["ratios"].keys()
+        for name, (low, high) in out["ratio_intervals"].items():
+            assert low <= out["ratios"][name] * (1 + 1e-9) and out["ratios"][name] <= high * (
+                1 + 1e-9
+            )
     else:
         for task, threshold in (("cartpole", 12.0), ("lunarlander", -1000.0)):
             cfg = module.Config(
@@ -117,6 +122,21 @@ def test_comparisons_with_sb3(script, tmp_path):
                 task == "lunarlander"
             ):  # any return passes: every tool solves at its first evaluation
                 assert all(run["0"]["solved_at_frames"] is not None for run in runs.values())
+
+
+def test_ratio_intervals_resample_the_rounds_in_pairs():
+    common = _script("common")
+    drift = [1.0, 2.0, 0.5, 1.5, 0.7, 1.2]  # the machine's speed, round by round
+    # One contender at 0.9x the other in every round: the drift they share is no
+    # uncertainty of the ratio (resampled apart, it would span about 0.5 to 1.6).
+    assert common.ratio_interval([0.9 * d for d in drift], drift) == [0.9, 0.9]
+    rates = [1.0, 1.1, 0.9, 1.05, 0.95, 1.2, 0.8]
+    low, high = common.ratio_interval(rates, [1.0] * 7)
+    assert 0.8 <= low < statistics.median(rates) < high <= 1.2
+    assert common.ratio_interval(rates, [1.0] * 7) == [low, high]  # seeded
+    assert common.ratio_interval(rates, [1.0] * 7, level=0.5)[0] > low
+    with pytest.raises(ValueError, match="equally long"):
+        common.ratio_interval([1.0], [1.0, 2.0])
 
 
 def test_the_plain_loop_with_bookkeeping_writes_what_a_cleanrl_script_writes(tmp_path):
