@@ -95,6 +95,7 @@ def pytest_collection_modifyitems(items):
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
 
 
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook
 def pytest_xdist_make_scheduler(config, log):
     """pytest-xdist's load scheduling (`-n`), with the groups of SHARED_FIXTURES: every
     other test is a unit of its own, and a process is handed the next unit in the
