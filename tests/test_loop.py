@@ -80,6 +80,41 @@ def _grid_noting_its_frozen_heap(folder: Path):
     return make_grid()
 
 
+class _GridWhoseProcessExits(GridWorldEnv):
+    """A grid world that ends its process at its first step, as a crashing simulator."""
+
+    def _step(self, tensordict):
+        os._exit(3)
+
+
+def _grid_whose_process_exits():
+    return _GridWhoseProcessExits(batch_size=8, max_steps=30)
+
+
+def _kill_a_worker(collection) -> None:
+    """Kills the process of the collection's first worker (a process, or a Ray actor's)
+    as the kernel's OOM killer would, and waits until it is gone."""
+    workers = collection._workers
+    if collection.cfg.ray:
+        import ray
+
+        actor = workers.remote_collectors[0]
+        pid = ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
+    else:
+        pid = workers.procs[0].pid
+    os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while not _exited(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def _exited(pid: int) -> bool:
+    try:  # a zombie until its parent reaps it: it runs no more
+        return "zombie" in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+
+
 def make_grid_models(env):
     kwargs = {"hidden": (32,), "activation": nn.ReLU}
     return mlp_actor(env, **kwargs), mlp_critic(env, **kwargs)
@@ -584,7 +619,9 @@ class TestTrain:
             ),
         ],
     )
-    def test_workers_freeze_their_imports_and_get_new_weights_and_statistics(self, tmp_path, ray):
+    def test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost(
+        self, tmp_path, ray, capfd
+    ):
         from rl_pg.training.collection import Collection
 
         cfg = _cfg(tmp_path, workers=2, ray=ray, batch_mode="segments", segment_length=5)
@@ -609,14 +646,24 @@ class TestTrain:
             collection.after_update(1)
             next(batches)  # at most one batch in flight may predate the new weights
             batch = next(batches)
+            # A worker killed mid-run is replaced: new workers collect the batch again,
+            # with the learner's weights (the checks below read this batch).
+            _kill_a_worker(collection)
+            batch = next(batches)
+            if not ray:  # TorchRL waits without end for a dead process to take weights
+                _kill_a_worker(collection)
+                collection.after_update(2)
+                batch = next(batches)
         finally:
             collection.shutdown()
+        lost = capfd.readouterr().err.count("rl-pg: collection lost a worker")
+        assert lost == (1 if ray else 2)
         # Each worker froze its imports (torch, TorchRL, ...) before building its grid;
         # this process, which reads the specs from the factory too, froze nothing new
         # (frozen objects may die).
         counts = {int(path.name): int(path.read_text()) for path in heaps.iterdir()}
         workers = [count for pid, count in counts.items() if pid != os.getpid()]
-        assert len(workers) == 2 and min(workers) > 100_000, counts
+        assert len(workers) == 2 * (1 + lost) and min(workers) > 100_000, counts
         assert gc.get_freeze_count() <= frozen_here
         actions = batch["action"]
         if actions.shape[-1] == 4:  # one-hot
@@ -627,6 +674,26 @@ class TestTrain:
         with torch.no_grad():
             recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
         torch.testing.assert_close(recomputed, batch["logits"])
+
+    def test_a_worker_lost_again_and_again_stops_the_run_naming_it(
+        self, tmp_path, capfd, monkeypatch
+    ):
+        from rl_pg.training import collection as module
+
+        monkeypatch.setattr(module, "REPLACEMENTS", 1)  # each costs two new processes
+        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
+        collection = module.Collection(cfg, env, _grid_whose_process_exits, actor, updates=0)
+        try:
+            with pytest.raises(RuntimeError) as raised:
+                next(iter(collection))
+        finally:
+            collection.shutdown()
+        message = str(raised.value)
+        assert "lost a worker 2 times in a row, the last time: worker process" in message
+        assert "exited with code 3" in message and "rl-pg resume" in message, message
+        assert capfd.readouterr().err.count("New workers take over") == 1
 
     @pytest.mark.parametrize("workers", [1, 2])
     def test_whole_episode_batches_are_new_episodes_of_each_environment(self, tmp_path, workers):

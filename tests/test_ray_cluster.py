@@ -56,6 +56,25 @@ def _nodes(address: str, env: dict) -> int:
     return int(out.stdout.strip() or 0)
 
 
+def _failure(result: subprocess.CompletedProcess, temp_dir: Path) -> str:
+    """The run's last output, then what Ray's workers printed beyond their headers (a
+    crashed actor's own error is only there) and the raylets' lines on dead workers."""
+    parts = [result.stderr[-3000:]]
+    for log in sorted(temp_dir.glob("session_latest/logs/worker-*.err")):
+        lines = [line for line in log.read_text(errors="replace").splitlines()
+                 if line and not line.startswith((":job_id:", ":actor_name:"))]  # fmt: skip
+        if lines:
+            parts.append(f"--- {log.name}\n" + "\n".join(lines[-40:]))
+    for log in sorted(temp_dir.glob("session_latest/logs/raylet*.out")):
+        words = ("exit", "kill", "died", " e ")  # and errors (level E)
+        lines = [line for line in log.read_text(errors="replace").splitlines()
+                 if not line.startswith("[state-dump]")
+                 and any(word in line.lower() for word in words)]  # fmt: skip
+        if lines:
+            parts.append(f"--- {log.name}\n" + "\n".join(lines[-20:]))
+    return "\n".join(parts)[-12000:]
+
+
 # A driver on the cluster: two evaluation actors, which spread over its nodes.
 SPREAD = """
 import ray
@@ -109,7 +128,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
              "--run-dir", str(run), "--no-progress"],
             env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=300,
         )  # fmt: skip
-        assert result.returncode == 0, result.stderr[-3000:]
+        assert result.returncode == 0, _failure(result, temp_dir)
         assert "(2 nodes, 2 CPUs" in result.stderr, result.stderr[-3000:]
         summary = json.loads((run / "summary.json").read_text())
         assert summary["frames"] >= 3000
@@ -118,7 +137,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
             [sys.executable, "-c", SPREAD % address], env=env, capture_output=True, text=True,
             timeout=300,
         )  # fmt: skip
-        assert spread.returncode == 0, spread.stderr[-3000:]
+        assert spread.returncode == 0, _failure(spread, temp_dir)
         spread_over, length = spread.stdout.splitlines()[0].split()
         assert spread_over == "2" and 1 <= float(length) <= 20, spread.stdout
         # MetaDrive, the slow simulator: collection and evaluation both on the cluster.
@@ -130,7 +149,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
              "--eval-episodes", "2", "--horizon", "40", "--run-dir", str(run), "--no-progress"],
             env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=600,
         )  # fmt: skip
-        assert result.returncode == 0, result.stderr[-3000:]
+        assert result.returncode == 0, _failure(result, temp_dir)
         summary = json.loads((run / "summary.json").read_text())
         assert summary["frames"] >= 512 and summary["eval_mean_return"] is not None
         assert summary["eval_mean_route_completion"] is not None  # scored on the cluster

@@ -15,8 +15,11 @@ a run do not depend on how often, or when, it was checkpointed.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import re
+import signal
 import socket
 import sys
 from collections import deque
@@ -35,7 +38,17 @@ from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.seeds import training_seed
 
-__all__ = ["Collection", "segments_per_update"]
+__all__ = ["REPLACEMENTS", "Collection", "segments_per_update"]
+
+REPLACEMENTS = 3
+"""Times in a row a run replaces its workers after losing one (a worker process killed,
+a Ray node gone, a simulator crashed) before it stops."""
+
+_WHERE_WORKERS_LOG = {
+    True: "A Ray worker's own output, its error included, is in the Ray session's logs "
+    "on its node (/tmp/ray/session_latest/logs/worker-*.err by default).",
+    False: "A worker process's error, if it printed one, is above.",
+}
 
 
 class Collection:
@@ -79,8 +92,6 @@ class Collection:
         self._actions: list[torch.Tensor] = []
         self._action_key = env.action_key
         kwargs = self._batching(max(1, math.prod(env.batch_size)))
-        # Our policies need no extra environment transform (no recurrent state).
-        inner = {"auto_register_policy_transforms": False}
         if self.local:
             # The same actions as the actor, with less overhead per step where it can.
             actor = lean_policy(actor)
@@ -105,6 +116,19 @@ class Collection:
         env.close()
         if cfg.ray:
             self._owns_ray = _start_ray(cfg.workers)
+        self._make_env, self._actor, self._updates = make_env, actor, updates
+        self._kwargs = kwargs
+        self._replaced = 0  # workers lost since the last batch
+        self.collector = self._remote_collector()
+        self._batches = self._remote_batches()
+
+    def _remote_collector(self) -> Collector | EpisodeCollector:
+        """TorchRL's collector over ``cfg.workers`` worker processes or Ray actors, each
+        holding the learner's weights."""
+        cfg, kwargs = self.cfg, dict(self._kwargs)
+        # Our policies need no extra environment transform (no recurrent state).
+        inner = {"auto_register_policy_transforms": False}
+        if cfg.ray:
             backend_options = {"collector_kwargs": inner}
             # The Ray collector reads -1 as "nothing to collect": give it no limit instead.
             kwargs["total_frames"] = 2**62
@@ -113,25 +137,89 @@ class Collection:
             kwargs["total_frames"] = -1
         # The workers keep what they imported out of their garbage collector's walks;
         # worker processes leave Ctrl-C to this one, which shuts them down.
-        factory = FrozenInWorkers(make_env)
-        self.collector = Collector(
+        factory = FrozenInWorkers(self._make_env)
+        collector = Collector(
             [factory if cfg.ray else MainProcessInterrupts(factory)] * cfg.workers,
-            actor,
+            self._actor,
             backend="ray" if cfg.ray else "process",
             num_collectors=cfg.workers,
             sync=True,
             backend_options=backend_options,
             **kwargs,
         )
+        self._workers = collector
         if not cfg.ray:
-            self.collector.set_seed(training_seed(cfg.seed, updates))
+            collector.set_seed(training_seed(cfg.seed, self._updates))
         # TorchRL's weight-sync scheme of each backend (shared memory for processes, a
         # torch.distributed gloo group for Ray actors).
-        self._sync_weights = self.collector.update_policy_weights_
+        self._sync_weights = collector.update_policy_weights_
         self._sync_weights()  # the workers start from the learner's weights
         if cfg.batch_mode == "episodes":  # reset after every update
-            self.collector = EpisodeCollector(self.collector, cfg.episodes_per_batch, reset=False)
-        self._batches = iter(self.collector)
+            return EpisodeCollector(collector, cfg.episodes_per_batch, reset=False)
+        return collector
+
+    def _remote_batches(self) -> Iterator[TensorDictBase]:
+        """The collector's batches; a lost worker (its process or node gone) replaces
+        the workers and the batch is collected again, up to ``REPLACEMENTS`` times in a
+        row."""
+        collector = batches = None
+        while True:
+            if collector is not self.collector:  # new workers (replaced in after_update too)
+                collector, batches = self.collector, iter(self.collector)
+            try:
+                batch = next(batches)
+            except StopIteration:
+                return
+            except Exception as err:
+                self._replace_if_lost(err)
+                continue
+            self._replaced = 0
+            yield batch
+
+    def _replace_if_lost(self, err: Exception) -> None:
+        """Re-raises ``err`` unless a worker is gone; otherwise starts new workers, with
+        the learner's weights."""
+        lost = self._lost_worker(err)
+        if lost is None:
+            raise err
+        self._replaced += 1
+        if self._replaced > REPLACEMENTS:
+            raise RuntimeError(
+                f"Collection lost a worker {self._replaced} times in a row, the last time: "
+                f"{lost}. {_WHERE_WORKERS_LOG[self.cfg.ray]} The run stops here; its last "
+                f"checkpoint resumes it (rl-pg resume RUN_DIR)."
+            ) from err
+        print(
+            f"rl-pg: collection lost a worker: {lost}. New workers take over, with the "
+            f"learner's weights ({self._replaced} of at most {REPLACEMENTS} times in a row).",
+            file=sys.stderr,
+        )
+        # The workers that remain are stopped (a dead one cannot answer), and new ones
+        # start where the run is: the learner's weights, the update's seeds.
+        with contextlib.suppress(Exception):
+            self._workers.shutdown()
+        self._frames_counted = 0  # the new collector counts from zero
+        self.collector = self._remote_collector()
+
+    def _lost_worker(self, err: Exception | None) -> str | None:
+        """What was lost if a worker is gone (``err`` came from the collector), else None."""
+        if self.cfg.ray:
+            import ray
+
+            if isinstance(err, ray.exceptions.RayActorError):
+                return _actor_lost(err)
+            for actor in self._workers.remote_collectors:  # e.g. a failed weight transfer
+                try:
+                    ray.get(actor.__ray_ready__.remote(), timeout=60)
+                except ray.exceptions.RayActorError as dead:
+                    return _actor_lost(dead)
+                except ray.exceptions.GetTimeoutError:
+                    continue  # busy, not gone
+            return None
+        # TorchRL stops the other processes when one fails: those that failed first.
+        gone = [(i, proc) for i, proc in enumerate(self._workers.procs) if not proc.is_alive()]
+        failed = [(i, proc) for i, proc in gone if proc.exitcode != 0] or gone
+        return "; ".join(_process_lost(i, proc.pid, proc.exitcode) for i, proc in failed) or None
 
     def _batching(self, n_envs: int) -> dict:
         if self.cfg.batch_mode == "episodes":
@@ -208,11 +296,17 @@ class Collection:
             Whether the episodes in flight were dropped.
         """
         if self._sync_weights is not None:
-            self._sync_weights()
-            if self.cfg.batch_mode == "episodes":
-                self.collector.reset()
-                return True
-            return False
+            self._updates = updates
+            try:
+                if not self.cfg.ray and self._lost_worker(None):
+                    # TorchRL waits without end for a dead process to take the weights.
+                    raise ChildProcessError("a worker process is gone")
+                self._sync_weights()
+                if self.cfg.batch_mode == "episodes":
+                    self.collector.reset()
+            except Exception as err:  # new workers start with the new weights
+                self._replace_if_lost(err)
+            return self.cfg.batch_mode == "episodes"
         if self.replaying and updates % self.cfg.env_restart_interval != 0:
             return False
         self._restart(updates)
@@ -248,6 +342,28 @@ class _ReplayingPolicy(TensorDictModuleBase):
         if self.queue:
             tensordict.set(self.action_key, self.queue.popleft())
         return tensordict
+
+
+def _process_lost(index: int, pid: int, code: int | None) -> str:
+    """A worker process that is gone, and how, in one line."""
+    if code is not None and code < 0:
+        try:
+            how = f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            how = f"was killed by signal {-code}"
+    else:
+        how = f"exited with code {code}"
+    return f"worker process {index} (pid {pid}) {how}"
+
+
+def _actor_lost(err: Exception) -> str:
+    """The Ray worker an error names, and why it is gone, in one line."""
+    text = str(err)
+    found = dict(re.findall(r"^\s*(class_name|pid|ip): (\S+)", text, re.MULTILINE))
+    detail = re.search(r"Worker exit detail: ([^.]*)", text)
+    why = detail.group(1) if detail else text.strip().splitlines()[0] if text.strip() else ""
+    where = f" (pid {found['pid']} on {found['ip']})" if {"pid", "ip"} <= found.keys() else ""
+    return f"Ray actor {found.get('class_name', '')}{where}: {why or type(err).__name__}"
 
 
 def _start_ray(workers: int) -> bool:
