@@ -678,6 +678,27 @@ class TestTrain:
             recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
         torch.testing.assert_close(recomputed, batch["logits"])
 
+    @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
+    def test_ray_workers_that_cannot_join_the_weight_sync_say_why(self, tmp_path, monkeypatch):
+        from datetime import timedelta
+
+        import ray
+        import torchrl.weight_update._ray as weight_sync
+
+        from rl_pg.training.collection import Collection
+
+        # As a firewall between the nodes, or a machine too busy to start the workers:
+        # TorchRL's time for them to join its gloo group runs out.
+        monkeypatch.setattr(weight_sync, "_DIST_TIMEOUT", timedelta(milliseconds=1))
+        cfg = _cfg(tmp_path, workers=1, ray=True, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
+        try:
+            with pytest.raises(RuntimeError, match="did not join the trainer's weight-sync"):
+                Collection(cfg, env, make_grid, actor, updates=0)
+        finally:
+            ray.shutdown()
+
     def test_a_worker_lost_again_and_again_stops_the_run_naming_it(
         self, tmp_path, capfd, monkeypatch
     ):

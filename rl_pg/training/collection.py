@@ -153,7 +153,22 @@ class Collection:
         # TorchRL's weight-sync scheme of each backend (shared memory for processes, a
         # torch.distributed gloo group for Ray actors).
         self._sync_weights = collector.update_policy_weights_
-        self._sync_weights()  # the workers start from the learner's weights
+        try:
+            self._sync_weights()  # the workers start from the learner's weights
+        except Exception as err:
+            if not cfg.ray or not isinstance(err, torch.distributed.DistError):
+                raise
+            with contextlib.suppress(Exception):
+                collector.shutdown()
+            raise RuntimeError(
+                f"The Ray workers did not join the trainer's weight-sync group in time "
+                f"({str(err).strip().splitlines()[0]}). TorchRL sends them the weights over "
+                f"torch.distributed (gloo): each worker connects to this machine "
+                f"({socket.gethostname()}) on TCP ports picked at random, so the cluster's "
+                f"nodes must reach each other on any port (a firewall between them stops "
+                f"it); a machine too busy to start the workers within a minute stops it too: "
+                f"run fewer workers there."
+            ) from err
         if cfg.batch_mode == "episodes":  # reset after every update
             return EpisodeCollector(collector, cfg.episodes_per_batch, reset=False)
         return collector
