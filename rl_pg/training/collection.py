@@ -22,6 +22,7 @@ import re
 import signal
 import socket
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 
@@ -216,6 +217,27 @@ class Collection:
         self._frames_counted = 0  # the new collector counts from zero
         self.collector = self._remote_collector()
 
+    def _sync_watching_processes(self) -> None:
+        """Sends the weights to the worker processes, watching that each stays alive:
+        TorchRL waits without end for a dead process to acknowledge them. A process
+        lost meanwhile raises ``ChildProcessError`` (the waiting thread is left behind)."""
+        failed: list[BaseException] = []
+
+        def sync() -> None:
+            try:
+                self._sync_weights()
+            except BaseException as err:  # handed to the main thread
+                failed.append(err)
+
+        thread = threading.Thread(target=sync, name="rl-pg weight sync", daemon=True)
+        thread.start()
+        while thread.is_alive():
+            thread.join(0.05)
+            if thread.is_alive() and self._lost_worker(None):
+                raise ChildProcessError("a worker process is gone")
+        if failed:
+            raise failed[0]
+
     def _lost_worker(self, err: Exception | None) -> str | None:
         """What was lost if a worker is gone (``err`` came from the collector), else None."""
         if self.cfg.ray:
@@ -313,10 +335,10 @@ class Collection:
         if self._sync_weights is not None:
             self._updates = updates
             try:
-                if not self.cfg.ray and self._lost_worker(None):
-                    # TorchRL waits without end for a dead process to take the weights.
-                    raise ChildProcessError("a worker process is gone")
-                self._sync_weights()
+                if self.cfg.ray:
+                    self._sync_weights()
+                else:
+                    self._sync_watching_processes()
                 if self.cfg.batch_mode == "episodes":
                     self.collector.reset()
             except Exception as err:  # new workers start with the new weights
