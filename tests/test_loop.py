@@ -80,15 +80,25 @@ def _grid_noting_its_frozen_heap(folder: Path):
     return make_grid()
 
 
-class _GridWhoseProcessExits(GridWorldEnv):
-    """A grid world that ends its process at its first step, as a crashing simulator."""
+class _GridThatCrashes(GridWorldEnv):
+    """A grid world whose process crashes at its first step, as a simulator's native
+    code may (a segmentation fault)."""
 
     def _step(self, tensordict):
-        os._exit(3)
+        os.kill(os.getpid(), signal.SIGSEGV)
 
 
-def _grid_whose_process_exits():
-    return _GridWhoseProcessExits(batch_size=8, max_steps=30)
+def _grid_that_crashes():
+    return _GridThatCrashes(batch_size=8, max_steps=30)
+
+
+class _GridWithABug(GridWorldEnv):
+    def _step(self, tensordict):
+        raise ValueError("a bug in the environment")
+
+
+def _grid_with_a_bug():
+    return _GridWithABug(batch_size=8, max_steps=30)
 
 
 def _kill_a_worker(collection) -> None:
@@ -653,7 +663,7 @@ class TestTrain:
             # with the learner's weights (the checks below read this batch).
             _kill_a_worker(collection)
             batch = next(batches)
-            if not ray:  # TorchRL waits without end for a dead process to take weights
+            if not ray:  # and between an update and the next (a Ray replacement costs more)
                 _kill_a_worker(collection)
                 collection.after_update(2)
                 batch = next(batches)
@@ -708,7 +718,7 @@ class TestTrain:
         cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-        collection = module.Collection(cfg, env, _grid_whose_process_exits, actor, updates=0)
+        collection = module.Collection(cfg, env, _grid_that_crashes, actor, updates=0)
         try:
             with pytest.raises(RuntimeError) as raised:
                 next(iter(collection))
@@ -716,8 +726,18 @@ class TestTrain:
             collection.shutdown()
         message = str(raised.value)
         assert "lost a worker 2 times in a row, the last time: worker process" in message
-        assert "exited with code 3" in message and "rl-pg resume" in message, message
+        assert "killed by SIGSEGV" in message and "rl-pg resume" in message, message
         assert capfd.readouterr().err.count("New workers take over") == 1
+        # An exception in the environment is a bug new workers would meet again: it
+        # stops the run at once (the worker prints its traceback: to the stderr of the
+        # fork server, which predates capfd here), nothing replaced.
+        collection = module.Collection(cfg, env, _grid_with_a_bug, actor, updates=0)
+        try:
+            with pytest.raises(RuntimeError, match="exit code 1"):
+                next(iter(collection))
+        finally:
+            collection.shutdown()
+        assert "New workers" not in capfd.readouterr().err
 
     @pytest.mark.parametrize("workers", [1, 2])
     def test_whole_episode_batches_are_new_episodes_of_each_environment(self, tmp_path, workers):

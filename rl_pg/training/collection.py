@@ -48,7 +48,8 @@ a Ray node gone, a simulator crashed) before it stops."""
 _WHERE_WORKERS_LOG = {
     True: "A Ray worker's own output, its error included, is in the Ray session's logs "
     "on its node (/tmp/ray/session_latest/logs/worker-*.err by default).",
-    False: "A worker process's error, if it printed one, is above.",
+    False: "A crash of the environment's native code (a segmentation fault) may have "
+    "printed more above.",
 }
 
 
@@ -253,10 +254,15 @@ class Collection:
                 except ray.exceptions.GetTimeoutError:
                     continue  # busy, not gone
             return None
-        # TorchRL stops the other processes when one fails: those that failed first.
-        gone = [(i, proc) for i, proc in enumerate(self._workers.procs) if not proc.is_alive()]
-        failed = [(i, proc) for i, proc in gone if proc.exitcode != 0] or gone
-        return "; ".join(_process_lost(i, proc.pid, proc.exitcode) for i, proc in failed) or None
+        # Killed by a signal (the OOM killer's SIGKILL, a simulator's SIGSEGV): lost. One
+        # that exited by itself (an exception in the environment: its traceback is
+        # printed) would only exit again: TorchRL's error stands.
+        killed = [
+            _process_lost(i, proc.pid, proc.exitcode)
+            for i, proc in enumerate(self._workers.procs)
+            if not proc.is_alive() and proc.exitcode is not None and proc.exitcode < 0
+        ]
+        return "; ".join(killed) or None
 
     def _batching(self, n_envs: int) -> dict:
         if self.cfg.batch_mode == "episodes":
@@ -381,16 +387,13 @@ class _ReplayingPolicy(TensorDictModuleBase):
         return tensordict
 
 
-def _process_lost(index: int, pid: int, code: int | None) -> str:
-    """A worker process that is gone, and how, in one line."""
-    if code is not None and code < 0:
-        try:
-            how = f"was killed by {signal.Signals(-code).name}"
-        except ValueError:
-            how = f"was killed by signal {-code}"
-    else:
-        how = f"exited with code {code}"
-    return f"worker process {index} (pid {pid}) {how}"
+def _process_lost(index: int, pid: int, code: int) -> str:
+    """A worker process killed by signal ``-code``, in one line."""
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = f"signal {-code}"
+    return f"worker process {index} (pid {pid}) was killed by {name}"
 
 
 def _actor_lost(err: Exception) -> str:
