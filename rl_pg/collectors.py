@@ -58,6 +58,12 @@ class _Segments:
             and policy.acts_on(env.observation_spec.keys())
         )
         self._frames = 0
+        self._reset_kwargs: dict = {}
+
+    def _reset_env(self) -> TensorDictBase:
+        """A reset of every environment, with the arguments ``reset`` was given."""
+        kwargs, self._reset_kwargs = self._reset_kwargs, {}
+        return self.env.reset(**kwargs)
 
     def set_seed(self, seed: int) -> int:
         """Seeds the environments (they are reset with it at the next batch)."""
@@ -65,8 +71,15 @@ class _Segments:
         self.reset()
         return seed
 
-    def reset(self) -> None:
-        """Resets every environment: the next batch starts new episodes."""
+    def reset(self, **kwargs) -> None:
+        """Resets every environment: the next batch starts new episodes. The keyword
+        arguments go to the environment's ``reset`` (as TorchRL's ``Collector.reset``
+        passes them), e.g. ``seed=[...]``, one seed per environment."""
+        self._reset_kwargs = kwargs
+        self._forget()
+
+    def _forget(self) -> None:
+        """Drops where the environments stand: the next batch resets them."""
         raise NotImplementedError
 
     def __iter__(self) -> Iterator[TensorDictBase]:
@@ -178,12 +191,12 @@ class SegmentCollector(_Segments):
         self._root: TensorDictBase | None = None
         self._observations: dict[str, torch.Tensor] | None = None
 
-    def reset(self) -> None:
+    def _forget(self) -> None:
         self._root = self._observations = None
 
     def _collect(self, horizon: int) -> TensorDictBase:
         if not self._lean:
-            root = self._root if self._root is not None else self.env.reset()
+            root = self._root if self._root is not None else self._reset_env()
             steps = []
             for _ in range(horizon):
                 step, root = self.env.step_and_maybe_reset(self._act(root))
@@ -192,7 +205,7 @@ class SegmentCollector(_Segments):
             return torch.stack(steps, dim=len(self.env.batch_size))
         env = self.env
         if self._observations is None:
-            self._observations = _observations_of(env, env.reset())
+            self._observations = _observations_of(env, self._reset_env())
         observations, clear = self._observations, _cleared(env.batch_size, env.device)
         roots, nexts = [], []
         for _ in range(horizon):
@@ -341,7 +354,7 @@ class DoubleBufferedCollector(_Segments):
         self._roots: list[TensorDictBase] | None = None
         self._observations: list[dict[str, torch.Tensor]] | None = None
 
-    def reset(self) -> None:
+    def _forget(self) -> None:
         self._roots = self._observations = None
 
     def _collect(self, horizon: int) -> TensorDictBase:
@@ -349,7 +362,7 @@ class DoubleBufferedCollector(_Segments):
         if type(env) is not EnvPoolEnv:  # another two-group environment: its TensorDicts
             return self._collect_tensordicts(horizon)
         if self._observations is None:
-            root = env.reset()
+            root = self._reset_env()
             self._observations = [
                 _observations_of(env, part) for part in (root[: self._first], root[self._first :])
             ]
@@ -382,7 +395,7 @@ class DoubleBufferedCollector(_Segments):
 
     def _collect_tensordicts(self, horizon: int) -> TensorDictBase:
         if self._roots is None:
-            root = self.env.reset()
+            root = self._reset_env()
             self._roots = [root[: self._first], root[self._first :]]
         roots, env, act = self._roots, self.env, self._act
         steps: tuple[list, list] = ([], [])
@@ -433,6 +446,24 @@ class EpisodeCollector:
             next batch begins new episodes under the policy as it is then. Defaults to
             True. A caller that resets (or reseeds) them itself between batches passes
             False.
+        group_size (int, optional): play the episodes in groups of ``group_size`` that
+            start alike, for the group baselines of
+            [`ReinforceLoss`][rl_pg.ReinforceLoss] (``baseline="leave_one_out"``,
+            ``"group_mean"``, ``"greedy"``; see [`rl_pg.groups`][rl_pg.groups]). Each
+            environment then plays one episode per batch (``episodes`` is the number
+            of environments); before each batch the environments are reset with one
+            fresh seed per group (``collector.reset(seed=[...])``, which TorchRL's
+            ``Collector`` hands to the environment's ``reset``: a gymnasium vector
+            environment seeds environment ``i`` with ``seed[i]``), and each step gets
+            its group's id under ``"group"``, unique over the collector's batches.
+            Defaults to ``None``: independent episodes.
+        greedy (bool): with ``group_size``, each group has one more environment, the
+            last, whose episode is the group's greedy one (``"greedy"`` is ``True`` on
+            its steps). The collector's policy must act greedily there: wrap it in
+            [`GreedyInGroups`][rl_pg.groups.GreedyInGroups]. Its steps count in
+            ``frames``. Defaults to ``False``.
+        seed (int, optional): seeds the groups' seeds (``set_seed`` reseeds them too).
+            Defaults to ``None``: drawn from torch's global generator.
 
     Each batch is flat, batch size ``[total steps]``: the episodes one after the other
     (those of the first environment first), each ending on ``("next", "done")``, as
@@ -453,7 +484,16 @@ class EpisodeCollector:
         >>> collector.shutdown()
     """
 
-    def __init__(self, collector: Any, episodes: int, *, reset: bool = True) -> None:
+    def __init__(
+        self,
+        collector: Any,
+        episodes: int,
+        *,
+        reset: bool = True,
+        group_size: int | None = None,
+        greedy: bool = False,
+        seed: int | None = None,
+    ) -> None:
         if getattr(collector, "trajs_per_batch", None) is not None:
             raise ValueError(
                 "EpisodeCollector assembles episodes from segments itself: build the "
@@ -462,9 +502,51 @@ class EpisodeCollector:
         self.collector = collector
         self.episodes = check_int("episodes", episodes, low=1)
         self.reset_each_batch = check_bool("reset", reset)
+        self.greedy = check_bool("greedy", greedy)
+        self.group_size = check_int("group_size", group_size, low=1, optional=True)
+        if self.group_size is None and self.greedy:
+            raise ValueError("greedy=True adds a greedy episode to each group: set group_size.")
+        self._generator = torch.Generator()
+        if seed is not None:
+            self._generator.manual_seed(check_int("seed", seed, low=0))
+        else:
+            self._generator.manual_seed(int(torch.randint(2**62, ())))
+        self._batches = 0
+        if self.group_size is not None:
+            self._check_groups()
         self._segments: Iterator[TensorDictBase] | None = None
         self.frames = 0
         """Environment steps collected so far, the dropped ones included."""
+
+    @property
+    def _group_width(self) -> int:
+        """Environments per group: its sampled episodes and, with ``greedy``, one more."""
+        return self.group_size + self.greedy
+
+    def _check_groups(self) -> None:
+        env = getattr(self.collector, "env", None)
+        if env is None:
+            raise TypeError(
+                f"group_size resets the environments with a seed per group, through the "
+                f"collector's reset(seed=...): it needs a collector that steps its "
+                f"environments in this process (TorchRL's Collector, rl_pg's "
+                f"SegmentCollector), got {type(self.collector).__name__}."
+            )
+        if not self.reset_each_batch:
+            raise ValueError(
+                "group_size resets the environments with the groups' seeds before every "
+                "batch: reset=False cannot hold with it."
+            )
+        n = env.batch_size.numel()
+        if n != self.episodes or n % self._group_width:
+            extra = " plus its greedy one" if self.greedy else ""
+            raise ValueError(
+                f"With group_size={self.group_size}, each of the {n} environments plays one "
+                f"episode per batch and each group takes {self._group_width} environments "
+                f"({self.group_size} sampled episodes{extra}): build a multiple of "
+                f"{self._group_width} environments and set episodes to their number "
+                f"(got episodes={self.episodes})."
+            )
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while True:
@@ -476,6 +558,8 @@ class EpisodeCollector:
 
     def next(self) -> TensorDictBase:
         """Collects one batch (``StopIteration`` when the collector has no more)."""
+        if self.group_size is not None:
+            self._start_groups()
         if self._segments is None:
             self._segments = iter(self.collector)
         segments, keeps = [], []
@@ -499,17 +583,46 @@ class EpisodeCollector:
             segments.append(rows)
             ended = ended + done.sum(-1)
         rows = torch.cat(segments, dim=1) if len(segments) > 1 else segments[0]
+        if self.group_size is not None:
+            self._mark_groups(rows)
         batch = rows[torch.cat(keeps, dim=1)]  # row-major: environment after environment
-        if self.reset_each_batch:
-            self.reset()
+        if self.reset_each_batch and self.group_size is None:
+            self.reset()  # (groups are reset with their seeds as the next batch starts)
         return batch
+
+    def _start_groups(self) -> None:
+        """Resets the environments, those of a group with the same fresh seed."""
+        groups = self.episodes // self._group_width
+        seeds = torch.randint(2**31 - 1, (groups,), generator=self._generator)
+        seeds = seeds.repeat_interleave(self._group_width).tolist()
+        try:
+            self.collector.reset(seed=seeds)
+        except TypeError as err:
+            raise TypeError(
+                f"group_size resets the environments with a seed each, by "
+                f"collector.reset(seed=[...]); {type(self.collector).__name__} does not "
+                f"take it ({err})."
+            ) from err
+
+    def _mark_groups(self, rows: TensorDictBase) -> None:
+        """Writes each step's group id (unique over the batches) and greedy flag."""
+        n, length = rows.shape
+        env = torch.arange(n, device=rows.device)
+        group = self._batches * (n // self._group_width) + env // self._group_width
+        rows.set("group", group.unsqueeze(-1).expand(n, length).contiguous())
+        if self.greedy:
+            greedy = env % self._group_width == self.group_size
+            rows.set("greedy", greedy.unsqueeze(-1).expand(n, length).contiguous())
+        self._batches += 1
 
     def reset(self) -> None:
         """Resets the environments: the next batch begins new episodes."""
         self.collector.reset()
 
     def set_seed(self, seed: int) -> int:
-        """Seeds the collector's environments (as its own ``set_seed`` does)."""
+        """Seeds the collector's environments (as its own ``set_seed`` does) and the
+        groups' seeds."""
+        self._generator.manual_seed(check_int("seed", seed, low=0))
         return self.collector.set_seed(seed)
 
     def state_dict(self) -> dict:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import numbers
+from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, is_tensor_collection
+from tensordict import NestedKey, TensorDict, TensorDictBase, is_tensor_collection
 from tensordict.nn import (
     CompositeDistribution,
     ProbabilisticTensorDictModule,
@@ -29,11 +30,13 @@ from torchrl.objectives.value import ValueEstimatorBase
 
 from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
-from rl_pg.estimators import _MonteCarloReturn
+from rl_pg.estimators import DiscountedReturn, _MonteCarloReturn
+from rl_pg.gradient_noise import unit_index
+from rl_pg.groups import GROUP_BASELINES, group_advantage
 
 __all__ = ["ReinforceLoss"]
 
-_BASELINE_CHOICES = ("none", "critic", *BASELINES)
+_BASELINE_CHOICES = ("none", "critic", *BASELINES, *GROUP_BASELINES)
 _LOSS_CRITIC_TYPES = ("l1", "l2", "smooth_l1")
 _ONE_HOT_DISTRIBUTIONS = (torch.distributions.OneHotCategorical, OneHotCategorical)
 _REDUCTIONS = (None, "none", "mean", "sum")
@@ -52,6 +55,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
       ``"none"``, ``"batch_mean"``, ``"running_mean"`` (of every episode return seen),
       ``"ema"`` (rate ``baseline_rate``) or ``"critic"`` (the estimator's
       ``advantage``, TorchRL's behaviour). Its state is a buffer in ``state_dict``.
+      Or a group baseline over episodes played from the same start (see
+      [`rl_pg.groups`][rl_pg.groups]): ``"leave_one_out"`` (the mean of the group's
+      other episodes), ``"group_mean"`` (the whole group's mean) or ``"greedy"`` (the
+      group's greedy episode, whose steps are left out of every loss term). The
+      group of each step is read at the ``group`` key (``set_keys(group=...)``), the
+      greedy flags at ``greedy``; the episodes must be whole (each ends on ``done``).
+      A reward-to-go is compared step by step with the others' at the same step of
+      their episode, a whole-episode return episode by episode.
     * ``entropy_coeff`` adds ``loss_entropy`` `= −β H(π(·|s))` and
       a detached ``entropy``. The attribute may be reassigned between updates, as a
       schedule does; a negative value there penalises entropy.
@@ -93,14 +104,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
         clip_value (float, optional): clip the value prediction around the stored one.
             Defaults to ``None``.
         baseline (str, optional): one of ``"none"``, ``"batch_mean"``,
-            ``"running_mean"``, ``"ema"``, ``"critic"``. Defaults to ``"critic"`` with a
-            critic, ``"none"`` without.
+            ``"running_mean"``, ``"ema"``, ``"critic"``, ``"leave_one_out"``,
+            ``"group_mean"``, ``"greedy"``. Defaults to ``"critic"`` with a critic,
+            ``"none"`` without.
         baseline_rate (float): the rate `α` of the ``"ema"`` baseline.
             Defaults to ``0.01``.
         entropy_coeff (float, optional): the entropy bonus `β ≥ 0`.
             Defaults to ``None``: no entropy term (TorchRL's outputs).
         normalize_advantage (bool): standardise `Ψ` (zero mean, unit
             standard deviation over the batch). Defaults to ``False``.
+        group_scale (bool): with a group baseline, divide each advantage by the
+            standard deviation of its group's returns (GRPO's normalisation; it biases
+            the gradient, see [`rl_pg.groups`][rl_pg.groups]). Defaults to ``False``.
         critic_coeff (float): weight carried by ``loss_value``, so that the losses can be
             summed as they are. Defaults to ``1.0``.
         value_norm (ValueNorm, optional): running statistics of the value targets
@@ -114,9 +129,11 @@ class ReinforceLoss(TorchRLReinforceLoss):
 
     Raises:
         ValueError: for an unknown ``baseline``, ``baseline="critic"`` without a critic,
-            a negative ``entropy_coeff``; and in ``forward`` for an empty batch,
-            non-finite log-probabilities, or log-probabilities whose shape does not
-            match the returns.
+            a negative ``entropy_coeff``, ``group_scale`` without a group baseline; and
+            in ``forward`` for an empty batch, non-finite log-probabilities,
+            log-probabilities whose shape does not match the returns, or (group
+            baselines) an episode cut by the batch, a group of too few episodes or a
+            step whose group differs from its episode's.
         KeyError: in ``forward`` when a key it reads is missing (the message names it).
 
     Examples:
@@ -157,6 +174,22 @@ class ReinforceLoss(TorchRLReinforceLoss):
     # exists from the start and ``select_out_keys`` works in any order.
     out_keys = TensorDictModuleBase.out_keys
 
+    @dataclass
+    class _AcceptedKeys(TorchRLReinforceLoss._AcceptedKeys):
+        """TorchRL's keys, and those of the group baselines.
+
+        Attributes:
+            group (NestedKey): the integer group of each step (its episode's start).
+                Defaults to ``"group"``.
+            greedy (NestedKey): ``True`` on the steps of a group's greedy episode.
+                Defaults to ``"greedy"``.
+        """
+
+        group: NestedKey = "group"
+        greedy: NestedKey = "greedy"
+
+    default_keys = _AcceptedKeys
+
     def __init__(
         self,
         actor_network: ProbabilisticTensorDictSequential | None = None,
@@ -177,6 +210,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         baseline_rate: float = 0.01,
         entropy_coeff: float | None = None,
         normalize_advantage: bool = False,
+        group_scale: bool = False,
         critic_coeff: float = 1.0,
         value_norm: ValueNorm | None = None,
     ) -> None:
@@ -198,6 +232,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         functional = check_bool("functional", functional)
         separate_losses = check_bool("separate_losses", separate_losses)
         normalize_advantage = check_bool("normalize_advantage", normalize_advantage)
+        group_scale = check_bool("group_scale", group_scale)
         if not functional and delay_value:
             raise RuntimeError(
                 "delay_value and ~functional are incompatible, as delayed value currently "
@@ -219,6 +254,12 @@ class ReinforceLoss(TorchRLReinforceLoss):
             raise ValueError(
                 "baseline='critic' needs a critic_network; pass one, or pick a scalar "
                 "baseline such as 'running_mean'."
+            )
+        if group_scale and baseline not in GROUP_BASELINES:
+            raise ValueError(
+                f"group_scale divides a group baseline's advantages by the group's standard "
+                f"deviation, but baseline={baseline!r}: pick one of {GROUP_BASELINES}, or "
+                f"use normalize_advantage for the whole batch."
             )
         if value_norm is not None:
             if not isinstance(value_norm, ValueNorm):
@@ -285,6 +326,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
         self.entropy_coeff = entropy_coeff
         self.normalize_advantage = normalize_advantage
+        self.group_scale = group_scale
         self.critic_coeff = critic_coeff
         self.value_norm = value_norm
         self._deferred_key_error: KeyError | None = None
@@ -331,6 +373,10 @@ class ReinforceLoss(TorchRLReinforceLoss):
         ]
         if self.has_critic:
             keys += self.critic_network.in_keys
+        if self.baseline in GROUP_BASELINES:
+            keys.append(self.tensor_keys.group)
+        if self.baseline == "greedy":
+            keys.append(self.tensor_keys.greedy)
         self._in_keys = list(dict.fromkeys(keys))
 
     def _default_value_estimator(self):
@@ -418,12 +464,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
             if value_clip_fraction is not None:
                 out["value_clip_fraction"] = value_clip_fraction
         out.update(diagnostics)
-        # The padding mask, if the batch has one, was found above: without one there is
-        # nothing for the reduction to look up in the batch again, term after term.
-        masked = tensordict if valid is not None else None
         for name, value in out.items():
             if name.startswith("loss_"):
-                out[name] = self._reduce_loss(value, masked).squeeze(-1)
+                out[name] = self._reduce_steps(value, tensordict, valid).squeeze(-1)
         # Every entry is a tensor computed here: nothing for TensorDict to validate.
         td_out = TensorDict._new_unsafe(out, batch_size=torch.Size([]))
         self._clear_weakrefs(
@@ -435,6 +478,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
             "target_critic_network_params",
         )
         return td_out
+
+    def _reduce_steps(
+        self, value: torch.Tensor, tensordict: TensorDictBase, valid: torch.Tensor | None
+    ) -> torch.Tensor:
+        """Reduces a per-step loss term over the steps to learn from (``valid``)."""
+        if self.baseline == "greedy":
+            # The greedy episodes are no samples of the policy: they only give the
+            # baseline. Masked by the caller's mask (reduction "none" drops them).
+            return self._reduce_loss(value, mask=valid)
+        # The padding mask, if the batch has one, was found already: without one there
+        # is nothing for the reduction to look up in the batch again, term after term.
+        return self._reduce_loss(value, tensordict if valid is not None else None)
 
     def _run_value_estimator(self, tensordict: TensorDictBase) -> torch.Tensor | None:
         """Writes the returns; gives back the critic's ``V(s_t)`` still attached to its
@@ -491,13 +546,14 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"{key!r}; align the keys with loss.set_keys(...)."
                 )
         psi = _step_column(psi.detach(), tensordict.batch_size, key)
-        valid = self._valid_steps(tensordict, psi)
+        padding = self._padding_mask(tensordict, psi)
+        valid = self._valid_steps(tensordict, psi, padding)
         if valid is not None and not bool(valid.any()):
             raise ValueError(
                 "Every step of the batch is masked out as padding: there is no step to learn "
                 "from. Collect at least one valid step."
             )
-        finite = torch.isfinite(psi) if valid is None else torch.isfinite(psi) | ~valid
+        finite = torch.isfinite(psi) if padding is None else torch.isfinite(psi) | ~padding
         if not bool(finite.all()):
             reward = tensordict.get(("next", self.tensor_keys.reward), None)
             if isinstance(reward, torch.Tensor) and not bool(torch.isfinite(reward).all()):
@@ -517,6 +573,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"gradient would be NaN. {cause}"
             )
         diagnostics = {}
+        if self.baseline in GROUP_BASELINES:
+            psi = self._group_advantage(tensordict, psi, padding)
         if self.baseline_module is not None:
             baseline = self.baseline_module(self._episode_returns(tensordict, psi, valid))
             psi = psi - baseline
@@ -532,7 +590,122 @@ class ReinforceLoss(TorchRLReinforceLoss):
             psi = (psi - diagnostics["advantage_mean"]) / (diagnostics["advantage_std"] + 1e-8)
         return psi, diagnostics, state_value, valid
 
-    def _valid_steps(self, tensordict: TensorDictBase, like: torch.Tensor):
+    def _valid_steps(
+        self, tensordict: TensorDictBase, like: torch.Tensor, padding: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        """The steps to learn from, shaped like ``like`` (None: all of them): those the
+        padding mask keeps, less the greedy episodes' steps of ``baseline="greedy"``."""
+        if padding is None:
+            padding = self._padding_mask(tensordict, like)
+        if self.baseline != "greedy":
+            return padding
+        sampled = ~self._step_flags(tensordict, self.tensor_keys.greedy, like, "greedy")
+        return sampled if padding is None else sampled & padding
+
+    def _step_flags(
+        self, tensordict: TensorDictBase, key, like: torch.Tensor, name: str
+    ) -> torch.Tensor:
+        """The boolean per-step entry at ``key``, shaped like ``like``."""
+        flags = _required(
+            tensordict,
+            key,
+            f"baseline='greedy' reads which steps belong to each group's greedy episode "
+            f"there: collect with EpisodeCollector(..., greedy=True), or point "
+            f"loss.set_keys({name}=...) at your flags.",
+            lead="baseline='greedy': ",
+        )
+        return self._per_step_entry(tensordict, key, flags, torch.bool).expand_as(like)
+
+    @staticmethod
+    def _per_step_entry(tensordict: TensorDictBase, key, value: torch.Tensor, dtype):
+        """``value`` checked to hold one entry per step, as ``[*batch, 1]``; ``dtype`` is
+        ``torch.bool`` or ``torch.long`` (any integer type)."""
+        batch = tensordict.batch_size
+        if value.shape[: len(batch)] != batch or value[(0,) * len(batch)].numel() != 1:
+            raise ValueError(
+                f"{key!r} has shape {tuple(value.shape)}; it needs one value per step of the "
+                f"batch {tuple(batch)}."
+            )
+        if dtype is torch.bool and value.dtype != torch.bool:
+            raise TypeError(f"{key!r} must be boolean, got dtype {value.dtype}.")
+        if dtype is torch.long and (value.is_floating_point() or value.dtype == torch.bool):
+            raise TypeError(
+                f"{key!r} must hold integer group ids, got dtype {value.dtype}. Pass .long()."
+            )
+        return value.reshape(*batch, 1)
+
+    def _group_advantage(
+        self, tensordict: TensorDictBase, psi: torch.Tensor, padding: torch.Tensor | None
+    ) -> torch.Tensor:
+        """`Ψ` of every step minus its group baseline (see ``rl_pg.groups``); 0 on the
+        greedy episodes' steps and on padding."""
+        keys = self.tensor_keys
+        group = _required(
+            tensordict,
+            keys.group,
+            f"A group baseline ({self.baseline!r}) compares each episode with the others "
+            f"played from the same start: collect with EpisodeCollector(..., group_size=K), "
+            f"which writes it, or point loss.set_keys(group=...) at your group ids.",
+            lead=f"baseline={self.baseline!r}: ",
+        )
+        group = self._per_step_entry(tensordict, keys.group, group, torch.long)
+        shape = tensordict.batch_size
+        time_dim = shape.__len__() - 1
+        if "time" in tensordict.names:
+            time_dim = tensordict.names.index("time")
+        episode, _ = unit_index(tensordict, done_key=("next", keys.done), time_dim=time_dim)
+        done = tensordict.get(("next", keys.done)).reshape(*shape, -1).any(-1)
+
+        def flat(x: torch.Tensor) -> torch.Tensor:  # time last, then row after row
+            return x.reshape(shape).movedim(time_dim, -1).reshape(-1)
+
+        steps = flat(padding) if padding is not None else None
+        columns = [flat(x) for x in (episode, psi, done, group)]
+        if self.baseline == "greedy":
+            columns.append(flat(self._step_flags(tensordict, keys.greedy, psi, "greedy")))
+        if steps is not None:
+            columns = [x[steps] for x in columns]
+        episode, values, done, group, *greedy = columns
+        _, episode = torch.unique_consecutive(episode, return_inverse=True)
+        count = int(episode[-1]) + 1
+        order = torch.arange(episode.numel(), device=episode.device)
+        first = torch.zeros(count, dtype=torch.long, device=episode.device)
+        first = first.scatter_reduce(0, episode, order, "amin", include_self=False)
+        last = torch.zeros_like(first).scatter_reduce(0, episode, order, "amax")
+        if not bool(done[last].all()):
+            raise ValueError(
+                f"A group baseline ({self.baseline!r}) compares whole episodes, but "
+                f"{int((~done[last]).sum())} episode(s) of the batch do not end on "
+                f"('next', {keys.done!r}): cut by the batch. Collect whole episodes "
+                f"(EpisodeCollector), or pad and mask the unfinished ones."
+            )
+        by_episode = [x[first] for x in (group, *greedy)]
+        for name, column, per_episode in zip((keys.group, keys.greedy), (group, *greedy),
+                                             by_episode, strict=False):  # fmt: skip
+            if not bool((column == per_episode[episode]).all()):
+                raise ValueError(
+                    f"{name!r} changes inside an episode: every step of an episode must "
+                    f"carry its episode's value (the group of its start)."
+                )
+        position = order - first[episode]
+        if isinstance(self.value_estimator, DiscountedReturn):
+            position = torch.zeros_like(position)  # one return per episode
+        returns = values.new_zeros(count, int(position.max()) + 1)
+        returns[episode, position] = values
+        advantage = group_advantage(
+            returns,
+            by_episode[0],
+            baseline=self.baseline,
+            greedy=by_episode[1] if greedy else None,
+            scale=self.group_scale,
+        )[episode, position]
+        if steps is not None:
+            advantage = advantage.new_zeros(steps.shape).masked_scatter(steps, advantage)
+        moved = list(shape)
+        moved.append(moved.pop(time_dim))
+        return advantage.reshape(moved).movedim(-1, time_dim).unsqueeze(-1)
+
+    def _padding_mask(self, tensordict: TensorDictBase, like: torch.Tensor):
         """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""
         for key in self._loss_mask_keys():
             mask = tensordict.get(key, None)
@@ -758,7 +931,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"the loss (or its value estimator) on it before value_loss."
             )
         loss_value, _ = self.loss_critic(tensordict)
-        return self._reduce_loss(self.critic_coeff * loss_value, tensordict).squeeze(-1)
+        valid = self._valid_steps(tensordict, loss_value)
+        return self._reduce_steps(self.critic_coeff * loss_value, tensordict, valid).squeeze(-1)
 
     def _entropy(self, dist) -> torch.Tensor:
         try:

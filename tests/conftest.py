@@ -72,6 +72,7 @@ SHARED_FIXTURES = {
         f"tests/test_exact_gradients.py::{name}::"
         for name in (
             "TestGridworldGradient",
+            "TestGridworldGroupGradient",
             "TestGridworldNoiseStatistics",
             "TestCollectedEpisodes",
         )

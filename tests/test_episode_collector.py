@@ -106,3 +106,112 @@ def test_what_it_cannot_use_is_refused():
         EpisodeCollector(segments, episodes=0)
     with pytest.raises(TypeError, match="reset"):
         EpisodeCollector(segments, episodes=2, reset="yes")
+
+
+def _starts(batch):
+    """The first step of every episode of a flat batch."""
+    done = batch["next", "done"].squeeze(-1)
+    return batch[torch.cat([torch.ones(1, dtype=torch.bool), done[:-1]])]
+
+
+@pytest.mark.parametrize("torchrl", [False, True], ids=["SegmentCollector", "Collector"])
+@pytest.mark.parametrize("greedy", [False, True])
+def test_groups_start_alike_and_each_batch_draws_new_starts(torchrl, greedy):
+    """Every environment of a group is reset with the group's seed: the same first
+    observation (CartPole draws it from its seed); each batch, new seeds."""
+    from rl_pg.envs import gym_env
+    from rl_pg.groups import GreedyInGroups
+
+    torch.manual_seed(0)
+    k, groups = 3, 2
+    width = k + greedy
+    env = gym_env("CartPole-v1", num_envs=width * groups)
+    actor = mlp_actor(env, hidden=(8,))
+    policy = GreedyInGroups(actor, group_size=k) if greedy else actor
+    if torchrl:
+        segments = Collector(env, policy, frames_per_batch=env.batch_size[0] * 16,
+                             total_frames=-1, auto_register_policy_transforms=False)  # fmt: skip
+    else:
+        segments = SegmentCollector(env, policy, frames_per_batch=env.batch_size[0] * 16)
+    collector = EpisodeCollector(segments, width * groups, group_size=k, greedy=greedy, seed=3)
+    seen = []
+    for batch_index in range(2):
+        batch = collector.next()
+        assert int(batch["next", "done"].sum()) == width * groups  # one episode each
+        starts = _starts(batch)
+        group = starts["group"].squeeze(-1)
+        assert group.tolist() == [
+            batch_index * groups + g for g in range(groups) for _ in range(width)
+        ]
+        first = starts["observation"].reshape(groups, width, -1)
+        assert torch.equal(first, first[:, :1].expand_as(first))  # alike within a group
+        assert not torch.equal(first[0, 0], first[1, 0])  # and not across groups
+        seen.append(first[:, 0])
+        # Every step carries its episode's group.
+        episode = batch["next", "done"].squeeze(-1).long().cumsum(0)
+        episode = torch.cat([torch.zeros(1, dtype=torch.long), episode[:-1]])
+        assert torch.equal(batch["group"].squeeze(-1), group[episode])
+        if greedy:
+            flags = starts["greedy"].squeeze(-1).reshape(groups, width)
+            assert flags[:, -1].all() and not flags[:, :-1].any()
+            assert torch.equal(batch["greedy"].squeeze(-1), flags.flatten()[episode])
+        else:
+            assert "greedy" not in batch.keys()
+    assert not torch.equal(seen[0], seen[1])
+    collector.shutdown()
+
+
+def test_the_groups_seeds_are_reproducible():
+    from rl_pg.envs import gym_env
+
+    firsts = []
+    for _ in range(2):
+        env = gym_env("CartPole-v1", num_envs=4)
+        segments = SegmentCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 8)
+        collector = EpisodeCollector(segments, 4, group_size=2)
+        collector.set_seed(5)
+        firsts.append(_starts(collector.next())["observation"])
+        collector.shutdown()
+    assert torch.equal(*firsts)
+
+
+@pytest.mark.parametrize(
+    ("envs", "kwargs", "error", "match"),
+    [
+        (6, {"episodes": 4, "group_size": 2}, ValueError, "set episodes to their number"),
+        (6, {"episodes": 6, "group_size": 4}, ValueError, "build a multiple of 4"),
+        (6, {"episodes": 6, "group_size": 3, "greedy": True}, ValueError,
+         "plus its greedy one"),
+        (6, {"episodes": 6, "greedy": True}, ValueError, "set group_size"),
+        (6, {"episodes": 6, "group_size": 2, "reset": False}, ValueError,
+         "reset=False cannot hold"),
+        (6, {"episodes": 6, "group_size": 0}, ValueError, "group_size must be an integer"),
+    ],
+)  # fmt: skip
+def test_groups_that_cannot_be_played_are_refused(envs, kwargs, error, match):
+    env = GridWorldEnv(batch_size=envs)
+    segments = SegmentCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=envs * 4)
+    with pytest.raises(error, match=match):
+        EpisodeCollector(segments, **kwargs)
+
+
+def test_groups_need_a_collector_of_environments_in_this_process():
+    class Remote:  # a multi-process collector: no environment here
+        def __iter__(self):
+            return iter(())
+
+    with pytest.raises(TypeError, match="steps its environments in this process"):
+        EpisodeCollector(Remote(), 4, group_size=2)
+
+
+def test_a_collector_whose_reset_takes_no_seed_is_named():
+    env = GridWorldEnv(batch_size=4)
+
+    class OldCollector(SegmentCollector):
+        def reset(self):
+            super().reset()
+
+    segments = OldCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 4)
+    collector = EpisodeCollector(segments, 4, group_size=2)
+    with pytest.raises(TypeError, match=r"OldCollector does not take it"):
+        collector.next()

@@ -15,6 +15,7 @@ from conftest import (
 )
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
@@ -771,3 +772,158 @@ def test_a_composite_action_weights_the_sum_of_its_parts_log_probabilities():
         + torch.distributions.Categorical(logits=logits_b).entropy()
     )
     torch.testing.assert_close(out["entropy"], entropy.mean())
+
+
+def _grouped_episodes(lengths, groups, greedy=None, seed=0):
+    """Episodes as the rows of a padded ``[E, T]`` batch (``("collector", "mask")``),
+    with their groups (and greedy flags) on every step."""
+    generator = torch.Generator().manual_seed(seed)
+    n, width = len(lengths), max(lengths)
+    mask = torch.arange(width) < torch.tensor(lengths).unsqueeze(-1)
+    done = torch.zeros(n, width, dtype=torch.bool)
+    done[torch.arange(n), torch.tensor(lengths) - 1] = True
+    entries = {
+        "observation": torch.randn(n, width, 3, generator=generator),
+        "action": torch.randint(0, N_ACT, (n, width), generator=generator),
+        "group": torch.tensor(groups).unsqueeze(-1).expand(n, width),
+        "collector": {"mask": mask},
+        "next": {
+            "observation": torch.randn(n, width, 3, generator=generator),
+            "reward": torch.randn(n, width, 1, generator=generator),
+            "done": done.unsqueeze(-1),
+            "terminated": done.unsqueeze(-1).clone(),
+        },
+    }
+    if greedy is not None:
+        entries["greedy"] = torch.tensor(greedy).unsqueeze(-1).expand(n, width)
+    return TensorDict(entries, batch_size=[n, width])
+
+
+def _flat(batch):
+    """The same episodes back to back, batch size ``[steps]``, without padding."""
+    return batch[batch["collector", "mask"]].exclude("collector")
+
+
+def _expected_weights(batch, baseline, gamma, whole_episode, scale=False):
+    """The group advantage of every valid step, by the plain loop of test_groups."""
+    from test_groups import reference_advantage
+
+    mask = batch["collector", "mask"]
+    reward = batch["next", "reward"].squeeze(-1)
+    rows = []
+    for row, valid in zip(reward.tolist(), mask.tolist(), strict=True):
+        r = [x for x, v in zip(row, valid, strict=True) if v]
+        to_go = [sum(gamma**k * x for k, x in enumerate(r[t:])) for t in range(len(r))]
+        rows.append([to_go[0]] if whole_episode else to_go)
+    width = max(map(len, rows))
+    padded = [row + [0.0] * (width - len(row)) for row in rows]
+    group = batch["group"][:, 0].tolist()
+    greedy = batch["greedy"][:, 0].tolist() if "greedy" in batch.keys() else [False] * len(rows)
+    advantage = reference_advantage(padded, group, baseline, greedy, scale)
+    weights = torch.zeros(mask.shape, dtype=torch.float64)
+    for i, length in enumerate(mask.sum(-1).tolist()):
+        for t in range(length):
+            weights[i, t] = advantage[i][0 if whole_episode else t]
+    return weights
+
+
+def _grouped_loss(actor, baseline, estimator=RewardToGo, gamma=0.9, **kwargs):
+    loss = ReinforceLoss(actor, baseline=baseline, **kwargs)
+    loss.make_value_estimator(estimator, gamma=gamma)
+    return loss
+
+
+class TestReinforceLossGroupBaselines:
+    LENGTHS = (3, 5, 1, 4, 2, 6, 2)
+    GROUPS = (7, 7, 7, 2, 2, 2, 2)
+
+    @pytest.mark.parametrize("baseline", ["leave_one_out", "group_mean"])
+    @pytest.mark.parametrize("estimator", [RewardToGo, DiscountedReturn])
+    @pytest.mark.parametrize("scale", [False, True])
+    def test_weights_are_those_of_a_plain_loop(self, categorical_actor, baseline, estimator, scale):
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS)
+        loss = _grouped_loss(categorical_actor, baseline, estimator, group_scale=scale)
+        out = loss(batch.clone())
+        weights = _expected_weights(batch, baseline, 0.9, estimator is DiscountedReturn, scale)
+        mask = batch["collector", "mask"]
+        log_prob = categorical_actor.get_dist(batch).log_prob(batch["action"])
+        expected = -(log_prob.double() * weights)[mask].mean()
+        torch.testing.assert_close(out["loss_actor"].double(), expected, rtol=1e-5, atol=1e-6)
+
+    @pytest.mark.parametrize("baseline", ["leave_one_out", "group_mean"])
+    def test_padded_rows_and_episodes_back_to_back_give_the_same_loss(
+        self, categorical_actor, baseline
+    ):
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS)
+        loss = _grouped_loss(categorical_actor, baseline)
+        padded, flat = loss(batch.clone()), loss(_flat(batch))
+        torch.testing.assert_close(padded["loss_actor"], flat["loss_actor"])
+
+    def test_the_greedy_episodes_give_the_baseline_and_nothing_else(
+        self, categorical_actor, critic
+    ):
+        greedy = [False, False, True, False, True, False, False]
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS, greedy)
+        loss = _grouped_loss(categorical_actor, "greedy", critic_network=critic, entropy_coeff=0.1)
+        loss.make_value_estimator(RewardToGo, gamma=0.9)  # V(s) only bootstraps
+        out = loss(batch.clone())
+        weights = _expected_weights(batch, "greedy", 0.9, False)
+        sampled = batch["collector", "mask"] & ~batch["greedy"].squeeze(-1)
+        dist = categorical_actor.get_dist(batch)
+        expected = -(dist.log_prob(batch["action"]).double() * weights)[sampled].mean()
+        torch.testing.assert_close(out["loss_actor"].double(), expected, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(out["loss_entropy"], -0.1 * dist.entropy()[sampled].mean())
+        # The greedy steps' observations and actions reach no loss term.
+        changed = batch.clone()
+        on_greedy = changed["greedy"].squeeze(-1)
+        changed["observation"][on_greedy] = 100.0
+        changed["action"][on_greedy] = 0
+        again = loss(changed)
+        for key in ("loss_actor", "loss_entropy", "loss_value"):
+            torch.testing.assert_close(again[key], out[key])
+        torch.testing.assert_close(loss.value_loss(changed), out["loss_value"])
+
+    def test_a_renamed_group_key_is_read(self, categorical_actor):
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS)
+        loss = _grouped_loss(categorical_actor, "leave_one_out")
+        expected = loss(batch.clone())["loss_actor"]
+        batch.rename_key_("group", ("collector", "start"))
+        loss.set_keys(group=("collector", "start"))
+        assert ("collector", "start") in loss.in_keys
+        torch.testing.assert_close(loss(batch)["loss_actor"], expected)
+
+    def test_group_scale_needs_a_group_baseline(self, categorical_actor):
+        with pytest.raises(ValueError, match="group_scale divides a group baseline"):
+            ReinforceLoss(categorical_actor, baseline="batch_mean", group_scale=True)
+
+    @pytest.mark.parametrize(
+        ("change", "error", "match"),
+        [
+            (lambda b: b.exclude("group"), KeyError, r"baseline='leave_one_out': the key group"),
+            (lambda b: b.set("group", b["group"].float()), TypeError, "integer group ids"),
+            (lambda b: b.set("group", b["group"].unsqueeze(-1).expand(7, 6, 2)), ValueError,
+             "one value per step"),
+            (lambda b: b.set("group", torch.arange(42).reshape(7, 6)), ValueError,
+             "changes inside an episode"),
+            (lambda b: b.set(("next", "done"), torch.zeros(7, 6, 1, dtype=torch.bool)),
+             ValueError, "cut by the batch"),
+            (lambda b: b.set("group", torch.arange(7).unsqueeze(-1).expand(7, 6)),
+             ValueError, "at least 2 sampled episodes"),
+        ],
+    )  # fmt: skip
+    def test_bad_groups_are_refused(self, categorical_actor, change, error, match):
+        batch = change(_grouped_episodes(self.LENGTHS, self.GROUPS))
+        with pytest.raises(error, match=match):
+            _grouped_loss(categorical_actor, "leave_one_out")(batch)
+
+    def test_greedy_flags_are_required(self, categorical_actor):
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS)
+        with pytest.raises(KeyError, match=r"baseline='greedy': the key greedy"):
+            _grouped_loss(categorical_actor, "greedy")(batch)
+
+    def test_greedy_flags_that_are_not_boolean(self, categorical_actor):
+        greedy = [False, False, True, False, True, False, False]
+        batch = _grouped_episodes(self.LENGTHS, self.GROUPS, greedy)
+        batch["greedy"] = batch["greedy"].long()
+        with pytest.raises(TypeError, match="'greedy' must be boolean"):
+            _grouped_loss(categorical_actor, "greedy")(batch)

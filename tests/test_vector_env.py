@@ -313,3 +313,23 @@ def test_envpool_steps_through_its_arrays_as_through_its_api(task_id, steps):
         torch.testing.assert_close(root["observation"], torch.as_tensor(obs), rtol=0, atol=0)
     assert ended > 0  # the comparison crossed episode ends
     assert _direct_layout(gym.make_vec("CartPole-v1", num_envs=2)) is None  # not a pool
+
+
+def test_a_reset_seeds_each_environment_with_its_own_seed():
+    env = gym_env("CartPole-v1", num_envs=4)
+    first = env.reset(seed=[7, 7, 9, 7])["observation"]
+    assert torch.equal(first[0], first[1]) and torch.equal(first[0], first[3])
+    assert not torch.equal(first[0], first[2])
+    alone = gym_env("CartPole-v1", num_envs=1).reset(seed=[9])["observation"]
+    assert torch.equal(alone[0], first[2])
+    with pytest.raises(ValueError, match=r"one non-negative integer per environment \(4\)"):
+        env.reset(seed=[1, 2])
+    with pytest.raises(ValueError, match="takes a non-negative integer"):
+        env.reset(seed=-1)
+
+
+def test_envpool_refuses_a_seed_per_environment():
+    pytest.importorskip("envpool")
+    env = gym_env("CartPole-v1", num_envs=2, backend="envpool")
+    with pytest.raises(ValueError, match="cannot reset them with a seed each"):
+        env.reset(seed=[1, 1])

@@ -126,8 +126,9 @@ class VectorGymEnv(EnvBase):
         obs, reward, terminated, truncated, _ = self._env.step(actions)
         return obs, reward, terminated, truncated
 
-    def _env_reset(self, seed: int | None):
-        """Resets every environment (with seeds ``seed, seed + 1, ...`` if given)."""
+    def _env_reset(self, seed: int | list[int] | None):
+        """Resets every environment (with seeds ``seed, seed + 1, ...`` if given, or
+        environment ``i`` with ``seed[i]``)."""
         return self._env.reset(seed=seed)[0]
 
     def _env_reset_some(self, mask: np.ndarray):
@@ -273,12 +274,19 @@ class VectorGymEnv(EnvBase):
         for key in ("done", "terminated", "truncated"):
             next_root.set(key, torch.zeros_like(done))
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+    def _reset(
+        self, tensordict: TensorDictBase | None = None, *, seed=None, **kwargs
+    ) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
         if reset is not None and not reset.all():
+            if seed is not None:
+                raise ValueError("A partial reset takes no seed: reset every environment.")
             obs = self._env_reset_some(reset.reshape(self._n).cpu().numpy())
         else:
-            seed, self._seed = self._seed, None
+            # reset(seed=[...]) seeds environment i with seed[i] (gymnasium's vector
+            # reset): environments given one seed start alike (rl_pg's grouped episodes).
+            seed = self._seed if seed is None else _seeds(seed, self._n)
+            self._seed = None
             obs = self._env_reset(seed)
         out = self._observations(obs)
         for key in ("done", "terminated", "truncated"):
@@ -405,7 +413,14 @@ class EnvPoolEnv(VectorGymEnv):
     def _env_step(self, actions: np.ndarray):
         return self._env.step(actions)
 
-    def _env_reset(self, seed: int | None):
+    def _env_reset(self, seed: int | list[int] | None):
+        if isinstance(seed, list):
+            raise ValueError(
+                "EnvPool seeds its environments when it builds the pool (environment i "
+                "with seed + i): it cannot reset them with a seed each. Use the "
+                "gymnasium backend (rl_pg.envs.gym_env(..., backend='gymnasium')) for "
+                "environments reset with seeds of your choice."
+            )
         if seed is not None:
             self._env.close()
             self._env = self._make(seed)
@@ -545,6 +560,22 @@ class _Pools(gym.vector.VectorEnv):
     def close(self, **kwargs) -> None:
         for pool in self.pools:
             pool.close()
+
+
+def _seeds(seed, n: int) -> int | list[int]:
+    """A reset's ``seed=``: an integer, or one integer per environment."""
+    if isinstance(seed, torch.Tensor):
+        seed = seed.tolist()
+    if isinstance(seed, (list, tuple)):
+        if len(seed) != n or not all(isinstance(s, int) and s >= 0 for s in seed):
+            raise ValueError(
+                f"reset(seed=...) takes one non-negative integer per environment ({n}), "
+                f"got {seed!r}."
+            )
+        return list(seed)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"reset(seed=...) takes a non-negative integer, got {seed!r}.")
+    return seed
 
 
 def _resets_directly(env: gym.vector.VectorEnv) -> bool:

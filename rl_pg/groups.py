@@ -1,0 +1,249 @@
+"""Group baselines: episodes that share their randomness are each other's baseline.
+
+A *group* is a set of episodes played from the same start: the same environment seed
+(the same terrain and initial push of a lander, the same map and traffic of a driving
+scenario), so that the episodes differ only by the policy's own draws. Each episode's
+return is then weighed against the returns of the others:
+
+* ``"leave_one_out"``: the mean of the *other* episodes of its group (Kool et al.
+  2019, "Buy 4 REINFORCE samples, get a baseline for free"; RLOO, Ahmadian et al.
+  2024). Given the start, the other episodes are independent of this one's actions, so
+  the gradient stays unbiased.
+* ``"group_mean"``: the mean of the whole group, the episode itself included (GRPO).
+  Its own return inside the baseline shrinks the expected gradient by exactly
+  ``1 − 1/K`` for groups of ``K`` episodes: the direction is kept, the length is not.
+* ``"greedy"``: the return of one episode per group in which the policy acted greedily
+  (self-critical training, Rennie et al. 2017; ReMax, Li et al. 2023). It does not
+  depend on the sampled episodes, so the gradient stays unbiased; a sampled episode
+  gets a positive weight only where it did better than the policy's own greedy play.
+
+``scale=True`` further divides by the standard deviation of the group's returns (GRPO's
+normalised advantage). That standard deviation depends on the episode's own return,
+so the expected gradient is no longer proportional to the policy gradient (Liu et al.
+2025, "Understanding R1-Zero-like training"): it reweights groups by how much their
+outcomes vary. Offered because it is widely used, and measured as biased in the tests.
+
+Returns are compared *position by position*: the baseline of step ``t`` of an episode
+is built from the other episodes' values at their own step ``t``. For reward-to-go,
+a finished episode's value past its end is 0 (nothing left to earn); for the
+whole-episode return, one value per episode (``returns`` of width 1) is the natural
+layout.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from rl_pg._checks import check_int, check_key
+
+__all__ = ["GROUP_BASELINES", "GreedyInGroups", "group_advantage"]
+
+GROUP_BASELINES = ("leave_one_out", "group_mean", "greedy")
+
+
+def group_advantage(
+    returns: torch.Tensor,
+    group: torch.Tensor,
+    *,
+    baseline: str = "leave_one_out",
+    greedy: torch.Tensor | None = None,
+    scale: bool = False,
+    eps: float = 1e-8,
+) -> torch.Tensor:
+    """The advantage of every episode against the other episodes of its group.
+
+    Args:
+        returns (torch.Tensor): ``[E, L]``, one row per episode, its value at each of
+            ``L`` positions (step ``t`` of the episode; zero past its end for a
+            reward-to-go; ``L = 1`` for one value per episode). Floating point.
+        group (torch.Tensor): ``[E]`` integers, the group of each episode (any values;
+            episodes with equal values form a group).
+
+    Keyword Args:
+        baseline (str): ``"leave_one_out"``, ``"group_mean"`` or ``"greedy"``.
+            Defaults to ``"leave_one_out"``.
+        greedy (torch.Tensor, optional): ``[E]`` booleans, the greedy episode of each
+            group (exactly one per group with ``baseline="greedy"``; none otherwise).
+            Defaults to ``None``: every episode is sampled.
+        scale (bool): divide by the standard deviation (``K − 1`` in the denominator)
+            of the group's sampled returns at each position, plus ``eps``. Defaults to
+            ``False``.
+        eps (float): added to the standard deviation. Defaults to ``1e-8``.
+
+    Returns:
+        ``[E, L]``: ``returns − b`` (divided by the group's standard deviation with
+        ``scale=True``); 0 on the rows of greedy episodes.
+
+    Raises:
+        ValueError: for an unknown ``baseline``, mismatched shapes, a group with fewer
+            than two sampled episodes where the baseline (or ``scale``) needs two, or
+            greedy episodes that are not exactly one per group.
+        TypeError: for a ``returns`` that is not floating point or a ``group`` that is
+            not integer.
+
+    Examples:
+        >>> import torch
+        >>> from rl_pg.groups import group_advantage
+        >>> returns = torch.tensor([[1.0], [3.0], [5.0], [10.0], [20.0], [30.0]])
+        >>> group = torch.tensor([0, 0, 0, 1, 1, 1])
+        >>> group_advantage(returns, group).squeeze(-1)  # minus the others' mean
+        tensor([ -3.,   0.,   3., -15.,   0.,  15.])
+        >>> group_advantage(returns, group, baseline="group_mean").squeeze(-1)
+        tensor([ -2.,   0.,   2., -10.,   0.,  10.])
+        >>> greedy = torch.tensor([False, False, True, False, True, False])
+        >>> group_advantage(returns, group, baseline="greedy", greedy=greedy).squeeze(-1)
+        tensor([ -4.,  -2.,   0., -10.,   0.,  10.])
+    """
+    if baseline not in GROUP_BASELINES:
+        raise ValueError(f"baseline must be one of {GROUP_BASELINES}, got {baseline!r}.")
+    if not isinstance(returns, torch.Tensor) or not returns.is_floating_point():
+        raise TypeError(f"returns must be a floating-point tensor, got {_describe(returns)}.")
+    if not isinstance(group, torch.Tensor) or group.is_floating_point() or group.is_complex():
+        raise TypeError(f"group must be an integer tensor, got {_describe(group)}.")
+    if returns.ndim != 2 or group.shape != returns.shape[:1]:
+        raise ValueError(
+            f"returns must be [episodes, positions] and group [episodes]: got "
+            f"{tuple(returns.shape)} and {tuple(group.shape)}."
+        )
+    if greedy is None:
+        greedy = torch.zeros_like(group, dtype=torch.bool)
+    elif greedy.shape != group.shape or greedy.dtype != torch.bool:
+        raise ValueError(
+            f"greedy must be a boolean tensor shaped like group {tuple(group.shape)}, got "
+            f"{greedy.dtype} {tuple(greedy.shape)}."
+        )
+    _, index = torch.unique(group, return_inverse=True)
+    groups = int(index.max()) + 1
+    sampled = (~greedy).to(returns.dtype)
+    count = torch.zeros(groups, dtype=returns.dtype, device=returns.device)
+    count.index_add_(0, index, sampled)
+    greedy_count = torch.zeros(groups, dtype=torch.long, device=returns.device)
+    greedy_count.index_add_(0, index, greedy.long())
+    if baseline == "greedy":
+        if bool((greedy_count != 1).any()):
+            bad = int((greedy_count != 1).nonzero()[0])
+            raise ValueError(
+                f"baseline='greedy' needs exactly one greedy episode in each group; a group "
+                f"has {int(greedy_count[bad])}. Play one greedy episode per group (rl_pg's "
+                f"EpisodeCollector(..., greedy=True) does)."
+            )
+    elif bool(greedy_count.any()):
+        raise ValueError(
+            f"The batch marks greedy episodes, which only baseline='greedy' reads; with "
+            f"baseline={baseline!r} drop them (or their flags) from the batch."
+        )
+    needed = 2 if (baseline != "greedy" or scale) else 1
+    if bool((count < needed).any()):
+        raise ValueError(
+            f"baseline={baseline!r}{' with scale' if scale else ''} needs at least "
+            f"{needed} sampled episodes in every group; a group has "
+            f"{int(count.min())}. Play K >= {needed} episodes from each start "
+            f"(EpisodeCollector(..., group_size=K))."
+        )
+    weighted = returns * sampled.unsqueeze(-1)
+    total = torch.zeros(groups, returns.shape[1], dtype=returns.dtype, device=returns.device)
+    total.index_add_(0, index, weighted)
+    k = count[index].unsqueeze(-1)
+    if baseline == "leave_one_out":
+        b = (total[index] - returns) / (k - 1)
+    elif baseline == "group_mean":
+        b = total[index] / k
+    else:
+        greedy_returns = torch.zeros_like(total)
+        greedy_returns.index_add_(0, index[greedy], returns[greedy])
+        b = greedy_returns[index]
+    advantage = returns - b
+    if scale:
+        mean = total / count.unsqueeze(-1)
+        squares = torch.zeros_like(total)
+        squares.index_add_(0, index, (returns - mean[index]).square() * sampled.unsqueeze(-1))
+        std = (squares / (count.unsqueeze(-1) - 1)).sqrt()
+        advantage = advantage / (std[index] + eps)
+    return advantage.masked_fill(greedy.unsqueeze(-1), 0.0)
+
+
+def _describe(value) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"a {value.dtype} tensor"
+    return type(value).__name__
+
+
+class GreedyInGroups(TensorDictModuleBase):
+    """A policy that plays the greedy episode of every group: it acts as ``policy``
+    does in the first ``group_size`` environments of each group of ``group_size + 1``,
+    and greedily (``ExplorationType.DETERMINISTIC``: the most probable action of a
+    categorical policy, the mean of a Gaussian) in the last.
+
+    The layout of [`EpisodeCollector`][rl_pg.collectors.EpisodeCollector]
+    ``(..., group_size=K, greedy=True)``: give this policy to the collector of
+    segments it wraps. The greedy environments' actions are the policy's greedy ones
+    whatever the exploration type it is called under; the others' are left as the
+    policy wrote them.
+
+    Args:
+        policy (TensorDictModuleBase): the policy (e.g. a ``ProbabilisticActor``).
+
+    Keyword Args:
+        group_size (int): sampled episodes per group, ``K >= 1``.
+        action_key (NestedKey): where the policy writes its action. Defaults to
+            ``"action"``.
+
+    Raises:
+        ValueError: in ``forward``, for a batch of environments whose number is not a
+            multiple of ``group_size + 1``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> from rl_pg.groups import GreedyInGroups
+        >>> actor = ProbabilisticActor(
+        ...     TensorDictModule(torch.nn.Linear(1, 3), ["observation"], ["logits"]),
+        ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+        ... )
+        >>> with torch.no_grad():
+        ...     _ = actor.module[0].module.bias.copy_(torch.tensor([0.0, 2.0, 0.0]))
+        ...     _ = actor.module[0].module.weight.zero_()
+        >>> policy = GreedyInGroups(actor, group_size=2)
+        >>> root = TensorDict({"observation": torch.ones(6, 1)}, batch_size=[6])
+        >>> policy(root)["action"][[2, 5]]  # the greedy environments: the argmax
+        tensor([1, 1])
+    """
+
+    def __init__(
+        self, policy: TensorDictModuleBase, *, group_size: int, action_key="action"
+    ) -> None:
+        super().__init__()
+        if not isinstance(policy, TensorDictModuleBase):
+            raise TypeError(
+                f"policy must be a TensorDictModule (e.g. a ProbabilisticActor), got "
+                f"{type(policy).__name__}."
+            )
+        self.policy = policy
+        self.group_size = check_int("group_size", group_size, low=1)
+        self.action_key = check_key("action_key", action_key)
+        self.in_keys = list(policy.in_keys)
+        self.out_keys = list(policy.out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.policy(tensordict)
+        n = tensordict.batch_size[0] if tensordict.batch_dims else 1
+        width = self.group_size + 1
+        if tensordict.batch_dims == 0 or n % width:
+            raise ValueError(
+                f"GreedyInGroups acts greedily in the last of every {width} environments "
+                f"(group_size={self.group_size}, plus the greedy one), but the batch has "
+                f"batch size {tuple(tensordict.batch_size)}: build a multiple of {width} "
+                f"environments."
+            )
+        rows = torch.arange(self.group_size, n, width, device=tensordict.device)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            greedy = self.policy(tensordict[rows].clone()).get(self.action_key)
+        action = out.get(self.action_key).clone()
+        action[rows] = greedy
+        out.set(self.action_key, action)
+        return out

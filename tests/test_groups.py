@@ -1,0 +1,169 @@
+"""Group baselines: the kernel against a plain loop, its checks, and the greedy policy."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor
+
+from rl_pg.groups import GROUP_BASELINES, GreedyInGroups, group_advantage
+
+
+def reference_advantage(returns, group, baseline, greedy, scale, eps=1e-8):
+    """Episode by episode, position by position, over Python lists."""
+    n, width = len(returns), len(returns[0])
+    out = [[0.0] * width for _ in range(n)]
+    for i in range(n):
+        if greedy[i]:
+            continue
+        mates = [j for j in range(n) if group[j] == group[i] and not greedy[j]]
+        for t in range(width):
+            values = [returns[j][t] for j in mates]
+            if baseline == "leave_one_out":
+                others = [returns[j][t] for j in mates if j != i]
+                b = sum(others) / len(others)
+            elif baseline == "group_mean":
+                b = sum(values) / len(values)
+            else:
+                (g,) = [j for j in range(n) if group[j] == group[i] and greedy[j]]
+                b = returns[g][t]
+            a = returns[i][t] - b
+            if scale:
+                mean = sum(values) / len(values)
+                std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+                a /= std + eps
+            out[i][t] = a
+    return out
+
+
+@st.composite
+def group_problems(draw):
+    """Episodes in groups of random sizes (in any order), with or without a greedy one."""
+    baseline = draw(st.sampled_from(GROUP_BASELINES))
+    scale = draw(st.booleans())
+    least = 2 if (baseline != "greedy" or scale) else 1
+    sizes = draw(st.lists(st.integers(least, 5), min_size=1, max_size=4))
+    ids = draw(st.lists(st.integers(-50, 50), min_size=len(sizes), max_size=len(sizes),
+                        unique=True))  # fmt: skip
+    group, greedy = [], []
+    for gid, size in zip(ids, sizes, strict=True):
+        group += [gid] * (size + (baseline == "greedy"))
+        greedy += [False] * size + [True] * (baseline == "greedy")
+    order = draw(st.permutations(range(len(group))))
+    group, greedy = [group[i] for i in order], [greedy[i] for i in order]
+    width = draw(st.integers(1, 6))
+    dtype = draw(st.sampled_from([torch.float32, torch.float64]))
+    seed = draw(st.integers(0, 2**31 - 1))
+    returns = torch.randn(len(group), width, generator=torch.Generator().manual_seed(seed))
+    return baseline, scale, returns.to(dtype), torch.tensor(group), torch.tensor(greedy)
+
+
+class TestGroupAdvantage:
+    @settings(max_examples=300, deadline=None)
+    @given(problem=group_problems())
+    def test_matches_a_plain_loop(self, problem):
+        baseline, scale, returns, group, greedy = problem
+        out = group_advantage(
+            returns,
+            group,
+            baseline=baseline,
+            greedy=greedy if baseline == "greedy" else None,
+            scale=scale,
+        )
+        expected = reference_advantage(
+            returns.double().tolist(), group.tolist(), baseline, greedy.tolist(), scale
+        )
+        tol = 1e-4 if returns.dtype == torch.float32 else 1e-10
+        # Scaled by a tiny group standard deviation the float32 advantage is large.
+        torch.testing.assert_close(
+            out.double(), torch.tensor(expected, dtype=torch.float64), rtol=tol, atol=tol
+        )
+        assert out.dtype == returns.dtype
+
+    def test_leave_one_out_is_the_group_mean_advantage_scaled_by_k_over_k_minus_one(self):
+        returns = torch.randn(12, 3, dtype=torch.float64)
+        group = torch.arange(12) // 4
+        mean = group_advantage(returns, group, baseline="group_mean")
+        torch.testing.assert_close(group_advantage(returns, group), mean * 4 / 3)
+
+    def test_equal_returns_give_no_advantage_even_scaled(self):
+        returns = torch.ones(4, 2)
+        out = group_advantage(returns, torch.zeros(4, dtype=torch.long), scale=True)
+        assert torch.equal(out, torch.zeros(4, 2))
+
+    @pytest.mark.parametrize(
+        ("kwargs", "error", "match"),
+        [
+            ({"baseline": "median"}, ValueError, "baseline must be one of"),
+            ({"returns": torch.ones(4, 1, dtype=torch.long)}, TypeError, "floating-point"),
+            ({"group": torch.zeros(4)}, TypeError, "group must be an integer"),
+            ({"returns": torch.ones(4)}, ValueError, r"\[episodes, positions\]"),
+            ({"group": torch.zeros(3, dtype=torch.long)}, ValueError, "group"),
+            ({"group": torch.tensor([0, 0, 0, 1])}, ValueError, "at least 2 sampled"),
+            ({"greedy": torch.tensor([0, 0, 0, 1])}, ValueError, "boolean"),
+            ({"greedy": torch.tensor([False, False, False, True])}, ValueError,
+             "only baseline='greedy' reads"),
+            ({"baseline": "greedy"}, ValueError, "exactly one greedy episode"),
+            ({"baseline": "greedy", "greedy": torch.tensor([True, True, False, False])},
+             ValueError, "exactly one greedy episode in each group; a group has 2"),
+            ({"baseline": "greedy", "greedy": torch.tensor([False, True, False, True]),
+              "group": torch.tensor([0, 0, 1, 1]), "scale": True}, ValueError,
+             "with scale needs at least 2"),
+        ],
+    )  # fmt: skip
+    def test_bad_input_is_refused(self, kwargs, error, match):
+        args = {"returns": torch.ones(4, 1), "group": torch.zeros(4, dtype=torch.long)}
+        args.update(kwargs)
+        with pytest.raises(error, match=match):
+            group_advantage(args.pop("returns"), args.pop("group"), **args)
+
+
+def _actor(n_actions=3):
+    return ProbabilisticActor(
+        TensorDictModule(torch.nn.Linear(2, n_actions), ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+    )
+
+
+class TestGreedyInGroups:
+    def test_the_last_environment_of_each_group_plays_the_most_probable_action(self):
+        torch.manual_seed(0)
+        actor, n = _actor(), 4 * 50
+        policy = GreedyInGroups(actor, group_size=3)
+        root = TensorDict({"observation": torch.randn(n, 2)}, batch_size=[n])
+        with set_exploration_type(ExplorationType.RANDOM):
+            out = policy(root.clone())
+        argmax = actor.module[0](root.clone())["logits"].argmax(-1)
+        greedy = torch.arange(n) % 4 == 3
+        assert torch.equal(out["action"][greedy], argmax[greedy])
+        # The others sample: some differ from the argmax (3 actions, random logits).
+        assert not torch.equal(out["action"][~greedy], argmax[~greedy])
+
+    def test_the_sampled_environments_act_as_the_policy_alone(self):
+        actor, n = _actor(), 8
+        root = TensorDict({"observation": torch.randn(n, 2)}, batch_size=[n])
+        torch.manual_seed(3)
+        alone = actor(root.clone())
+        torch.manual_seed(3)
+        out = GreedyInGroups(actor, group_size=1)(root.clone())
+        sampled = torch.arange(n) % 2 == 0
+        assert torch.equal(out["action"][sampled], alone["action"][sampled])
+
+    def test_a_batch_that_is_no_multiple_of_the_groups_is_refused(self):
+        policy = GreedyInGroups(_actor(), group_size=2)
+        root = TensorDict({"observation": torch.randn(4, 2)}, batch_size=[4])
+        with pytest.raises(ValueError, match="multiple of 3 environments"):
+            policy(root)
+
+    def test_a_policy_that_is_not_a_tensordict_module_is_refused(self):
+        with pytest.raises(TypeError, match="TensorDictModule"):
+            GreedyInGroups(torch.nn.Linear(2, 3), group_size=2)
