@@ -437,21 +437,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
-        if tensordict.batch_size.numel() == 0:
-            raise ValueError(
-                f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
-                " there is no step to learn from. Collect at least one step."
-            )
-        weights, diagnostics, state_value, valid = self._policy_weights(tensordict)
-        if self.value_norm is not None:
-            self._update_value_norm(tensordict)
-        dist = self._policy(tensordict)
-        log_prob = self._log_prob(dist, tensordict, weights)
-        out = {"loss_actor": -log_prob * weights}
-        if self.entropy_coeff is not None:
-            entropy = _per_step(self._entropy(dist), log_prob.shape, "entropies")
-            out["loss_entropy"] = -self.entropy_coeff * entropy
-            out["entropy"] = entropy.detach().mean()
+        weights, diagnostics, state_value, valid = self._take_in(tensordict)
+        out = self._policy_terms(tensordict, weights, valid)
         if self.has_critic:
             if state_value is not None:  # the estimator's pass, still in the graph
                 loss_value = self._critic_distance(
@@ -478,6 +465,98 @@ class ReinforceLoss(TorchRLReinforceLoss):
             "target_critic_network_params",
         )
         return td_out
+
+    def policy_weights(
+        self, tensordict: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The weights `Ψ_t` of this batch's steps, as ``forward`` weights ``log π``.
+
+        Computes the returns when the batch has none (written into it, as ``forward``
+        does) and takes the batch into the loss's state once: a running baseline's
+        statistics, ``value_norm``'s. With [`policy_loss`][rl_pg.ReinforceLoss.policy_loss]
+        it is ``forward``'s policy part in two steps, for updates that evaluate the
+        policy loss at several parameters on one batch (a line search, a trust region).
+
+        Returns:
+            ``(weights, valid)``: the detached weights, ``[*B, 1]``, and the steps to
+            learn from (``[*B, 1]`` booleans: padding and greedy episodes left out), or
+            ``None`` when every step counts.
+
+        Examples:
+            >>> import torch
+            >>> from tensordict import TensorDict
+            >>> from tensordict.nn import TensorDictModule
+            >>> from torchrl.modules import ProbabilisticActor
+            >>> from rl_pg import ReinforceLoss
+            >>> actor = ProbabilisticActor(
+            ...     TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"]),
+            ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
+            ... )
+            >>> loss = ReinforceLoss(actor, baseline="batch_mean")
+            >>> data = TensorDict({
+            ...     "observation": torch.randn(4, 3),
+            ...     "action": torch.tensor([0, 1, 1, 0]),
+            ...     "next": {"reward": torch.tensor([[1.0], [0.0], [3.0], [0.0]]),
+            ...              "done": torch.tensor([[True], [True], [True], [True]])},
+            ... }, batch_size=[4])
+            >>> weights, valid = loss.policy_weights(data)
+            >>> weights.squeeze(-1), valid
+            (tensor([ 0., -1.,  2., -1.]), None)
+            >>> terms = loss.policy_loss(data, weights, valid)
+            >>> bool(terms["loss_actor"] == loss(data)["loss_actor"])
+            True
+        """
+        weights, _, _, valid = self._take_in(tensordict)
+        return weights, valid
+
+    def policy_loss(
+        self,
+        tensordict: TensorDictBase,
+        weights: torch.Tensor,
+        valid: torch.Tensor | None = None,
+    ) -> TensorDictBase:
+        """``loss_actor`` (and ``loss_entropy``, ``entropy``) under the current policy
+        parameters, for the ``weights`` and ``valid`` steps that
+        [`policy_weights`][rl_pg.ReinforceLoss.policy_weights] gave for this batch.
+        Reduced as ``forward`` reduces them; changes no state, so it may be called as
+        often as needed.
+
+        Returns:
+            A ``TensorDict`` of batch size ``[]``.
+        """
+        out = self._policy_terms(tensordict, weights, valid)
+        for name, value in out.items():
+            if name.startswith("loss_"):
+                out[name] = self._reduce_steps(value, tensordict, valid).squeeze(-1)
+        return TensorDict._new_unsafe(out, batch_size=torch.Size([]))
+
+    def _take_in(self, tensordict: TensorDictBase):
+        """``_policy_weights``, once per batch: the checks, the returns, the baselines'
+        and ``value_norm``'s statistics."""
+        # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
+        if tensordict.batch_size.numel() == 0:
+            raise ValueError(
+                f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
+                " there is no step to learn from. Collect at least one step."
+            )
+        taken = self._policy_weights(tensordict)
+        if self.value_norm is not None:
+            self._update_value_norm(tensordict)
+        return taken
+
+    def _policy_terms(
+        self, tensordict: TensorDictBase, weights: torch.Tensor, valid: torch.Tensor | None
+    ) -> dict:
+        """The per-step policy loss terms (unreduced) and the mean entropy."""
+        dist = self._policy(tensordict)
+        log_prob = self._log_prob(dist, tensordict, weights)
+        out = {"loss_actor": -log_prob * weights}
+        if self.entropy_coeff is not None:
+            entropy = _per_step(self._entropy(dist), log_prob.shape, "entropies")
+            out["loss_entropy"] = -self.entropy_coeff * entropy
+            entropy = entropy.detach()
+            out["entropy"] = (entropy if valid is None else entropy[valid]).mean()
+        return out
 
     def _reduce_steps(
         self, value: torch.Tensor, tensordict: TensorDictBase, valid: torch.Tensor | None

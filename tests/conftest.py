@@ -73,6 +73,7 @@ SHARED_FIXTURES = {
         for name in (
             "TestGridworldGradient",
             "TestGridworldGroupGradient",
+            "TestNaturalGradientDirection",
             "TestGridworldNoiseStatistics",
             "TestCollectedEpisodes",
         )

@@ -800,3 +800,66 @@ class TestCollectedEpisodes:
         first = lambda env, actor: _FirstToEnd(env, actor, self.EPISODES)  # noqa: E731
         z, length = _collected(logits, first, 8, self.EPISODES, exact)
         assert z.abs().max() > Z_MAX and length < 0.8 * mean_length
+
+
+# ------------------------------------------------------------ natural gradient ---
+# On both problems the Fisher of the policy is known exactly: the bandit's is that of
+# one softmax, F = diag(p) - p p^T; the gridworld's is each state's, weighted by the
+# state's expected visits per episode, the Hessian of the visit-weighted KL. The
+# natural gradient is then F^+ grad J (F is singular: the logits of a state can all
+# shift together), and NaturalGradient.direction, from one large batch, must point
+# the same way. The plain gradient is the negative control: it does not.
+COS_MIN = 0.99
+
+
+def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(a @ b / (a.norm() * b.norm()))
+
+
+def _gridworld_fisher(logits: torch.Tensor) -> torch.Tensor:
+    """The Fisher of the episode's distribution over the actor's weight [actions, states]."""
+    n = SIDE * SIDE
+    probs = logits.softmax(-1)
+    transition = torch.zeros(n, n, dtype=torch.float64)
+    transition = transition.index_put((torch.arange(n).unsqueeze(-1), NEXT_STATE), probs, True)
+    transition[:, TERMINAL] = 0.0
+    transition[TERMINAL] = 0.0
+    eye = torch.eye(n, dtype=torch.float64)
+    visits = torch.linalg.solve((eye - transition).T, eye[START])  # expected, per episode
+
+    def kl(weight):
+        log_new = torch.log_softmax(weight.T, -1)
+        return (visits.unsqueeze(-1) * probs * (probs.log() - log_new)).sum()
+
+    size = n * len(MOVES)
+    return torch.autograd.functional.hessian(kl, logits.T.contiguous()).reshape(size, size)
+
+
+class TestNaturalGradientDirection:
+    def test_bandit(self, bandit):
+        from rl_pg.natural_gradient import NaturalGradient
+
+        logits, exact = bandit
+        probs = logits.softmax(-1)[0]
+        fisher = torch.diag(probs) - torch.outer(probs, probs)
+        natural = torch.linalg.pinv(fisher, hermitian=True) @ exact.flatten()
+        loss = _make_loss(_tabular_actor(1, N_ARMS, logits), None, RewardToGo, "none")
+        loss.reduction = "mean"
+        (batch,) = _bandit_batches(logits, 1, 20_000, seed=9)
+        direction, gradient = NaturalGradient(loss, damping=1e-6, cg_iters=50).direction(batch)
+        assert _cosine(direction, natural) >= COS_MIN
+        assert _cosine(gradient, natural) < 0.9  # the plain gradient points elsewhere
+
+    def test_gridworld(self, gridworld):
+        from rl_pg.natural_gradient import NaturalGradient
+
+        logits, exact, values, batches = gridworld
+        natural = torch.linalg.pinv(_gridworld_fisher(logits), hermitian=True) @ exact.flatten()
+        actor = _tabular_actor(SIDE * SIDE, len(MOVES), logits)
+        loss = _make_loss(actor, _tabular_critic(values), RewardToGo, "critic")
+        loss.reduction = "mean"
+        batch = torch.cat([b.clone() for b in batches])  # 6 000 episodes
+        update = NaturalGradient(loss, damping=1e-6, cg_iters=200)
+        direction, gradient = update.direction(batch)
+        assert _cosine(direction, natural) >= COS_MIN
+        assert _cosine(gradient, natural) < 0.9
