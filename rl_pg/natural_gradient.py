@@ -23,6 +23,7 @@ import math
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictModule
 
 from rl_pg._checks import check_bool, check_int, check_real
 from rl_pg.loss import ReinforceLoss
@@ -39,9 +40,10 @@ class NaturalGradient:
     policy terms (``loss_actor`` and ``loss_entropy``), the natural direction
     `x = F⁻¹ g` by ``cg_iters`` conjugate-gradient iterations on Fisher-vector
     products, and moves the policy's parameters in place by the step whose quadratic
-    KL model is ``max_kl``. The Fisher is that of the closed-form KL where torch has it
-    (categorical, normal, beta policies), else the mean outer product of the stored
-    actions' scores (e.g. a ``TanhNormal``). The critic is not touched: train it with
+    KL model is ``max_kl``. The Fisher is the Hessian of the closed-form KL where torch
+    has it (categorical, normal, beta policies; taken as ``J^T H J`` through the
+    distribution's parameters), else the mean outer product of the stored actions'
+    scores (e.g. a ``TanhNormal``). The critic is not touched: train it with
     its own optimiser on ``loss.value_loss(batch)`` (the value targets are in the
     batch after ``step``); it must not share parameters with the policy.
 
@@ -54,6 +56,10 @@ class NaturalGradient:
             solve stable where the Fisher is singular (a softmax's logits can all
             shift together). Defaults to ``0.1``.
         cg_iters (int): conjugate-gradient iterations. Defaults to ``10``.
+        fisher_fraction (float): the share of the batch's steps the Fisher is taken
+            on (every ``1 / fisher_fraction``-th step; TRPO implementations subsample
+            likewise): the products cost in proportion, the gradient still uses every
+            step. Defaults to ``1.0``.
         line_search (bool): backtrack until the measured KL is at most
             ``kl_tolerance · max_kl`` and the loss improves by at least
             ``accept_ratio`` of the linear prediction; a step that no backtrack
@@ -95,6 +101,7 @@ class NaturalGradient:
         max_kl: float = 0.01,
         damping: float = 0.1,
         cg_iters: int = 10,
+        fisher_fraction: float = 1.0,
         line_search: bool = True,
         backtracks: int = 10,
         backtrack_ratio: float = 0.8,
@@ -110,6 +117,9 @@ class NaturalGradient:
         self.max_kl = check_real("max_kl", max_kl, low=0, low_open=True)
         self.damping = check_real("damping", damping, low=0)
         self.cg_iters = check_int("cg_iters", cg_iters, low=1)
+        self.fisher_fraction = check_real(
+            "fisher_fraction", fisher_fraction, low=0, low_open=True, high=1
+        )
         self.line_search = check_bool("line_search", line_search)
         self.backtracks = check_int("backtracks", backtracks, low=1)
         self.backtrack_ratio = check_real(
@@ -145,8 +155,7 @@ class NaturalGradient:
             weights, valid = self.loss.policy_weights(tensordict)
         objective = self._objective(tensordict, weights, valid)
         gradient = self._gradient(objective)
-        old = self._old_policy(tensordict)
-        product = self._fisher_product(tensordict, old, valid)
+        product = self._fisher_product(tensordict, valid)
         return _conjugate_gradient(product, gradient, self.cg_iters), gradient
 
     def step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -167,9 +176,9 @@ class NaturalGradient:
         before = loss.policy_loss(tensordict, weights, valid)
         objective = before["loss_actor"] + before.get("loss_entropy", 0.0)
         gradient = self._gradient(objective)
-        old = self._old_policy(tensordict)
-        product = self._fisher_product(tensordict, old, valid)
+        product = self._fisher_product(tensordict, valid)
         direction = _conjugate_gradient(product, gradient, self.cg_iters)
+        old = self._old_policy(tensordict)
         # The step is sized by the Fisher itself, without the damping, so that the
         # quadratic model of its KL divergence is max_kl.
         quadratic = float(direction @ product(direction) - self.damping * direction @ direction)
@@ -233,27 +242,73 @@ class NaturalGradient:
     def _action_key(self):
         return self.loss.tensor_keys.action
 
-    def _fisher_product(self, tensordict: TensorDictBase, old, valid):
-        """``v ↦ (F + λI) v`` for the policy's Fisher on the batch's states."""
-        params, damping = self.parameters, self.damping
-        new = self._dist(tensordict)
-        if has_closed_form_kl(new):
-            kl = masked_mean(kl_per_step(old, new, tensordict), valid)
-            grad_kl = torch.autograd.grad(kl, params, create_graph=True, allow_unused=True)
-            flat = _flat(grad_kl, params)
+    def _fisher_product(self, tensordict: TensorDictBase, valid):
+        """``v ↦ (F + λI) v`` for the policy's Fisher on (a share of) the batch's states."""
+        steps = self._fisher_steps(tensordict, valid)
+        actor = self.loss.actor_network
+        head = actor.module[-1] if hasattr(actor, "get_dist_params") else None
+        if isinstance(head, ProbabilisticTensorDictModule):
+            with torch.no_grad():
+                closed_form = has_closed_form_kl(actor.get_dist(steps[:1]))
+            if closed_form:
+                return self._gauss_newton_product(steps, actor, head)
+        return self._score_product(steps)
 
-            def product(v: torch.Tensor) -> torch.Tensor:
-                hv = torch.autograd.grad(flat @ v, params, retain_graph=True, allow_unused=True)
-                return _flat(hv, params).detach() + damping * v
-
-            return product
-        # No closed form: the mean outer product of the scores of the stored actions,
-        # F v = J^T (J v) / N, with J v by the double-backward trick.
-        shape = tensordict.batch_size
-        log_prob = log_prob_per_step(new, tensordict.get(self._action_key), shape)
+    def _fisher_steps(self, tensordict: TensorDictBase, valid) -> TensorDictBase:
+        """The steps the Fisher is taken on: every ``1 / fisher_fraction``-th step the
+        loss learns from, in the batch's order (flat)."""
+        flat = tensordict.reshape(-1)
+        index = torch.arange(flat.numel(), device=flat.device)
         if valid is not None:
-            log_prob = log_prob[valid.reshape(shape)]
-        log_prob = log_prob.reshape(-1)
+            index = index[valid.reshape(-1)]
+        stride = max(1, round(1 / self.fisher_fraction))
+        return flat[index[::stride]]
+
+    def _gauss_newton_product(self, steps, actor, head):
+        """The Fisher as ``J^T H J``: ``J`` the Jacobian of the distribution's
+        parameters (logits; location and scale) with respect to the policy's, ``H``
+        the Hessian of the KL divergence in those parameters, on each step. At the
+        current policy this is the Hessian of the KL divergence in the policy's
+        parameters itself, at the cost of two back-propagations through the network
+        per product (``J v`` by the double-backward trick)."""
+        params, damping = self.parameters, self.damping
+        out = actor.get_dist_params(steps)
+        keys = [key for key in actor.dist_params_keys if out.get(key, None) is not None]
+        outputs = [out.get(key) for key in keys]
+        leaves = [value.detach().requires_grad_() for value in outputs]
+        at = out.clone(False)
+        for key, value in zip(keys, (value.detach() for value in outputs), strict=True):
+            at.set(key, value)
+        old = head.get_dist(at)
+        for key, leaf in zip(keys, leaves, strict=True):
+            at.set(key, leaf)
+        kl = kl_per_step(old, head.get_dist(at), steps).mean()
+        grad_kl = _flat(torch.autograd.grad(kl, leaves, create_graph=True), leaves)
+        dummies = [torch.zeros_like(value, requires_grad=True) for value in outputs]
+        transposed = _flat(
+            torch.autograd.grad(
+                outputs, params, grad_outputs=dummies, create_graph=True, allow_unused=True
+            ),
+            params,
+        )
+
+        def product(v: torch.Tensor) -> torch.Tensor:
+            jv = _flat(torch.autograd.grad(transposed @ v, dummies, retain_graph=True), dummies)
+            hjv = torch.autograd.grad(grad_kl @ jv, leaves, retain_graph=True)
+            fv = torch.autograd.grad(
+                outputs, params, grad_outputs=hjv, retain_graph=True, allow_unused=True
+            )
+            return _flat(fv, params).detach() + damping * v
+
+        return product
+
+    def _score_product(self, steps):
+        """Without a closed-form KL: the mean outer product of the stored actions'
+        scores, ``F v = J^T (J v) / N`` with ``J`` the Jacobian of their
+        log-probabilities (``J v`` by the double-backward trick)."""
+        params, damping = self.parameters, self.damping
+        new = self._dist(steps)
+        log_prob = log_prob_per_step(new, steps.get(self._action_key), steps.batch_size)
         dummy = torch.zeros_like(log_prob, requires_grad=True)
         transposed = _flat(
             torch.autograd.grad(

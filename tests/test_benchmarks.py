@@ -397,3 +397,11 @@ def test_time_to_solve_refuses_to_pool_runs_that_solve_at_different_frames(monke
         module.main(module.Config(seeds=[0], tools=["rl_pg"], repeats=2))
     with pytest.raises(SystemExit, match="--repeats must be at least 1"):
         module.main(module.Config(repeats=0))
+
+
+def test_natural_gradient(tmp_path):
+    natural = _script("natural_gradient")
+    out = natural.main(natural.Config(batches=2, repeats=2, json_path=tmp_path / "n.json"))
+    assert set(out["ms_per_update"]) == set(natural.CONTENDERS)
+    assert all(value > 0 for value in out["over_adam"].values())
+    assert all(low <= high for low, high in out["over_adam_intervals"].values())
