@@ -445,7 +445,8 @@ class EpisodeCollector:
         reset (bool): reset the collector's environments after each batch, so that the
             next batch begins new episodes under the policy as it is then. Defaults to
             True. A caller that resets (or reseeds) them itself between batches passes
-            False.
+            False. With ``group_size`` the environments are reset with the groups'
+            seeds as each batch starts, whatever ``reset`` says.
         group_size (int, optional): play the episodes in groups of ``group_size`` that
             start alike, for the group baselines of
             [`ReinforceLoss`][rl_pg.ReinforceLoss] (``baseline="leave_one_out"``,
@@ -531,11 +532,6 @@ class EpisodeCollector:
                 f"collector's reset(seed=...): it needs a collector that steps its "
                 f"environments in this process (TorchRL's Collector, rl_pg's "
                 f"SegmentCollector), got {type(self.collector).__name__}."
-            )
-        if not self.reset_each_batch:
-            raise ValueError(
-                "group_size resets the environments with the groups' seeds before every "
-                "batch: reset=False cannot hold with it."
             )
         n = env.batch_size.numel()
         if n != self.episodes or n % self._group_width:

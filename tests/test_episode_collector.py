@@ -183,8 +183,6 @@ def test_the_groups_seeds_are_reproducible():
         (6, {"episodes": 6, "group_size": 3, "greedy": True}, ValueError,
          "plus its greedy one"),
         (6, {"episodes": 6, "greedy": True}, ValueError, "set group_size"),
-        (6, {"episodes": 6, "group_size": 2, "reset": False}, ValueError,
-         "reset=False cannot hold"),
         (6, {"episodes": 6, "group_size": 0}, ValueError, "group_size must be an integer"),
     ],
 )  # fmt: skip

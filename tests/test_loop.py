@@ -289,6 +289,50 @@ class TestTrain:
             torch.testing.assert_close(weights["gae1"][key], weights["rtg"][key])
         assert any(not torch.allclose(weights["gae05"][k], weights["rtg"][k]) for k in actor)
 
+    def test_natural_steps_move_the_policy_by_max_kl(self, tmp_path):
+        summary = _train(
+            _cfg(
+                tmp_path,
+                optimizer="natural",
+                max_kl=0.005,
+                total_updates=5,
+                baseline="running_mean",
+            )
+        )
+        assert summary["updates"] == 5
+        kl, fraction = (
+            _logged(tmp_path / "run", "train/kl"),
+            _logged(tmp_path / "run", "train/step_fraction"),
+        )
+        assert len(kl) == 5 and all(0 <= k <= 1.5 * 0.005 for k in kl)
+        assert all(f > 0 for f in fraction[:1])  # the first step at least is taken
+        # The critic takes its own (Adam) steps: it was fitted to some returns.
+        assert len(_logged(tmp_path / "run", "loss/value")) == 5
+
+    def test_the_controllers_move_the_rate_and_the_entropy_coefficient(self, tmp_path):
+        _train(_cfg(tmp_path, lr_control="kl", target_kl=1e-6, entropy_coeff=0.05,
+                    entropy_target=2.0, total_updates=4))  # fmt: skip
+        lr = _logged(tmp_path / "run", "train/lr")
+        assert lr[0] == 0.02 and lr[-1] < lr[0]  # every update moved far more than 1e-6
+        assert len(_logged(tmp_path / "run", "train/kl")) == 4
+        coeff = _logged(tmp_path / "run", "train/entropy_coeff")
+        assert coeff[0] == 0.05 and coeff[-1] > coeff[0]  # entropy below 2 nats: up
+
+    def test_group_baselines_train_on_groups_and_count_their_greedy_episodes(self, tmp_path):
+        seen = []
+
+        class Groups(Callback):
+            def on_batch(self, run, batch):
+                seen.append((batch["group"].unique().numel(), int(batch["greedy"].sum()),
+                             int(batch["next", "done"].sum())))  # fmt: skip
+
+        summary = _train(
+            _cfg(tmp_path, baseline="greedy", group_size=3, total_updates=3), callbacks=[Groups()]
+        )
+        assert [(groups, episodes) for groups, _, episodes in seen] == [(2, 8)] * 3
+        assert all(steps > 0 for _, steps, _ in seen)  # the greedy episodes' steps
+        assert summary["frames"] >= sum(steps for _, steps, _ in seen)
+
     def test_adam_beta1_sets_the_average_of_the_gradients(self, tmp_path):
         # Adam's first step is the sign of the gradient whatever beta1 (bias correction);
         # from the second on, beta1 weighs the earlier gradients: the runs part there.
@@ -551,6 +595,13 @@ class TestTrain:
             {"value_norm": "popart"},
             {"policy_ema": 0.9},
             {"confirm_episodes": 3, "eval_interval": 100},
+            {
+                "baseline": "leave_one_out",
+                "optimizer": "natural",
+                "entropy_coeff": 0.05,
+                "entropy_target": 0.8,
+            },
+            {"baseline": "greedy", "group_size": 3, "group_scale": True, "lr_control": "kl"},
         ],
         ids=[
             "constant",
@@ -562,6 +613,8 @@ class TestTrain:
             "popart",
             "policy_ema",
             "confirm",
+            "groups_natural_entropy_target",
+            "greedy_groups_kl_lr",
         ],
     )
     def test_resume_continues_exactly(self, tmp_path, schedule):
@@ -801,11 +854,29 @@ class TestTrain:
                 {"entropy_schedule": "linear", "entropy_schedule_start": 1.0},
                 "entropy_schedule_start .* must be",
             ),
+            ({"baseline": "leave_one_out", "batch_mode": "segments"},
+             "--baseline leave_one_out plays episodes in groups .* --batch-mode episodes"),
+            ({"baseline": "group_mean", "workers": 2}, "with one local collector"),
+            ({"baseline": "greedy", "group_size": 4}, "groups of 5 episodes .* multiple of 5"),
+            ({"baseline": "leave_one_out", "group_size": 1}, r"group_size \(--group-size\)"),
+            ({"group_scale": True}, "--group-scale divides group advantages"),
+            ({"lr_control": "kl", "optimizer": "natural"}, "--lr-control kl sets the learning"),
+            ({"lr_control": "kl", "lr_schedule": "linear"}, "use one"),
+            ({"entropy_target": 0.5}, "--entropy-target 0.5 learns the entropy coefficient"),
+            ({"max_kl": 0.0}, r"max_kl \(--max-kl\) must be a finite number > 0"),
         ],
-    )
+    )  # fmt: skip
     def test_bad_configuration(self, tmp_path, override, message):
         with pytest.raises(ValueError, match=message):
             _cfg(tmp_path, **override)
+
+    def test_a_recipe_with_more_environments_than_episodes_refuses_groups(self, tmp_path):
+        @dataclass
+        class Config(TrainConfig):
+            num_envs: int = 16
+
+        with pytest.raises(ValueError, match="set --num-envs to --episodes-per-batch"):
+            Config(baseline="leave_one_out", episodes_per_batch=8)
 
     def test_a_config_changed_after_it_was_made_is_checked_again(self, tmp_path):
         cfg = _cfg(tmp_path)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from tensordict import TensorDictBase
 
 from rl_pg._checks import check_int, check_real
+from rl_pg.controllers import EntropyTarget, KLStepSize
 from rl_pg.gradient_statistics import GradientStatistics
 from rl_pg.training.optimisation import scale_rewards
 
@@ -27,8 +28,10 @@ if TYPE_CHECKING:
 __all__ = [
     "Callback",
     "Callbacks",
+    "EntropyByTarget",
     "GradientNoise",
     "KeepCheckpoints",
+    "LearningRateByKL",
     "StopWhenSolved",
 ]
 
@@ -281,6 +284,74 @@ class KeepCheckpoints(Callback):
     def on_checkpoint(self, run: Run) -> None:
         if self.checkpoint_due(run):
             run.save(to="kept")
+
+
+class LearningRateByKL(Callback):
+    """Sets the learning rate from the KL divergence each update causes
+    (``--lr-control kl``; [`KLStepSize`][rl_pg.controllers.KLStepSize]): the policy
+    before the update is kept at ``on_batch``, the KL divergence measured at
+    ``on_update`` and logged as ``train/kl``. The rate lives in the optimiser, whose
+    state every checkpoint holds.
+
+    Args:
+        target_kl (float): the KL divergence per update aimed at.
+    """
+
+    def __init__(self, target_kl: float) -> None:
+        self.target_kl = check_real("target_kl", target_kl, low=0, low_open=True)
+        self._step_size: KLStepSize | None = None
+
+    def on_start(self, run: Run) -> None:
+        self._step_size = KLStepSize(
+            run.optimizer, run.loss.actor_network, target_kl=self.target_kl,
+            action_key=run.loss.tensor_keys.action,
+        )  # fmt: skip
+
+    def on_batch(self, run: Run, batch: TensorDictBase) -> None:
+        self._step_size.before(batch)
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        measured = self._step_size.after(batch)
+        if run.logs_update():
+            run.log("train/kl", measured["kl"])
+
+
+class EntropyByTarget(Callback):
+    """Learns the entropy coefficient that holds the policy's entropy at ``target``
+    (``--entropy-target``; [`EntropyTarget`][rl_pg.controllers.EntropyTarget]), from
+    each update's ``train/entropy``; its state is in every checkpoint.
+
+    Args:
+        target (float): the entropy to hold, in nats.
+        lr (float): the step of the coefficient's logarithm per nat of difference.
+    """
+
+    def __init__(self, target: float, lr: float) -> None:
+        self.target, self.lr = (
+            check_real("target", target),
+            check_real("lr", lr, low=0, low_open=True),
+        )
+        self._controller: EntropyTarget | None = None
+        self._restored: dict[str, Any] | None = None
+
+    def on_start(self, run: Run) -> None:
+        self._controller = EntropyTarget(run.loss, target=self.target, lr=self.lr)
+        if self._restored is not None:
+            self._controller.load_state_dict(self._restored)
+
+    def on_update(self, run: Run, batch: TensorDictBase, metrics: dict[str, float]) -> None:
+        entropy = metrics.get("train/entropy")
+        if entropy is not None:
+            self._controller.update(entropy)
+
+    def state_dict(self) -> dict[str, Any]:
+        return self._controller.state_dict() if self._controller is not None else {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state:
+            self._restored = state
+            if self._controller is not None:
+                self._controller.load_state_dict(state)
 
 
 class StopWhenSolved(Callback):

@@ -34,6 +34,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._process import FrozenInWorkers
 from rl_pg.collectors import DoubleBufferedCollector, EpisodeCollector, SegmentCollector
+from rl_pg.groups import GROUP_BASELINES, GreedyInGroups
 from rl_pg.lean import lean_policy
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
@@ -99,6 +100,11 @@ class Collection:
             actor = lean_policy(actor)
             if resumed and resumed["actions"]:  # only a resumed run replays: no cost otherwise
                 actor = _ReplayingPolicy(actor, self._action_key)
+            greedy = cfg.baseline == "greedy"
+            if greedy:  # the last environment of each group plays the greedy episode
+                actor = GreedyInGroups(
+                    actor, group_size=cfg.group_size, action_key=self._action_key
+                )
             if cfg.overlap:
                 self.collector = _overlapped(env, actor, kwargs["frames_per_batch"], device)
             else:
@@ -107,8 +113,13 @@ class Collection:
                     env, actor, kwargs["frames_per_batch"], device=device
                 )
                 if cfg.batch_mode == "episodes":  # restarted after every update
+                    grouped = cfg.baseline in GROUP_BASELINES
                     self.collector = EpisodeCollector(
-                        self.collector, cfg.episodes_per_batch, reset=False
+                        self.collector,
+                        cfg.episodes_per_batch,
+                        reset=False,
+                        group_size=cfg.group_size if grouped else None,
+                        greedy=greedy,
                     )
             self._batches = self._record(iter(self.collector))
             self._restart(resumed["restarted_at"] if resumed else updates)

@@ -72,15 +72,16 @@ class TrainConfig:
         )),
         "returns": ("What weights log pi: the return, its discount, the baseline.", (
             "returns", "gae_lambda", "gamma", "reward_scale", "baseline", "baseline_rate",
-            "normalize_advantage",
+            "group_size", "group_scale", "normalize_advantage",
         )),
         "loss": ("The entropy bonus and the critic's part of the loss.", (
             "entropy_coeff", "entropy_schedule", "entropy_coeff_end",
-            "entropy_schedule_start", "critic_coeff", "value_norm", "critic_steps",
+            "entropy_schedule_start", "entropy_target", "entropy_target_lr", "critic_coeff",
+            "value_norm", "critic_steps",
         )),
         "optimiser": ("The optimiser and its step size.", (
-            "optimizer", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
-            "weight_decay", "max_grad_norm", "clip_scope",
+            "optimizer", "max_kl", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
+            "lr_control", "target_kl", "weight_decay", "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
             "eval_interval", "eval_episodes", "eval_greedy", "policy_ema", "confirm_episodes",
@@ -159,10 +160,23 @@ class TrainConfig:
     returns run into the hundreds. Unless normalize_advantage is set, the policy term
     shrinks with it too: multiply entropy_coeff by the same factor to keep the bonus's
     weight."""
-    baseline: Literal["none", "batch_mean", "running_mean", "ema", "critic"] = "critic"
-    """What is subtracted from the return."""
+    baseline: Literal[
+        "none", "batch_mean", "running_mean", "ema", "critic", "leave_one_out", "group_mean",
+        "greedy",
+    ] = "critic"  # fmt: skip
+    """What is subtracted from the return. The group baselines ('leave_one_out',
+    'group_mean', 'greedy') compare each episode with the others of its group,
+    group_size episodes started from one seed ('greedy': one more, played greedily);
+    whole-episode batches of one episode per environment."""
     baseline_rate: Annotated[float, Range(0, 1, low_open=True)] = 0.01
     """Rate of the 'ema' baseline."""
+    group_size: Annotated[int, Range(low=2)] = 4
+    """Sampled episodes per group (the group baselines). The environments
+    (episodes_per_batch of them, one episode each) form groups of group_size, plus one
+    for the greedy episode with baseline 'greedy'."""
+    group_scale: bool = False
+    """Divide each group advantage by its group's standard deviation (GRPO's
+    normalisation; biased: see the theory page)."""
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
     entropy_schedule: Literal["constant", "linear"] = "constant"
@@ -179,6 +193,13 @@ class TrainConfig:
     entropy_coeff_end (0: it moves from frame 0). With lr_schedule 'linear' the learning
     rate has decayed by then, so a late schedule moves the policy less than the same
     change early would."""
+    entropy_target: float | None = None
+    """Entropy (nats) the policy is held at by a learned entropy coefficient (None: the
+    coefficient is entropy_coeff, or its schedule). The coefficient starts at
+    entropy_coeff (> 0) and follows each update's entropy
+    (rl_pg.controllers.EntropyTarget)."""
+    entropy_target_lr: Positive = 0.05
+    """Step of the learned entropy coefficient's logarithm per nat of difference."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
@@ -193,8 +214,12 @@ class TrainConfig:
     "vanilla" policy gradient fits its value function (needs baseline='critic')."""
     normalize_advantage: bool = False
     """Standardise the policy weights over each batch."""
-    optimizer: Literal["adam", "sgd"] = "adam"
-    """Optimiser of actor and critic."""
+    optimizer: Literal["adam", "sgd", "natural"] = "adam"
+    """Optimiser of actor and critic. 'natural': the policy takes natural-gradient steps
+    of KL max_kl (rl_pg.natural_gradient.NaturalGradient) and the critic Adam steps at
+    lr."""
+    max_kl: Positive = 0.01
+    """KL divergence of each natural-gradient step (optimizer 'natural')."""
     adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
     """Adam's first-moment decay. Each step follows an average of about 1 / (1 -
     adam_beta1) batches' gradients. Where one batch's gradient is mostly noise (gradient
@@ -212,6 +237,12 @@ class TrainConfig:
     total_frames the 'linear' rate holds at lr, then decays to 0 at total_frames (0: it
     decays from frame 0). A late decay keeps the constant rate's progress and then takes
     the noise of the last updates out of the weights that are deployed."""
+    lr_control: Literal["none", "kl"] = "none"
+    """'kl': the learning rate follows the KL divergence each update causes, divided by
+    1.5 above twice target_kl and multiplied by 1.5 below half of it
+    (rl_pg.controllers.KLStepSize), starting from lr."""
+    target_kl: Positive = 0.01
+    """KL divergence per update that lr_control 'kl' aims at."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -411,12 +442,13 @@ class TrainConfig:
                 "entropy schedule starts moving: add --entropy-schedule linear, or pass "
                 "--entropy-schedule-start 0."
             )
-        if self.adam_beta1 != 0.9 and self.optimizer != "adam":
+        if self.adam_beta1 != 0.9 and self.optimizer == "sgd":
             raise ValueError(
                 f"--adam-beta1 {self.adam_beta1} sets Adam's gradient average, but "
                 f"--optimizer is {self.optimizer!r}: use --optimizer adam, or leave "
                 "--adam-beta1 at 0.9."
             )
+        self._validate_new_steps()
         if self.lr_schedule_start != 0 and self.lr_schedule != "linear":
             raise ValueError(
                 f"--lr-schedule-start {self.lr_schedule_start} is where the linear learning "
@@ -427,6 +459,56 @@ class TrainConfig:
             raise ValueError(
                 "The Ray collector yields fixed-length batches: use --batch-mode segments with "
                 "--ray (whole-episode batches need the local or multi-process collectors)."
+            )
+
+    def _validate_new_steps(self) -> None:
+        """The group baselines, the natural step and the controllers."""
+        from rl_pg.groups import GROUP_BASELINES
+
+        grouped = self.baseline in GROUP_BASELINES
+        if grouped and (self.batch_mode != "episodes" or self.workers > 1 or self.ray):
+            raise ValueError(
+                f"--baseline {self.baseline} plays episodes in groups from one seed: use "
+                f"--batch-mode episodes with one local collector (got --batch-mode "
+                f"{self.batch_mode}, --workers {self.workers}{', --ray' if self.ray else ''})."
+            )
+        width = self.group_size + (self.baseline == "greedy")
+        if grouped and self.episodes_per_batch % width:
+            raise ValueError(
+                f"--baseline {self.baseline} plays groups of {width} episodes (--group-size "
+                f"{self.group_size}{' and the greedy one' if width > self.group_size else ''}): "
+                f"set --episodes-per-batch to a multiple of {width} (got "
+                f"{self.episodes_per_batch})."
+            )
+        num_envs = getattr(self, "num_envs", None)
+        if grouped and num_envs is not None and num_envs != self.episodes_per_batch:
+            raise ValueError(
+                f"--baseline {self.baseline} plays one episode per environment and batch: "
+                f"set --num-envs to --episodes-per-batch (got {num_envs} and "
+                f"{self.episodes_per_batch})."
+            )
+        if self.group_scale and not grouped:
+            raise ValueError(
+                f"--group-scale divides group advantages by their group's standard "
+                f"deviation, but --baseline is {self.baseline!r}: pick leave_one_out, "
+                f"group_mean or greedy, or use --normalize-advantage."
+            )
+        if self.lr_control == "kl" and (
+            self.optimizer == "natural" or self.lr_schedule != "constant"
+        ):
+            raise ValueError(
+                f"--lr-control kl sets the learning rate from each update's KL divergence, "
+                f"which --optimizer natural (its step is set by --max-kl) and --lr-schedule "
+                f"linear also set: use one (got --optimizer {self.optimizer}, --lr-schedule "
+                f"{self.lr_schedule})."
+            )
+        if self.entropy_target is not None and (
+            self.entropy_coeff <= 0 or self.entropy_schedule != "constant"
+        ):
+            raise ValueError(
+                f"--entropy-target {self.entropy_target} learns the entropy coefficient from "
+                f"--entropy-coeff (its start, > 0) without a schedule: set a positive "
+                f"--entropy-coeff and leave --entropy-schedule constant."
             )
 
 

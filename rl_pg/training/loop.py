@@ -37,8 +37,10 @@ from rl_pg.evaluation import EvaluationEnv
 from rl_pg.training.callbacks import (
     Callback,
     Callbacks,
+    EntropyByTarget,
     GradientNoise,
     KeepCheckpoints,
+    LearningRateByKL,
     StopWhenSolved,
 )
 from rl_pg.training.checkpoints import RunState, callback_states, restore, restore_rng
@@ -284,7 +286,9 @@ class Run:
             lr=learning_rate(cfg, state.frames),
             entropy_coeff=entropy_coeff(cfg, state.frames),
         )
-        self.episode_returns.add(batch)
+        # The training return is the policy's: a group's greedy episode is not one.
+        greedy = batch.get("greedy", None)
+        self.episode_returns.add(batch if greedy is None else batch[~greedy.squeeze(-1)])
         state.updates += 1
         self.spent = self.collection.frames_spent(batch)
         state.frames += self.spent
@@ -365,7 +369,7 @@ class Run:
 def from_config(cfg: TrainConfig) -> list[Callback]:
     """The callbacks the config's optional behaviours ask for (``policy_ema``,
     ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
-    ``grad_stats``)."""
+    ``grad_stats``, ``lr_control``, ``entropy_target``)."""
     callbacks: list[Callback] = []
     if cfg.policy_ema > 0:
         callbacks.append(PolicyAverage(cfg.policy_ema))
@@ -377,6 +381,10 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
         callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:
         callbacks.append(GradientNoise(cfg.grad_stats))
+    if cfg.lr_control == "kl":
+        callbacks.append(LearningRateByKL(cfg.target_kl))
+    if cfg.entropy_target is not None:
+        callbacks.append(EntropyByTarget(cfg.entropy_target, cfg.entropy_target_lr))
     return callbacks
 
 

@@ -9,11 +9,13 @@ from torchrl.envs import EnvBase
 from torchrl.modules import IndependentNormal
 
 from rl_pg.loss import ReinforceLoss
+from rl_pg.natural_gradient import NaturalGradient
 from rl_pg.normalization import popart_output, update_running_norms
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.metrics import EpisodeReturns
 
 __all__ = [
+    "NaturalOptimiser",
     "TrainingDiverged",
     "entropy_coeff",
     "learning_rate",
@@ -50,6 +52,7 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
         entropy_coeff=cfg.entropy_coeff or None,
         critic_coeff=cfg.critic_coeff,
         normalize_advantage=cfg.normalize_advantage,
+        group_scale=cfg.group_scale,
         value_norm=value_norm,
         loss_critic_type="l2",
         # The collector runs the actor itself: keep one set of parameters.
@@ -77,7 +80,51 @@ def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
     EpisodeReturns.warm_up()
 
 
-def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimizer:
+class NaturalOptimiser:
+    """The run's optimiser with ``optimizer='natural'``: natural-gradient steps of KL
+    ``max_kl`` for the policy ([`NaturalGradient`][rl_pg.natural_gradient.NaturalGradient])
+    and Adam for the critic (if any), at the run's learning rate.
+
+    ``param_groups``, ``state_dict`` and ``load_state_dict`` are the critic's Adam's
+    (the natural step keeps no state between updates)."""
+
+    def __init__(self, cfg: TrainConfig, loss: ReinforceLoss) -> None:
+        self.natural = NaturalGradient(loss, max_kl=cfg.max_kl)
+        self.critic = None
+        if loss.has_critic:
+            params = [p for p in loss.critic_network.parameters() if p.requires_grad]
+            fused = {"fused": True} if _fused_kernels(params) else {}
+            self.critic = torch.optim.Adam(
+                params, lr=cfg.lr, betas=(cfg.adam_beta1, 0.999),
+                weight_decay=cfg.weight_decay, **fused,
+            )  # fmt: skip
+
+    @property
+    def param_groups(self) -> list[dict]:
+        return self.critic.param_groups if self.critic is not None else []
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        if self.critic is not None:
+            self.critic.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        """The critic's step (the policy's is taken by ``natural.step``)."""
+        if self.critic is not None:
+            self.critic.step()
+
+    def state_dict(self) -> dict:
+        return {"critic": self.critic.state_dict() if self.critic is not None else None}
+
+    def load_state_dict(self, state: dict) -> None:
+        if self.critic is not None:
+            self.critic.load_state_dict(state["critic"])
+
+
+def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss):
+    """The run's optimiser: Adam or SGD on both networks, or a
+    [`NaturalOptimiser`][rl_pg.training.optimisation.NaturalOptimiser]."""
+    if cfg.optimizer == "natural":
+        return NaturalOptimiser(cfg, loss)
     params = [p for p in loss.parameters() if p.requires_grad]
     fused = {"fused": True} if _fused_kernels(params) else {}
     if cfg.optimizer == "sgd":
@@ -91,16 +138,22 @@ def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss) -> torch.optim.Optimiz
     )
 
 
-def learning_rate(cfg: TrainConfig, frames: int) -> float:
-    """The learning rate of the update that follows ``frames`` environment steps."""
+def learning_rate(cfg: TrainConfig, frames: int) -> float | None:
+    """The learning rate of the update that follows ``frames`` environment steps (None
+    with ``lr_control='kl'``: the rate the controller set stays)."""
+    if cfg.lr_control == "kl":
+        return None
     return _scheduled(
         cfg.lr, cfg.lr_schedule, frames, cfg.total_frames, start=cfg.lr_schedule_start
     )
 
 
-def entropy_coeff(cfg: TrainConfig, frames: int) -> float:
+def entropy_coeff(cfg: TrainConfig, frames: int) -> float | None:
     """The entropy bonus of the update that follows ``frames`` environment steps
-    (negative: a penalty, past the zero of a schedule to ``entropy_coeff_end < 0``)."""
+    (negative: a penalty, past the zero of a schedule to ``entropy_coeff_end < 0``;
+    None with ``entropy_target``: the learned coefficient stays)."""
+    if cfg.entropy_target is not None:
+        return None
     return _scheduled(
         cfg.entropy_coeff,
         cfg.entropy_schedule,
@@ -138,10 +191,11 @@ def update(
     optimizer,
     batch: TensorDictBase,
     *,
-    lr: float,
+    lr: float | None,
     entropy_coeff: float | None = None,
 ) -> dict:
-    """One step of the optimiser on ``batch`` at learning rate ``lr``.
+    """One step of the optimiser on ``batch`` at learning rate ``lr`` (None: the rate
+    the optimiser holds).
 
     ``entropy_coeff`` replaces the loss's entropy bonus from this update on (None keeps
     it); it takes effect only where the loss has one (``cfg.entropy_coeff > 0``).
@@ -150,6 +204,8 @@ def update(
         loss.entropy_coeff = entropy_coeff
     if cfg.reward_scale != 1.0:
         batch = scale_rewards(batch, cfg.reward_scale, loss.tensor_keys.reward)
+    if isinstance(optimizer, NaturalOptimiser):
+        return _natural_update(cfg, loss, optimizer, batch, lr)
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
     if not torch.isfinite(total):
@@ -172,14 +228,29 @@ def update(
             f"The gradient norm became {grad_norm.item()}; training stopped and the last "
             f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
         )
-    for group in optimizer.param_groups:
-        group["lr"] = lr
+    _set_lr(optimizer, lr)
     optimizer.step()
     metrics = {
         f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
     }
+    metrics["train/grad_norm"] = grad_norm.item()
+    return _after_step(cfg, loss, optimizer, batch, losses, metrics, max_norm)
+
+
+def _set_lr(optimizer, lr: float | None) -> None:
+    if lr is not None:
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+
+
+def _after_step(cfg, loss, optimizer, batch, losses, metrics: dict, max_norm: float) -> dict:
+    """What follows either optimiser's step: the critic's further steps, the running
+    norms, the diagnostics."""
     if cfg.critic_steps > 1:
-        metrics["loss/value_fitted"] = _fit_critic(loss, optimizer, batch, cfg, max_norm)
+        critic_optimizer = (
+            optimizer.critic if isinstance(optimizer, NaturalOptimiser) else optimizer
+        )
+        metrics["loss/value_fitted"] = _fit_critic(loss, critic_optimizer, batch, cfg, max_norm)
     # Observation statistics move after the step: the batch was collected, and its
     # loss computed, with the ones before it.
     update_running_norms(loss, batch)
@@ -190,11 +261,47 @@ def update(
     beyond = means_beyond_bounds(loss.actor_network, batch)
     if beyond is not None:
         metrics["train/mean_beyond_bounds"] = beyond
-    metrics["train/grad_norm"] = grad_norm.item()
-    metrics["train/lr"] = lr
+    if optimizer.param_groups:
+        metrics["train/lr"] = optimizer.param_groups[0]["lr"]
     if loss.entropy_coeff is not None:
         metrics["train/entropy_coeff"] = loss.entropy_coeff
     return metrics
+
+
+def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch, lr) -> dict:
+    """The policy's natural-gradient step, then the critic's Adam step on the value
+    targets the step wrote into the batch."""
+    out = optimizer.natural.step(batch)
+    policy = out["loss_actor"] + out.get("loss_entropy", 0.0)
+    if not torch.isfinite(policy):
+        raise TrainingDiverged(
+            f"The policy loss became {policy.item()} ({_describe(out)}); training stopped "
+            f"and the last good checkpoint was kept. Lower --max-kl."
+        )
+    metrics = {
+        f"loss/{key[5:]}": value.item() for key, value in out.items() if key.startswith("loss_")
+    }
+    for key in ("kl", "step_fraction", "improvement"):
+        metrics[f"train/{key}"] = out[key].item()
+    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
+    if optimizer.critic is not None:
+        value_loss = loss.value_loss(batch)
+        if not torch.isfinite(value_loss):
+            raise TrainingDiverged(
+                f"The critic's loss became {value_loss.item()}; training stopped and the last "
+                f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
+            )
+        optimizer.zero_grad(set_to_none=True)
+        value_loss.backward()
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        grad_norm = nn.utils.clip_grad_norm_(
+            params, max_norm, foreach=_fused_kernels(params) or None
+        )
+        _set_lr(optimizer, lr)
+        optimizer.step()
+        metrics["loss/value"] = value_loss.item()
+        metrics["train/grad_norm"] = grad_norm.item()
+    return _after_step(cfg, loss, optimizer, batch, out, metrics, max_norm)
 
 
 def means_beyond_bounds(actor, batch: TensorDictBase) -> float | None:
