@@ -418,23 +418,7 @@ class TestGridworldGroupGradient:
             for value_type in ROWS
         }  # fmt: skip
         # The theory page's table is this file, written here when asked.
-        if os.environ.get("RL_PG_UPDATE_RESULTS"):
-            stored = {
-                "command": f"RL_PG_UPDATE_RESULTS=1 pytest {GROUP_VARIANCE_COMMAND}",
-                "estimates": GRID_ESTIMATES,
-                "episodes_per_estimate": GRID_EPISODES,
-                "group_size": GROUP,
-                "total_variance": measured,
-            }
-            GROUP_VARIANCE_FILE.write_text(json.dumps(stored, indent=1, ensure_ascii=False) + "\n")
-        stored = json.loads(GROUP_VARIANCE_FILE.read_text())
-        assert (stored["estimates"], stored["group_size"]) == (GRID_ESTIMATES, GROUP)
-        assert stored["total_variance"].keys() == measured.keys()
-        for row, columns in measured.items():
-            assert stored["total_variance"][row] == pytest.approx(columns, rel=1e-3), (
-                f"{GROUP_VARIANCE_FILE} no longer holds what the estimates measure: "
-                f"RL_PG_UPDATE_RESULTS=1 pytest {GROUP_VARIANCE_COMMAND} writes it again."
-            )
+        _stored_variance(GROUP_VARIANCE_FILE, GROUP_VARIANCE_COMMAND, measured, group_size=GROUP)
         for value_type in ROWS:
             assert variance[value_type, "leave_one_out"] < variance[value_type, "none"]
 
@@ -470,6 +454,24 @@ def gridworld_estimates(gridworld):
     }
 
 
+def _stored_variance(path: Path, command: str, measured: dict, **settings) -> None:
+    """Checks that ``path`` holds the ``measured`` table of total variances (and the
+    estimates' settings); with RL_PG_UPDATE_RESULTS=1 writes it first."""
+    expected = {"estimates": GRID_ESTIMATES, "episodes_per_estimate": GRID_EPISODES, **settings}
+    if os.environ.get("RL_PG_UPDATE_RESULTS"):
+        stored = {"command": f"RL_PG_UPDATE_RESULTS=1 pytest {command}", **expected,
+                  "total_variance": measured}  # fmt: skip
+        path.write_text(json.dumps(stored, indent=1, ensure_ascii=False) + "\n")
+    stored = json.loads(path.read_text())
+    assert {key: stored[key] for key in expected} == expected
+    assert stored["total_variance"].keys() == measured.keys()
+    for row, columns in measured.items():
+        assert stored["total_variance"][row] == pytest.approx(columns, rel=1e-3), (
+            f"{path} no longer holds what the estimates measure: "
+            f"RL_PG_UPDATE_RESULTS=1 pytest {command} writes it again."
+        )
+
+
 class TestGridworldGradient:
     @pytest.mark.parametrize(("value_type", "baseline"), GRIDWORLD_VARIANTS)
     def test_unbiased(self, gridworld, gridworld_estimates, value_type, baseline):
@@ -503,23 +505,7 @@ class TestGridworldGradient:
                                for baseline in COLUMNS}
             for value_type in ROWS
         }  # fmt: skip
-        if os.environ.get("RL_PG_UPDATE_RESULTS"):
-            stored = {
-                "command": f"RL_PG_UPDATE_RESULTS=1 pytest {VARIANCE_COMMAND}",
-                "estimates": GRID_ESTIMATES,
-                "episodes_per_estimate": GRID_EPISODES,
-                "total_variance": measured,
-            }
-            VARIANCE_FILE.write_text(json.dumps(stored, indent=1, ensure_ascii=False) + "\n")
-        stored = json.loads(VARIANCE_FILE.read_text())
-        assert stored["estimates"] == GRID_ESTIMATES
-        assert stored["episodes_per_estimate"] == GRID_EPISODES
-        assert stored["total_variance"].keys() == measured.keys()
-        for row, columns in measured.items():
-            assert stored["total_variance"][row] == pytest.approx(columns, rel=1e-3), (
-                f"{VARIANCE_FILE} no longer holds what the estimates measure: "
-                f"RL_PG_UPDATE_RESULTS=1 pytest {VARIANCE_COMMAND} writes it again."
-            )
+        _stored_variance(VARIANCE_FILE, VARIANCE_COMMAND, measured)
         for baseline in ("none", "running_mean", "critic"):
             assert variance["RewardToGo", baseline] < variance["DiscountedReturn", baseline]
         for value_type in ("DiscountedReturn", "RewardToGo"):
@@ -858,7 +844,10 @@ class TestNaturalGradientDirection:
         actor = _tabular_actor(SIDE * SIDE, len(MOVES), logits)
         loss = _make_loss(actor, _tabular_critic(values), RewardToGo, "critic")
         loss.reduction = "mean"
-        batch = torch.cat([b.clone() for b in batches])  # 6 000 episodes
+        # 6 000 episodes, as sampled (other tests of the session write returns into them).
+        keys = ("observation", "action", ("next", "observation"), ("next", "reward"),
+                ("next", "done"))  # fmt: skip
+        batch = torch.cat([b.select(*keys).clone() for b in batches])
         update = NaturalGradient(loss, damping=1e-6, cg_iters=200)
         direction, gradient = update.direction(batch)
         assert _cosine(direction, natural) >= COS_MIN

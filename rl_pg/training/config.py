@@ -175,8 +175,8 @@ class TrainConfig:
     (episodes_per_batch of them, one episode each) form groups of group_size, plus one
     for the greedy episode with baseline 'greedy'."""
     group_scale: bool = False
-    """Divide each group advantage by its group's standard deviation (GRPO's
-    normalisation; biased: see the theory page)."""
+    """Divide group advantages by their group's standard deviation. GRPO's
+    normalisation; it biases the gradient (see the theory page)."""
     entropy_coeff: NonNegative = 0.0
     """Entropy bonus weight."""
     entropy_schedule: Literal["constant", "linear"] = "constant"
@@ -194,10 +194,10 @@ class TrainConfig:
     rate has decayed by then, so a late schedule moves the policy less than the same
     change early would."""
     entropy_target: float | None = None
-    """Entropy (nats) the policy is held at by a learned entropy coefficient (None: the
-    coefficient is entropy_coeff, or its schedule). The coefficient starts at
-    entropy_coeff (> 0) and follows each update's entropy
-    (rl_pg.controllers.EntropyTarget)."""
+    """Entropy (nats) to hold with a learned entropy coefficient (None: off). The
+    coefficient starts at entropy_coeff (> 0) and follows each update's entropy
+    (rl_pg.controllers.EntropyTarget); without it the coefficient is entropy_coeff, or
+    its schedule."""
     entropy_target_lr: Positive = 0.05
     """Step of the learned entropy coefficient's logarithm per nat of difference."""
     critic_coeff: NonNegative = 1.0
@@ -215,9 +215,9 @@ class TrainConfig:
     normalize_advantage: bool = False
     """Standardise the policy weights over each batch."""
     optimizer: Literal["adam", "sgd", "natural"] = "adam"
-    """Optimiser of actor and critic. 'natural': the policy takes natural-gradient steps
-    of KL max_kl (rl_pg.natural_gradient.NaturalGradient) and the critic Adam steps at
-    lr."""
+    """Optimiser of actor and critic. With 'natural' the policy takes natural-gradient
+    steps of KL max_kl (rl_pg.natural_gradient.NaturalGradient) and the critic Adam
+    steps at lr."""
     max_kl: Positive = 0.01
     """KL divergence of each natural-gradient step (optimizer 'natural')."""
     adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
@@ -238,9 +238,9 @@ class TrainConfig:
     decays from frame 0). A late decay keeps the constant rate's progress and then takes
     the noise of the last updates out of the weights that are deployed."""
     lr_control: Literal["none", "kl"] = "none"
-    """'kl': the learning rate follows the KL divergence each update causes, divided by
-    1.5 above twice target_kl and multiplied by 1.5 below half of it
-    (rl_pg.controllers.KLStepSize), starting from lr."""
+    """'kl': set the learning rate from each update's KL divergence. It starts at lr and
+    is divided by 1.5 after an update above twice target_kl, multiplied by 1.5 after one
+    below half of it (rl_pg.controllers.KLStepSize)."""
     target_kl: Positive = 0.01
     """KL divergence per update that lr_control 'kl' aims at."""
     weight_decay: NonNegative = 0.0

@@ -208,33 +208,40 @@ def update(
         return _natural_update(cfg, loss, optimizer, batch, lr)
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
-    if not torch.isfinite(total):
+    _check_finite(total, f"The loss became {total.item()} ({_describe(losses)})")
+    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
+    grad_norm = _step(cfg, loss, optimizer, total, lr, max_norm)
+    metrics = {
+        f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
+    }
+    metrics["train/grad_norm"] = grad_norm.item()
+    return _after_step(cfg, loss, optimizer, batch, losses, metrics, max_norm)
+
+
+def _check_finite(value: torch.Tensor, what: str) -> None:
+    if not torch.isfinite(value):
         raise TrainingDiverged(
-            f"The loss became {total.item()} ({_describe(losses)}); training stopped and "
-            f"the last good checkpoint was kept. Lower the learning rate or clip gradients."
+            f"{what}; training stopped and the last good checkpoint was kept. Lower the "
+            f"learning rate (--max-kl with --optimizer natural) or clip gradients."
         )
+
+
+def _step(cfg, loss, optimizer, total: torch.Tensor, lr, max_norm: float) -> torch.Tensor:
+    """Back-propagates ``total``, clips the gradient of the optimiser's parameters and
+    steps at ``lr``; returns the gradient norm before the clip."""
     optimizer.zero_grad(set_to_none=True)
     total.backward()
     params = [p for group in optimizer.param_groups for p in group["params"]]
-    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
     if cfg.clip_scope == "per_network":
         grad_norm = _clip_per_network(loss, params, max_norm)
     else:
         grad_norm = nn.utils.clip_grad_norm_(
             params, max_norm, foreach=_fused_kernels(params) or None
         )
-    if not torch.isfinite(grad_norm):
-        raise TrainingDiverged(
-            f"The gradient norm became {grad_norm.item()}; training stopped and the last "
-            f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
-        )
+    _check_finite(grad_norm, f"The gradient norm became {grad_norm.item()}")
     _set_lr(optimizer, lr)
     optimizer.step()
-    metrics = {
-        f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
-    }
-    metrics["train/grad_norm"] = grad_norm.item()
-    return _after_step(cfg, loss, optimizer, batch, losses, metrics, max_norm)
+    return grad_norm
 
 
 def _set_lr(optimizer, lr: float | None) -> None:
@@ -273,11 +280,7 @@ def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch
     targets the step wrote into the batch."""
     out = optimizer.natural.step(batch)
     policy = out["loss_actor"] + out.get("loss_entropy", 0.0)
-    if not torch.isfinite(policy):
-        raise TrainingDiverged(
-            f"The policy loss became {policy.item()} ({_describe(out)}); training stopped "
-            f"and the last good checkpoint was kept. Lower --max-kl."
-        )
+    _check_finite(policy, f"The policy loss became {policy.item()} ({_describe(out)})")
     metrics = {
         f"loss/{key[5:]}": value.item() for key, value in out.items() if key.startswith("loss_")
     }
@@ -286,19 +289,8 @@ def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch
     max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
     if optimizer.critic is not None:
         value_loss = loss.value_loss(batch)
-        if not torch.isfinite(value_loss):
-            raise TrainingDiverged(
-                f"The critic's loss became {value_loss.item()}; training stopped and the last "
-                f"good checkpoint was kept. Lower the learning rate or set max_grad_norm."
-            )
-        optimizer.zero_grad(set_to_none=True)
-        value_loss.backward()
-        params = [p for group in optimizer.param_groups for p in group["params"]]
-        grad_norm = nn.utils.clip_grad_norm_(
-            params, max_norm, foreach=_fused_kernels(params) or None
-        )
-        _set_lr(optimizer, lr)
-        optimizer.step()
+        _check_finite(value_loss, f"The critic's loss became {value_loss.item()}")
+        grad_norm = _step(cfg, loss, optimizer, value_loss, lr, max_norm)
         metrics["loss/value"] = value_loss.item()
         metrics["train/grad_norm"] = grad_norm.item()
     return _after_step(cfg, loss, optimizer, batch, out, metrics, max_norm)
