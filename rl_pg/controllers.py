@@ -159,30 +159,36 @@ class KLStepSize:
 
 
 class EntropyTarget:
-    """Holds the policy's entropy near a target with a learned entropy coefficient.
+    """Holds the policy's entropy at a target with a learned entropy coefficient.
 
-    The coefficient `β = exp(log β)` of the loss's entropy bonus follows the entropy
-    each update measures: `log β ← log β + lr · (H_target − H)`, a gradient step on
-    `log β · (H − H_target)` (the temperature of SAC, Haarnoja et al. 2018, here on
-    REINFORCE's bonus). Below the target the bonus grows, above it shrinks; where the
-    policy holds the target entropy, the coefficient stops moving. ``state_dict``
-    holds ``log β``, for checkpoints.
+    The coefficient `β` of the loss's entropy term follows the entropy each update
+    measures, `β ← max(β + lr · (H_target − H), min_coeff)`: the gradient step of a
+    Lagrange multiplier on the constraint `H = H_target` (SAC learns its temperature
+    the same way, Haarnoja et al. 2018, there in log space to keep it positive). Below
+    the target the bonus grows; above it the bonus shrinks, to 0 with the default
+    ``min_coeff`` (the target is then a floor: the policy's own learning lowers its
+    entropy) and, with a negative ``min_coeff``, on into a penalty that brings the
+    entropy down to the target. Where the policy holds the target, the coefficient
+    stops moving. ``state_dict`` holds `β`, for checkpoints.
 
     Args:
-        loss (ReinforceLoss): built with an ``entropy_coeff`` (the starting `β`, > 0):
+        loss (ReinforceLoss): built with an ``entropy_coeff`` (the starting `β`):
             ``update`` sets ``loss.entropy_coeff``.
 
     Keyword Args:
         target (float): the entropy to hold, in nats (for ``n`` actions at most
             ``log n``).
-        lr (float): the step on ``log β`` per nat of difference. Defaults to ``0.05``.
+        lr (float): the change of `β` per nat of difference, per update. Defaults to
+            ``0.001``.
+        min_coeff (float): the lowest `β`; negative lets it become a penalty.
+            Defaults to ``0.0``.
 
     Raises:
-        ValueError: a loss without an entropy bonus (or with ``entropy_coeff=0``), a
-            non-finite ``target``, or ``lr <= 0``.
+        ValueError: a loss without an entropy term (``entropy_coeff=None``), a
+            non-finite ``target`` or ``min_coeff``, or ``lr <= 0``.
 
     Examples:
-        >>> import math, torch
+        >>> import torch
         >>> from tensordict.nn import TensorDictModule
         >>> from torchrl.modules import ProbabilisticActor
         >>> from rl_pg import ReinforceLoss
@@ -192,31 +198,32 @@ class EntropyTarget:
         ...     in_keys=["logits"], distribution_class=torch.distributions.Categorical,
         ... )
         >>> loss = ReinforceLoss(actor, entropy_coeff=0.01)
-        >>> controller = EntropyTarget(loss, target=0.5, lr=0.1)
-        >>> round(controller.update(0.3), 5)  # below the target: the bonus grows
-        0.0102
-        >>> round(loss.entropy_coeff, 5)
-        0.0102
+        >>> controller = EntropyTarget(loss, target=0.5, lr=0.01, min_coeff=-0.05)
+        >>> round(controller.update(0.3), 6)  # below the target: the bonus grows
+        0.012
+        >>> round(controller.update(2.0), 6)  # far above: it turns into a penalty
+        -0.003
+        >>> round(loss.entropy_coeff, 6)
+        -0.003
     """
 
-    def __init__(self, loss: ReinforceLoss, *, target: float, lr: float = 0.05) -> None:
+    def __init__(
+        self, loss: ReinforceLoss, *, target: float, lr: float = 0.001, min_coeff: float = 0.0
+    ) -> None:
         if not isinstance(loss, ReinforceLoss):
             raise TypeError(f"loss must be an rl_pg.ReinforceLoss, got {type(loss).__name__}.")
-        if loss.entropy_coeff is None or loss.entropy_coeff <= 0:
+        if loss.entropy_coeff is None:
             raise ValueError(
-                f"EntropyTarget learns the loss's entropy coefficient, but the loss has "
-                f"entropy_coeff={loss.entropy_coeff!r}: build it with the starting "
-                f"coefficient, e.g. ReinforceLoss(actor, entropy_coeff=0.01)."
+                "EntropyTarget learns the loss's entropy coefficient, but the loss has "
+                "entropy_coeff=None (no entropy term): build it with the starting "
+                "coefficient, e.g. ReinforceLoss(actor, entropy_coeff=0.01)."
             )
         self.loss = loss
         self.target = check_real("target", target)
         self.lr = check_real("lr", lr, low=0, low_open=True)
-        self.log_coeff = math.log(loss.entropy_coeff)
-
-    @property
-    def coeff(self) -> float:
-        """The entropy coefficient `β`."""
-        return math.exp(self.log_coeff)
+        self.min_coeff = check_real("min_coeff", min_coeff)
+        self.coeff = max(float(loss.entropy_coeff), self.min_coeff)
+        loss.entropy_coeff = self.coeff
 
     def update(self, entropy: float | torch.Tensor) -> float:
         """Takes the entropy the last batch measured (the loss's ``"entropy"`` output)
@@ -224,16 +231,15 @@ class EntropyTarget:
         entropy = float(entropy)
         if not math.isfinite(entropy):
             raise ValueError(f"EntropyTarget.update needs a finite entropy, got {entropy}.")
-        self.log_coeff += self.lr * (self.target - entropy)
+        self.coeff = max(self.coeff + self.lr * (self.target - entropy), self.min_coeff)
         self.loss.entropy_coeff = self.coeff
         return self.coeff
 
     def state_dict(self) -> dict[str, float]:
-        """``{"log_coeff": log β}``."""
-        return {"log_coeff": self.log_coeff}
+        """``{"coeff": β}``."""
+        return {"coeff": self.coeff}
 
     def load_state_dict(self, state_dict: dict[str, float]) -> None:
-        """Restores ``log β`` and sets the loss's coefficient from it."""
-        log_coeff = check_real("state_dict['log_coeff']", state_dict["log_coeff"])
-        self.log_coeff = float(log_coeff)
+        """Restores `β` and sets the loss's coefficient to it."""
+        self.coeff = float(check_real("state_dict['coeff']", state_dict["coeff"]))
         self.loss.entropy_coeff = self.coeff

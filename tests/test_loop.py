@@ -863,6 +863,7 @@ class TestTrain:
             ({"lr_control": "kl", "optimizer": "natural"}, "--lr-control kl sets the learning"),
             ({"lr_control": "kl", "lr_schedule": "linear"}, "use one"),
             ({"entropy_target": 0.5}, "--entropy-target 0.5 learns the entropy coefficient"),
+            ({"entropy_coeff_min": -0.1}, "--entropy-coeff-min -0.1 bounds the learned"),
             ({"max_kl": 0.0}, r"max_kl \(--max-kl\) must be a finite number > 0"),
         ],
     )  # fmt: skip

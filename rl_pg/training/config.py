@@ -76,7 +76,8 @@ class TrainConfig:
         )),
         "loss": ("The entropy bonus and the critic's part of the loss.", (
             "entropy_coeff", "entropy_schedule", "entropy_coeff_end",
-            "entropy_schedule_start", "entropy_target", "entropy_target_lr", "critic_coeff",
+            "entropy_schedule_start", "entropy_target", "entropy_target_lr", "entropy_coeff_min",
+            "critic_coeff",
             "value_norm", "critic_steps",
         )),
         "optimiser": ("The optimiser and its step size.", (
@@ -196,10 +197,14 @@ class TrainConfig:
     entropy_target: float | None = None
     """Entropy (nats) to hold with a learned entropy coefficient (None: off). The
     coefficient starts at entropy_coeff (> 0) and follows each update's entropy
-    (rl_pg.controllers.EntropyTarget); without it the coefficient is entropy_coeff, or
-    its schedule."""
-    entropy_target_lr: Positive = 0.05
-    """Step of the learned entropy coefficient's logarithm per nat of difference."""
+    (rl_pg.controllers.EntropyTarget), down to entropy_coeff_min; without it the
+    coefficient is entropy_coeff, or its schedule."""
+    entropy_target_lr: Positive = 0.001
+    """Step of the learned entropy coefficient. Per update and per nat between the
+    measured entropy and entropy_target."""
+    entropy_coeff_min: float = 0.0
+    """Lowest learned entropy coefficient (entropy_target). Below 0 the coefficient may
+    turn into a penalty, which holds the entropy down to the target as well as up."""
     critic_coeff: NonNegative = 1.0
     """Value-loss weight."""
     value_norm: Literal["none", "popart"] = "none"
@@ -501,6 +506,11 @@ class TrainConfig:
                 f"which --optimizer natural (its step is set by --max-kl) and --lr-schedule "
                 f"linear also set: use one (got --optimizer {self.optimizer}, --lr-schedule "
                 f"{self.lr_schedule})."
+            )
+        if self.entropy_coeff_min != 0 and self.entropy_target is None:
+            raise ValueError(
+                f"--entropy-coeff-min {self.entropy_coeff_min} bounds the learned entropy "
+                f"coefficient: add --entropy-target, or leave --entropy-coeff-min at 0."
             )
         if self.entropy_target is not None and (
             self.entropy_coeff <= 0 or self.entropy_schedule != "constant"
