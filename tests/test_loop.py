@@ -317,6 +317,11 @@ class TestTrain:
         assert len(_logged(tmp_path / "run", "train/kl")) == 4
         coeff = _logged(tmp_path / "run", "train/entropy_coeff")
         assert coeff[0] == 0.05 and coeff[-1] > coeff[0]  # entropy below 2 nats: up
+        # Far above a target of 0 nats, with a negative floor: a penalty, held there.
+        held = tmp_path / "held"
+        _train(_cfg(tmp_path, run_dir=held, entropy_coeff=0.01, entropy_target=0.0,
+                    entropy_target_lr=0.1, entropy_coeff_min=-0.02, total_updates=3))  # fmt: skip
+        assert _logged(held, "train/entropy_coeff")[-1] == -0.02
 
     def test_group_baselines_train_on_groups_and_count_their_greedy_episodes(self, tmp_path):
         seen = []

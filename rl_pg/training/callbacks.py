@@ -323,19 +323,21 @@ class EntropyByTarget(Callback):
 
     Args:
         target (float): the entropy to hold, in nats.
-        lr (float): the step of the coefficient's logarithm per nat of difference.
+        lr (float): the change of the coefficient per nat of difference, per update.
+        min_coeff (float): the lowest coefficient (negative: it may become a penalty).
     """
 
-    def __init__(self, target: float, lr: float) -> None:
-        self.target, self.lr = (
-            check_real("target", target),
-            check_real("lr", lr, low=0, low_open=True),
-        )
+    def __init__(self, target: float, lr: float, min_coeff: float = 0.0) -> None:
+        self.target = check_real("target", target)
+        self.lr = check_real("lr", lr, low=0, low_open=True)
+        self.min_coeff = check_real("min_coeff", min_coeff)
         self._controller: EntropyTarget | None = None
         self._restored: dict[str, Any] | None = None
 
     def on_start(self, run: Run) -> None:
-        self._controller = EntropyTarget(run.loss, target=self.target, lr=self.lr)
+        self._controller = EntropyTarget(
+            run.loss, target=self.target, lr=self.lr, min_coeff=self.min_coeff
+        )
         if self._restored is not None:
             self._controller.load_state_dict(self._restored)
 

@@ -384,7 +384,9 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
     if cfg.lr_control == "kl":
         callbacks.append(LearningRateByKL(cfg.target_kl))
     if cfg.entropy_target is not None:
-        callbacks.append(EntropyByTarget(cfg.entropy_target, cfg.entropy_target_lr))
+        callbacks.append(
+            EntropyByTarget(cfg.entropy_target, cfg.entropy_target_lr, cfg.entropy_coeff_min)
+        )
     return callbacks
 
 
