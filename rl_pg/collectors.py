@@ -507,14 +507,14 @@ class EpisodeCollector:
         self.group_size = check_int("group_size", group_size, low=1, optional=True)
         if self.group_size is None and self.greedy:
             raise ValueError("greedy=True adds a greedy episode to each group: set group_size.")
+        seed = check_int("seed", seed, low=0, optional=True)
         self._generator = torch.Generator()
-        if seed is not None:
-            self._generator.manual_seed(check_int("seed", seed, low=0))
-        else:
-            self._generator.manual_seed(int(torch.randint(2**62, ())))
         self._batches = 0
         if self.group_size is not None:
             self._check_groups()
+            # Only grouped batches draw from torch's generator: ungrouped ones leave the
+            # global stream as it was.
+            self._generator.manual_seed(int(torch.randint(2**62, ())) if seed is None else seed)
         self._segments: Iterator[TensorDictBase] | None = None
         self.frames = 0
         """Environment steps collected so far, the dropped ones included."""

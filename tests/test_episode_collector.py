@@ -213,3 +213,11 @@ def test_a_collector_whose_reset_takes_no_seed_is_named():
     collector = EpisodeCollector(segments, 4, group_size=2)
     with pytest.raises(TypeError, match=r"OldCollector does not take it"):
         collector.next()
+
+
+def test_ungrouped_batches_leave_torchs_generator_alone():
+    env = GridWorldEnv(batch_size=4)
+    segments = SegmentCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 4)
+    state = torch.get_rng_state()
+    EpisodeCollector(segments, 4)
+    assert torch.equal(state, torch.get_rng_state())
