@@ -136,11 +136,12 @@ def unit_index(
         names = list(batch.names)
         time_dim = names.index("time") if "time" in names else batch.batch_dims - 1
     shape = batch.batch_size
-    rows = torch.arange(shape.numel() // shape[time_dim])
+    done = batch.get(done_key, None) if unit == "episode" else None
+    device = done.device if done is not None else batch.device
+    rows = torch.arange(shape.numel() // shape[time_dim], device=device)
     rows = rows.reshape((*shape[:time_dim], *shape[time_dim + 1 :]))
     index = rows.unsqueeze(time_dim).expand(shape)
     if unit == "episode":
-        done = batch.get(done_key, None)
         if done is None:
             raise KeyError(f"unit='episode' reads the episode ends at {done_key!r}: not found.")
         done = done.reshape(*shape, -1).any(-1).movedim(time_dim, -1)

@@ -240,10 +240,10 @@ class GreedyInGroups(TensorDictModuleBase):
                 f"batch size {tuple(tensordict.batch_size)}: build a multiple of {width} "
                 f"environments."
             )
-        rows = torch.arange(self.group_size, n, width, device=tensordict.device)
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            greedy = self.policy(tensordict[rows].clone()).get(self.action_key)
         action = out.get(self.action_key).clone()
-        action[rows] = greedy
+        rows = torch.arange(self.group_size, n, width, device=action.device)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            greedy = self.policy(tensordict[rows].clone())
+        action[rows] = greedy.get(self.action_key).to(action.device)
         out.set(self.action_key, action)
         return out
