@@ -142,11 +142,13 @@ class KLStepSize:
                 )
             )
         self._before = None
-        if not math.isfinite(kl):
+        if math.isnan(kl):
             raise ValueError(
-                f"The update's KL divergence is {kl}: the policy's outputs are not finite "
-                f"after the update (its weights diverged)."
+                "The update's KL divergence is nan: the policy's outputs are not finite "
+                "after the update (its weights diverged)."
             )
+        # An infinite KL is a step so large that the new policy gives some action the old
+        # one could take no probability at all: far above the target, like any large KL.
         change = 1.0
         if kl > 2 * self.target_kl:
             change = 1 / self.factor

@@ -67,9 +67,10 @@ class TestKLStepSize:
 
         torch.manual_seed(0)
         env = gym_env("CartPole-v1", num_envs=8)
+        env.set_seed(0)
         actor = mlp_actor(env, hidden=(32,))
         loss = ReinforceLoss(actor, baseline="running_mean")
-        optimizer = torch.optim.Adam(loss.parameters(), lr=0.3)
+        optimizer = torch.optim.Adam(loss.parameters(), lr=0.1)
         step_size = KLStepSize(optimizer, actor, target_kl=0.01)
         collector = EpisodeCollector(SegmentCollector(env, actor, frames_per_batch=8 * 16), 8)
         kls = []
@@ -79,8 +80,24 @@ class TestKLStepSize:
             _update(loss, optimizer, batch)
             kls.append(step_size.after(batch)["kl"])
         collector.shutdown()
-        assert optimizer.param_groups[0]["lr"] < 0.1
+        assert optimizer.param_groups[0]["lr"] < 0.05
         assert kls[0] > 0.1 and 0.002 < sorted(kls[-10:])[5] < 0.03  # the last 10's median
+
+    def test_an_infinite_kl_lowers_the_rate_and_a_nan_one_is_an_error(self, categorical_actor):
+        optimizer = torch.optim.SGD(categorical_actor.parameters(), lr=0.1)
+        step_size = KLStepSize(optimizer, categorical_actor, target_kl=0.01)
+        batch = make_batch(torch.randint(0, 4, (4, 8)))
+        bias = categorical_actor.module[0].module.bias
+        step_size.before(batch)
+        with torch.no_grad():  # action 0 impossible now: KL(before || after) = inf
+            bias[0] = -float("inf")
+        assert step_size.after(batch)["kl"] == float("inf")
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(0.1 / 1.5)
+        step_size.before(batch)
+        with torch.no_grad():
+            bias.fill_(float("nan"))
+        with pytest.raises(ValueError, match="KL divergence is nan"):
+            step_size.after(batch)
 
     def test_after_without_before(self, categorical_actor):
         step_size = KLStepSize(torch.optim.SGD(categorical_actor.parameters(), lr=0.1),
