@@ -81,8 +81,11 @@ def kl_per_step(
         tensor([0.5108])
     """
     shape = tensordict.batch_size
-    if has_closed_form_kl(new):
+    try:
         kl = torch.distributions.kl_divergence(old, new)
+    except NotImplementedError:  # no closed form for this pair: the stored actions
+        pass
+    else:
         return kl.reshape(*shape, -1).sum(-1)
     action = tensordict.get(action_key)
     log_ratio = log_prob_per_step(new, action, shape) - log_prob_per_step(old, action, shape)
