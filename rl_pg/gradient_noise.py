@@ -28,7 +28,7 @@ from tensordict import TensorDict, TensorDictBase
 
 __all__ = ["noise_statistics", "unit_index"]
 
-_UNITS = ("episode", "row")
+_UNITS = ("episode", "row", "group")
 
 
 def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
@@ -94,9 +94,15 @@ def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
 
 
 def unit_index(
-    batch: TensorDictBase, *, unit: str = "episode", done_key=("next", "done"), time_dim=None
+    batch: TensorDictBase,
+    *,
+    unit: str = "episode",
+    done_key=("next", "done"),
+    group_key="group",
+    time_dim=None,
 ) -> tuple[torch.Tensor, int]:
-    """The independent unit of every step of ``batch``: its episode, or its row.
+    """The independent unit of every step of ``batch``: its episode, its row, or its
+    episode's group.
 
     Args:
         batch (TensorDictBase): ``[T]`` (episodes laid end to end) or ``[*B, T]``.
@@ -111,7 +117,8 @@ def unit_index(
 
     Returns:
         ``(index, units)``: a ``long`` tensor of ``batch``'s shape numbering the units
-        ``0 … units − 1`` in order of appearance along each row.
+        ``0 … units − 1`` in order of appearance along each row (groups: in the
+        order of their ids).
 
     Examples:
         >>> import torch
@@ -124,6 +131,9 @@ def unit_index(
                 [2, 3, 3]]), 4)
         >>> unit_index(batch, unit="row")[0].tolist()
         [[0, 0, 0], [1, 1, 1]]
+        >>> batch["group"] = torch.tensor([[7, 7, 7], [7, 9, 9]])
+        >>> unit_index(batch, unit="group")[0].tolist()
+        [[0, 0, 0], [0, 1, 1]]
     """
     if unit not in _UNITS:
         raise ValueError(f"unit must be one of {_UNITS}, got {unit!r}.")
@@ -136,6 +146,22 @@ def unit_index(
         names = list(batch.names)
         time_dim = names.index("time") if "time" in names else batch.batch_dims - 1
     shape = batch.batch_size
+    if unit == "group":
+        group = batch.get(group_key, None)
+        if group is None:
+            raise KeyError(
+                f"unit='group' reads each step's group at {group_key!r}: not found. Collect "
+                f"with EpisodeCollector(..., group_size=K), which writes it."
+            )
+        if group.is_floating_point() or group.dtype == torch.bool:
+            raise TypeError(f"{group_key!r} must hold integer group ids, got {group.dtype}.")
+        if group.shape[: len(shape)] != shape or group[(0,) * len(shape)].numel() != 1:
+            raise ValueError(
+                f"{group_key!r} has shape {tuple(group.shape)}; it needs one id per step of "
+                f"the batch {tuple(shape)}."
+            )
+        _, index = torch.unique(group.reshape(-1), sorted=True, return_inverse=True)
+        return index.reshape(shape), int(index.max()) + 1
     done = batch.get(done_key, None) if unit == "episode" else None
     device = done.device if done is not None else batch.device
     rows = torch.arange(shape.numel() // shape[time_dim], device=device)

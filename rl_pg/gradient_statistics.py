@@ -15,6 +15,7 @@ from rl_pg._checks import check_real
 from rl_pg.estimators import RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
 from rl_pg.gradient_noise import _UNITS, noise_statistics, unit_index
+from rl_pg.groups import batch_group_advantage, greedy_flags
 
 __all__ = ["ESTIMATORS", "GradientStatistics"]
 
@@ -25,12 +26,25 @@ ESTIMATORS = (
     "reward_to_go_minus_mean",
     "reward_to_go_minus_value",
     "gae",
+    "leave_one_out",
+    "group_mean",
+    "group_mean_scaled",
+    "greedy",
 )
 """The `Ψ` that [`GradientStatistics`][rl_pg.gradient_statistics.GradientStatistics]
 compares: the loss's own (its estimator, baseline and normalisation as it trains); the
 whole-episode return `R(τ)`; the reward-to-go `G_t`; `G_t` minus a scalar baseline; `G_t`
-minus the critic's `V(s_t)`; and GAE(λ) with the critic. The last two need a critic."""
+minus the critic's `V(s_t)`; GAE(λ) with the critic; and `G_t` minus a group baseline
+([`rl_pg.groups`][rl_pg.groups]): the mean of the group's other episodes, the whole
+group's mean (also divided by the group's standard deviation), its greedy episode's.
+Those with `V` need a critic; the group ones a grouped batch measured by group."""
 _NEED_CRITIC = frozenset({"reward_to_go_minus_value", "gae"})
+_GROUP = {
+    "leave_one_out": ("leave_one_out", False),
+    "group_mean": ("group_mean", False),
+    "group_mean_scaled": ("group_mean", True),
+    "greedy": ("greedy", False),
+}
 _METHODS = ("auto", "vmap", "backward")
 _DENSE_UNITS = 8  # up to this many units in a chunk, the dense product is the faster
 
@@ -50,10 +64,13 @@ class GradientStatistics:
     Keyword Args:
         estimators (sequence of str, optional): names from
             [`ESTIMATORS`][rl_pg.gradient_statistics.ESTIMATORS]. Defaults to all those
-            the loss can compute (those with a critic only when it has one).
-        unit (str): ``"episode"`` or ``"row"`` (see
+            the loss can compute (those with a critic only when it has one, the group
+            ones with ``unit="group"``, ``"greedy"`` on batches with greedy episodes).
+        unit (str): ``"episode"``, ``"row"`` or ``"group"`` (see
             [`unit_index`][rl_pg.gradient_noise.unit_index]). Defaults to
-            ``"episode"``.
+            ``"episode"``. Batches collected in groups (episodes that share a start)
+            are measured by group: their episodes are not independent, and a group
+            baseline couples them further. The group estimators need ``"group"``.
         gae_lambda (float, optional): GAE's `λ`. Defaults to the loss's own when its
             estimator is GAE, else ``0.95``.
         scalar_baseline (float, optional): the `b` of ``"reward_to_go_minus_mean"``.
@@ -72,8 +89,8 @@ class GradientStatistics:
             Defaults to ``"auto"``.
 
     Raises:
-        ValueError: an unknown estimator or unit, or one that needs a critic the loss
-            does not have.
+        ValueError: an unknown estimator or unit, one that needs a critic the loss
+            does not have, or a group estimator measured by another unit than groups.
 
     Examples:
         >>> import torch
@@ -114,8 +131,13 @@ class GradientStatistics:
         method: str = "auto",
     ) -> None:
         has_critic = bool(getattr(loss, "has_critic", False))
+        self._default = estimators is None
         if estimators is None:
-            estimators = [e for e in ESTIMATORS if has_critic or e not in _NEED_CRITIC]
+            estimators = [
+                e
+                for e in ESTIMATORS
+                if (has_critic or e not in _NEED_CRITIC) and (unit == "group" or e not in _GROUP)
+            ]
         estimators = list(estimators)
         unknown = [e for e in estimators if e not in ESTIMATORS]
         if unknown or not estimators:
@@ -128,6 +150,13 @@ class GradientStatistics:
             )
         if unit not in _UNITS:
             raise ValueError(f"unit must be one of {_UNITS}, got {unit!r}.")
+        grouped = [e for e in estimators if e in _GROUP]
+        if grouped and unit != "group":
+            raise ValueError(
+                f"The estimators {grouped} weigh each episode against the others of its "
+                f"group, which makes them dependent: measure them with unit='group' (on "
+                f"batches collected in groups), not unit={unit!r}."
+            )
         if chunk is not None and (
             isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
         ):
@@ -157,7 +186,7 @@ class GradientStatistics:
         rl_pg's estimators do, and GAE is the reward-to-go of the TD errors
         `δ_t = r_t + γ V(s_{t+1}) − V(s_t)` discounted by `γλ` (TorchRL's GAE).
         """
-        loss, wanted = self.loss, set(self.estimators)
+        loss, wanted = self.loss, set(self._estimators(batch))
         keys = loss.tensor_keys
         psi = {}
         with torch.no_grad():
@@ -192,14 +221,39 @@ class GradientStatistics:
                 ended = done if terminated is None else terminated
                 delta = reward + gamma * next_value * ~ended.bool() - value
                 psi["gae"] = reward_to_go(delta, done, gamma * self.gae_lambda, time_dim=time_dim)
-        valid = loss._valid_steps(batch, torch.zeros(batch.batch_size))
+        valid = padding = loss._padding_mask(batch, torch.zeros(batch.batch_size))
+        if keys.greedy in batch.keys(True):  # greedy episodes are no samples of the policy
+            sampled = ~greedy_flags(batch, keys.greedy).reshape(batch.batch_size)
+            valid = sampled if valid is None else valid & sampled
+        with torch.no_grad():
+            for name in wanted & _GROUP.keys():
+                baseline, scale = _GROUP[name]
+                # The greedy baseline reads the greedy episodes; the others must not.
+                mask = padding if baseline == "greedy" else valid
+                psi[name] = batch_group_advantage(
+                    batch,
+                    to_go.reshape(*batch.batch_size, 1),
+                    baseline=baseline,
+                    scale=scale,
+                    group_key=keys.group,
+                    greedy_key=keys.greedy,
+                    done_key=("next", keys.done),
+                    mask=None if mask is None else mask.unsqueeze(-1),
+                )
         out = {}
-        for name in self.estimators:
+        for name in self._estimators(batch):
             value = psi[name].reshape(batch.batch_size)
             if valid is not None:
                 value = value.masked_fill(~valid, 0.0)
             out[name] = value
         return out
+
+    def _estimators(self, batch: TensorDictBase) -> list[str]:
+        """The estimators measured on ``batch``: by default, ``"greedy"`` only where
+        the batch has greedy episodes."""
+        if self._default and self.loss.tensor_keys.greedy not in batch.keys(True):
+            return [e for e in self.estimators if e != "greedy"]
+        return list(self.estimators)
 
     @staticmethod
     def _time_dim(data: TensorDictBase) -> int:
@@ -231,7 +285,10 @@ class GradientStatistics:
         """Each estimator's ``[U, P]`` unit gradients `Σ_{t∈u} Ψ_t ∇ log π(a_t|s_t)`,
         the actor's parameters flattened in its ``named_parameters`` order."""
         loss = self.loss
-        index, units = unit_index(batch, unit=self.unit, done_key=("next", loss.tensor_keys.done))
+        keys = loss.tensor_keys
+        index, units = unit_index(
+            batch, unit=self.unit, done_key=("next", keys.done), group_key=keys.group
+        )
         names = list(weights)
         time_dim = self._time_dim(batch) + batch.batch_dims + 1
         if time_dim != batch.batch_dims - 1:  # time last: each unit's steps are contiguous
@@ -241,6 +298,9 @@ class GradientStatistics:
         steps = batch.reshape(-1)
         index = index.reshape(-1)
         psi = torch.stack([weights[n].reshape(-1) for n in names])  # [E, N]
+        if self.unit == "group":  # each group's steps together, as for the others
+            order = torch.argsort(index, stable=True)
+            steps, index, psi = steps[order], index[order], psi[:, order]
         with torch.no_grad():  # refuses actions the policy cannot have taken, as the loss does
             self._log_prob(steps)
         params = _actor_parameters(loss)

@@ -38,8 +38,15 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rl_pg._checks import check_int, check_key
+from rl_pg.gradient_noise import unit_index
 
-__all__ = ["GROUP_BASELINES", "GreedyInGroups", "group_advantage"]
+__all__ = [
+    "GROUP_BASELINES",
+    "GreedyInGroups",
+    "batch_group_advantage",
+    "greedy_flags",
+    "group_advantage",
+]
 
 GROUP_BASELINES = ("leave_one_out", "group_mean", "greedy")
 
@@ -163,6 +170,174 @@ def group_advantage(
         std = (squares / (count.unsqueeze(-1) - 1)).sqrt()
         advantage = advantage / (std[index] + eps)
     return advantage.masked_fill(greedy.unsqueeze(-1), 0.0)
+
+
+def batch_group_advantage(
+    batch: TensorDictBase,
+    returns: torch.Tensor,
+    *,
+    baseline: str = "leave_one_out",
+    scale: bool = False,
+    per_episode: bool = False,
+    group_key="group",
+    greedy_key="greedy",
+    done_key=("next", "done"),
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """[`group_advantage`][rl_pg.groups.group_advantage] on a batch of steps: every
+    step's return minus its group's baseline.
+
+    The batch holds whole episodes (``[T]`` laid end to end or ``[*B, T]``), each ending
+    on ``done_key``, with its group id at ``group_key`` on every step (and, for
+    ``baseline="greedy"``, the greedy flags at ``greedy_key``), as
+    [`EpisodeCollector`][rl_pg.collectors.EpisodeCollector] ``(..., group_size=K)``
+    writes them.
+
+    Args:
+        batch (TensorDictBase): the steps.
+        returns (torch.Tensor): each step's return, ``[*batch_size, 1]``: a
+            reward-to-go, compared position by position (step ``t`` of an episode with
+            step ``t`` of the others, 0 past their end), or with ``per_episode=True`` a
+            return that is one value per episode (its first step's counts).
+
+    Keyword Args:
+        baseline (str): one of ``GROUP_BASELINES``. Defaults to ``"leave_one_out"``.
+        scale (bool): divide by the group's standard deviation. Defaults to ``False``.
+        per_episode (bool): one return per episode. Defaults to ``False``.
+        group_key, greedy_key, done_key (NestedKey): where the batch holds them.
+        mask (torch.Tensor, optional): ``[*batch_size, 1]`` booleans, False on padding
+            steps, which are left out and get 0. Defaults to ``None``: every step.
+
+    Returns:
+        ``[*batch_size, 1]``: the advantages; 0 on greedy episodes and padding.
+
+    Raises:
+        KeyError: the group ids (or greedy flags) are missing.
+        TypeError: group ids that are not integers, greedy flags that are not boolean.
+        ValueError: an episode cut by the batch, a group id or greedy flag changing
+            inside an episode, and what ``group_advantage`` refuses.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from rl_pg.groups import batch_group_advantage
+        >>> done = torch.tensor([False, True, True, False, True, True]).unsqueeze(-1)
+        >>> batch = TensorDict({"group": torch.tensor([0, 0, 0, 0, 0, 0]).unsqueeze(-1),
+        ...                     "next": {"done": done}}, [6])
+        >>> to_go = torch.tensor([3.0, 1.0, 2.0, 6.0, 4.0, 0.0]).unsqueeze(-1)
+        >>> batch_group_advantage(batch, to_go, baseline="group_mean").squeeze(-1)
+        tensor([-0.6667, -0.6667, -1.6667,  2.3333,  2.3333, -1.6667])
+    """
+    lead = f"baseline={baseline!r}: "
+    group = _required(
+        batch,
+        group_key,
+        f"A group baseline ({baseline!r}) compares each episode with the others "
+        f"played from the same start: collect with EpisodeCollector(..., group_size=K), "
+        f"which writes it, or point the key at your group ids (loss.set_keys(group=...)).",
+        lead,
+    )
+    group = _per_step(batch, group_key, group, torch.long)
+    shape = batch.batch_size
+    time_dim = len(shape) - 1
+    if "time" in batch.names:
+        time_dim = batch.names.index("time")
+    episode, _ = unit_index(batch, done_key=done_key, time_dim=time_dim)
+    done = batch.get(done_key).reshape(*shape, -1).any(-1)
+
+    def flat(x: torch.Tensor) -> torch.Tensor:  # time last, then row after row
+        return x.reshape(shape).movedim(time_dim, -1).reshape(-1)
+
+    steps = flat(mask) if mask is not None else None
+    columns = [flat(x) for x in (episode, returns, done, group)]
+    if baseline == "greedy":
+        columns.append(flat(greedy_flags(batch, greedy_key)))
+    if steps is not None:
+        columns = [x[steps] for x in columns]
+    episode, values, done, group, *greedy = columns
+    _, episode = torch.unique_consecutive(episode, return_inverse=True)
+    count = int(episode[-1]) + 1
+    order = torch.arange(episode.numel(), device=episode.device)
+    first = torch.zeros(count, dtype=torch.long, device=episode.device)
+    first = first.scatter_reduce(0, episode, order, "amin", include_self=False)
+    last = torch.zeros_like(first).scatter_reduce(0, episode, order, "amax")
+    if not bool(done[last].all()):
+        raise ValueError(
+            f"A group baseline ({baseline!r}) compares whole episodes, but "
+            f"{int((~done[last]).sum())} episode(s) of the batch do not end on "
+            f"{done_key!r}: cut by the batch. Collect whole episodes "
+            f"(EpisodeCollector), or pad and mask the unfinished ones."
+        )
+    by_episode = [x[first] for x in (group, *greedy)]
+    for name, column, per_episode_value in zip(
+        (group_key, greedy_key), (group, *greedy), by_episode, strict=False
+    ):
+        if not bool((column == per_episode_value[episode]).all()):
+            raise ValueError(
+                f"{name!r} changes inside an episode: every step of an episode must "
+                f"carry its episode's value (the group of its start)."
+            )
+    position = order - first[episode]
+    if per_episode:
+        position = torch.zeros_like(position)  # one return per episode
+    table = values.new_zeros(count, int(position.max()) + 1)
+    table[episode, position] = values
+    advantage = group_advantage(
+        table,
+        by_episode[0],
+        baseline=baseline,
+        greedy=by_episode[1] if greedy else None,
+        scale=scale,
+    )[episode, position]
+    if steps is not None:
+        advantage = advantage.new_zeros(steps.shape).masked_scatter(steps, advantage)
+    moved = list(shape)
+    moved.append(moved.pop(time_dim))
+    return advantage.reshape(moved).movedim(-1, time_dim).unsqueeze(-1)
+
+
+def greedy_flags(batch: TensorDictBase, key="greedy") -> torch.Tensor:
+    """The greedy-episode flags of every step, ``[*batch_size, 1]`` booleans.
+
+    Raises:
+        KeyError: the batch has no flags at ``key``.
+        TypeError, ValueError: flags that are not boolean, or not one per step.
+    """
+    flags = _required(
+        batch,
+        key,
+        "baseline='greedy' reads which steps belong to each group's greedy episode "
+        "there: collect with EpisodeCollector(..., greedy=True), or point the key at "
+        "your flags (loss.set_keys(greedy=...)).",
+        "baseline='greedy': ",
+    )
+    return _per_step(batch, key, flags, torch.bool)
+
+
+def _required(batch: TensorDictBase, key, hint: str, lead: str = "") -> torch.Tensor:
+    """``batch[key]``, or a KeyError in TorchRL's words (``lead``, then ``hint``)."""
+    value = batch.get(key, None)
+    if value is None:
+        raise KeyError(f"{lead}the key {key} was not found in the input tensordict. {hint}")
+    return value
+
+
+def _per_step(batch: TensorDictBase, key, value: torch.Tensor, dtype) -> torch.Tensor:
+    """``value`` checked to hold one entry per step, as ``[*batch, 1]``; ``dtype`` is
+    ``torch.bool`` or ``torch.long`` (any integer type)."""
+    shape = batch.batch_size
+    if value.shape[: len(shape)] != shape or value[(0,) * len(shape)].numel() != 1:
+        raise ValueError(
+            f"{key!r} has shape {tuple(value.shape)}; it needs one value per step of the "
+            f"batch {tuple(shape)}."
+        )
+    if dtype is torch.bool and value.dtype != torch.bool:
+        raise TypeError(f"{key!r} must be boolean, got dtype {value.dtype}.")
+    if dtype is torch.long and (value.is_floating_point() or value.dtype == torch.bool):
+        raise TypeError(
+            f"{key!r} must hold integer group ids, got dtype {value.dtype}. Pass .long()."
+        )
+    return value.reshape(*shape, 1)
 
 
 def _describe(value) -> str:

@@ -31,8 +31,7 @@ from torchrl.objectives.value import ValueEstimatorBase
 from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import DiscountedReturn, _MonteCarloReturn
-from rl_pg.gradient_noise import unit_index
-from rl_pg.groups import GROUP_BASELINES, group_advantage
+from rl_pg.groups import GROUP_BASELINES, batch_group_advantage, greedy_flags
 
 __all__ = ["ReinforceLoss"]
 
@@ -653,7 +652,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
             )
         diagnostics = {}
         if self.baseline in GROUP_BASELINES:
-            psi = self._group_advantage(tensordict, psi, padding)
+            keys = self.tensor_keys
+            psi = batch_group_advantage(
+                tensordict,
+                psi,
+                baseline=self.baseline,
+                scale=self.group_scale,
+                per_episode=isinstance(self.value_estimator, DiscountedReturn),
+                group_key=keys.group,
+                greedy_key=keys.greedy,
+                done_key=("next", keys.done),
+                mask=padding,
+            )
         if self.baseline_module is not None:
             baseline = self.baseline_module(self._episode_returns(tensordict, psi, valid))
             psi = psi - baseline
@@ -678,111 +688,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
             padding = self._padding_mask(tensordict, like)
         if self.baseline != "greedy":
             return padding
-        sampled = ~self._step_flags(tensordict, self.tensor_keys.greedy, like, "greedy")
+        sampled = ~greedy_flags(tensordict, self.tensor_keys.greedy).expand_as(like)
         return sampled if padding is None else sampled & padding
-
-    def _step_flags(
-        self, tensordict: TensorDictBase, key, like: torch.Tensor, name: str
-    ) -> torch.Tensor:
-        """The boolean per-step entry at ``key``, shaped like ``like``."""
-        flags = _required(
-            tensordict,
-            key,
-            f"baseline='greedy' reads which steps belong to each group's greedy episode "
-            f"there: collect with EpisodeCollector(..., greedy=True), or point "
-            f"loss.set_keys({name}=...) at your flags.",
-            lead="baseline='greedy': ",
-        )
-        return self._per_step_entry(tensordict, key, flags, torch.bool).expand_as(like)
-
-    @staticmethod
-    def _per_step_entry(tensordict: TensorDictBase, key, value: torch.Tensor, dtype):
-        """``value`` checked to hold one entry per step, as ``[*batch, 1]``; ``dtype`` is
-        ``torch.bool`` or ``torch.long`` (any integer type)."""
-        batch = tensordict.batch_size
-        if value.shape[: len(batch)] != batch or value[(0,) * len(batch)].numel() != 1:
-            raise ValueError(
-                f"{key!r} has shape {tuple(value.shape)}; it needs one value per step of the "
-                f"batch {tuple(batch)}."
-            )
-        if dtype is torch.bool and value.dtype != torch.bool:
-            raise TypeError(f"{key!r} must be boolean, got dtype {value.dtype}.")
-        if dtype is torch.long and (value.is_floating_point() or value.dtype == torch.bool):
-            raise TypeError(
-                f"{key!r} must hold integer group ids, got dtype {value.dtype}. Pass .long()."
-            )
-        return value.reshape(*batch, 1)
-
-    def _group_advantage(
-        self, tensordict: TensorDictBase, psi: torch.Tensor, padding: torch.Tensor | None
-    ) -> torch.Tensor:
-        """`Ψ` of every step minus its group baseline (see ``rl_pg.groups``); 0 on the
-        greedy episodes' steps and on padding."""
-        keys = self.tensor_keys
-        group = _required(
-            tensordict,
-            keys.group,
-            f"A group baseline ({self.baseline!r}) compares each episode with the others "
-            f"played from the same start: collect with EpisodeCollector(..., group_size=K), "
-            f"which writes it, or point loss.set_keys(group=...) at your group ids.",
-            lead=f"baseline={self.baseline!r}: ",
-        )
-        group = self._per_step_entry(tensordict, keys.group, group, torch.long)
-        shape = tensordict.batch_size
-        time_dim = shape.__len__() - 1
-        if "time" in tensordict.names:
-            time_dim = tensordict.names.index("time")
-        episode, _ = unit_index(tensordict, done_key=("next", keys.done), time_dim=time_dim)
-        done = tensordict.get(("next", keys.done)).reshape(*shape, -1).any(-1)
-
-        def flat(x: torch.Tensor) -> torch.Tensor:  # time last, then row after row
-            return x.reshape(shape).movedim(time_dim, -1).reshape(-1)
-
-        steps = flat(padding) if padding is not None else None
-        columns = [flat(x) for x in (episode, psi, done, group)]
-        if self.baseline == "greedy":
-            columns.append(flat(self._step_flags(tensordict, keys.greedy, psi, "greedy")))
-        if steps is not None:
-            columns = [x[steps] for x in columns]
-        episode, values, done, group, *greedy = columns
-        _, episode = torch.unique_consecutive(episode, return_inverse=True)
-        count = int(episode[-1]) + 1
-        order = torch.arange(episode.numel(), device=episode.device)
-        first = torch.zeros(count, dtype=torch.long, device=episode.device)
-        first = first.scatter_reduce(0, episode, order, "amin", include_self=False)
-        last = torch.zeros_like(first).scatter_reduce(0, episode, order, "amax")
-        if not bool(done[last].all()):
-            raise ValueError(
-                f"A group baseline ({self.baseline!r}) compares whole episodes, but "
-                f"{int((~done[last]).sum())} episode(s) of the batch do not end on "
-                f"('next', {keys.done!r}): cut by the batch. Collect whole episodes "
-                f"(EpisodeCollector), or pad and mask the unfinished ones."
-            )
-        by_episode = [x[first] for x in (group, *greedy)]
-        for name, column, per_episode in zip((keys.group, keys.greedy), (group, *greedy),
-                                             by_episode, strict=False):  # fmt: skip
-            if not bool((column == per_episode[episode]).all()):
-                raise ValueError(
-                    f"{name!r} changes inside an episode: every step of an episode must "
-                    f"carry its episode's value (the group of its start)."
-                )
-        position = order - first[episode]
-        if isinstance(self.value_estimator, DiscountedReturn):
-            position = torch.zeros_like(position)  # one return per episode
-        returns = values.new_zeros(count, int(position.max()) + 1)
-        returns[episode, position] = values
-        advantage = group_advantage(
-            returns,
-            by_episode[0],
-            baseline=self.baseline,
-            greedy=by_episode[1] if greedy else None,
-            scale=self.group_scale,
-        )[episode, position]
-        if steps is not None:
-            advantage = advantage.new_zeros(steps.shape).masked_scatter(steps, advantage)
-        moved = list(shape)
-        moved.append(moved.pop(time_dim))
-        return advantage.reshape(moved).movedim(-1, time_dim).unsqueeze(-1)
 
     def _padding_mask(self, tensordict: TensorDictBase, like: torch.Tensor):
         """The padding mask (e.g. ``("collector", "mask")``) shaped like ``like``, or None."""

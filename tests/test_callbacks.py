@@ -235,6 +235,21 @@ class TestGradientNoise:
         assert all(seconds > 0 for _, seconds in cost)
         assert not (tmp_path / "plain" / "logs" / "csv" / "scalars" / "grad").exists()
 
+    @pytest.mark.parametrize("baseline", ["leave_one_out", "greedy"])
+    def test_a_grouped_run_is_measured_by_group_with_the_group_estimators(self, tmp_path, baseline):
+        size = 4 - (baseline == "greedy")  # 8 environments: two groups
+        cfg = _cfg(tmp_path, baseline=baseline, group_size=size, grad_stats=1)
+        _train(replace(cfg, total_updates=2))
+        scalars = tmp_path / "run" / "logs" / "csv" / "scalars" / "grad"
+        measured = {p.name for p in scalars.iterdir()}
+        groups = 2
+        expected = {"loss", "reward_to_go", "leave_one_out", "group_mean", "group_mean_scaled"}
+        assert expected | ({"greedy"} if baseline == "greedy" else set()) <= measured
+        assert ("greedy" in measured) == (baseline == "greedy")
+        for name in measured:
+            units = scalar_log_rows((scalars / name / "units.csv").read_text())
+            assert [u for _, u in units] == [groups, groups], name
+
     def test_grad_stats_may_change_on_resume(self, tmp_path):
         cfg = _cfg(tmp_path, total_updates=2)
         _train(cfg)

@@ -15,6 +15,9 @@ from torch.distributions import Normal
 from rl_pg import ReinforceLoss
 from rl_pg.gradient_noise import noise_statistics, unit_index
 from rl_pg.gradient_statistics import ESTIMATORS, GradientStatistics
+from rl_pg.groups import GROUP_BASELINES
+
+GROUP_ESTIMATORS = ("leave_one_out", "group_mean", "group_mean_scaled", "greedy")
 
 Z_MAX = 5.0
 
@@ -108,12 +111,27 @@ class TestUnitIndex:
         assert index.T.tolist() == [[0, 0, 0], [1, 2, 2]]
         assert units == 3
 
+    def test_groups_are_numbered_by_id_wherever_their_steps_lie(self):
+        done = torch.zeros(3, 2, 1, dtype=torch.bool)
+        group = torch.tensor([[5, 5], [-1, 5], [9, -1]]).unsqueeze(-1)
+        batch = TensorDict({"group": group, "next": {"done": done}}, [3, 2])
+        index, units = unit_index(batch, unit="group")
+        assert index.tolist() == [[1, 1], [0, 1], [2, 0]] and units == 3
+
     def test_rejects(self):
         batch = TensorDict({"next": {"done": torch.zeros(3, 1, dtype=torch.bool)}}, [3])
         with pytest.raises(ValueError, match="unit must be one of"):
             unit_index(batch, unit="step")
         with pytest.raises(KeyError, match="episode ends"):
             unit_index(batch, done_key="ended")
+        with pytest.raises(KeyError, match="unit='group' reads each step's group"):
+            unit_index(batch, unit="group")
+        batch["group"] = torch.zeros(3, 1)
+        with pytest.raises(TypeError, match="integer group ids"):
+            unit_index(batch, unit="group")
+        batch["group"] = torch.zeros(3, 2, dtype=torch.long)
+        with pytest.raises(ValueError, match="one id per step"):
+            unit_index(batch, unit="group")
 
 
 def _segment_batch(seed=0):
@@ -126,8 +144,9 @@ class TestGradientStatistics:
         torch.manual_seed(0)
         loss = ReinforceLoss(make_categorical_actor(), make_critic())
         stats = GradientStatistics(loss)(_segment_batch())
-        assert sorted(stats.keys()) == sorted(ESTIMATORS)
-        for name in ESTIMATORS:
+        ungrouped = [e for e in ESTIMATORS if e not in GROUP_ESTIMATORS]
+        assert sorted(stats.keys()) == sorted(ungrouped)
+        for name in ungrouped:
             assert stats[name, "units"].item() > 6  # episodes, not rows
             assert torch.isfinite(stats[name, "trace_covariance"])
 
@@ -233,8 +252,107 @@ class TestGradientStatistics:
         with pytest.raises(ValueError, match=match):
             GradientStatistics(loss, **kwargs)
 
+    def test_group_estimators_need_group_units(self):
+        loss = ReinforceLoss(make_categorical_actor())
+        with pytest.raises(ValueError, match="measure them with unit='group'"):
+            GradientStatistics(loss, estimators=["reward_to_go", "leave_one_out"])
+        assert not set(GradientStatistics(loss).estimators) & set(GROUP_ESTIMATORS)
+
     def test_one_unit_is_refused(self):
         loss = ReinforceLoss(make_categorical_actor())
         batch = _segment_batch()[:1]
         with pytest.raises(ValueError, match="at least 2 independent units"):
             GradientStatistics(loss, unit="row")(batch)
+
+
+def _grouped(lengths, groups, greedy=None, seed=0):
+    """Whole episodes as the rows of a padded ``[E, T]`` batch, their group (and
+    greedy flag) on every step, as EpisodeCollector lays them out."""
+    generator = torch.Generator().manual_seed(seed)
+    n, width = len(lengths), max(lengths)
+    mask = torch.arange(width) < torch.tensor(lengths).unsqueeze(-1)
+    done = torch.zeros(n, width, 1, dtype=torch.bool)
+    done[torch.arange(n), torch.tensor(lengths) - 1] = True
+    batch = make_batch(torch.randint(N_ACT, (n, width), generator=generator), seed=seed)
+    batch["next", "done"], batch["next", "terminated"] = done, done.clone()
+    batch["collector", "mask"] = mask
+    batch["group"] = torch.tensor(groups).unsqueeze(-1).expand(n, width).clone()
+    if greedy is not None:
+        batch["greedy"] = torch.tensor(greedy).unsqueeze(-1).expand(n, width).clone()
+    return batch
+
+
+class TestGroupEstimators:
+    """Measured by group (the independent unit of episodes that share a start), each
+    group baseline's unit gradient is the gradient of the loss with that baseline on
+    the group's own episodes (whose weights test_loss.py checks against a plain loop)."""
+
+    LENGTHS = (3, 5, 1, 4, 2, 6, 2, 3, 4, 2, 5, 1)
+    GROUPS = (7, 7, 7, 2, 2, 2, 4, 4, 4, 0, 0, 0)
+    GREEDY = (False, False, True) * 4
+
+    def _loss_gradient(self, actor, batch, baseline, scale):
+        loss = ReinforceLoss(actor, baseline=baseline, group_scale=scale, reduction="sum")
+        params = [p for p in actor.parameters() if p.requires_grad]
+        with loss.actor_network_params.to_module(loss.actor_network):
+            params = [p for _, p in loss.actor_network.named_parameters()]
+        grads = torch.autograd.grad(loss(batch.clone())["loss_actor"], params)
+        return -torch.cat([g.reshape(-1) for g in grads])
+
+    @pytest.mark.parametrize("greedy", [False, True])
+    def test_unit_gradients_are_each_groups_loss_gradient(self, greedy):
+        torch.manual_seed(0)
+        actor = make_categorical_actor()
+        flags = self.GREEDY if greedy else None
+        batch = _grouped(self.LENGTHS, self.GROUPS, flags)
+        stats = GradientStatistics(
+            ReinforceLoss(actor, baseline="greedy" if greedy else "leave_one_out"), unit="group"
+        )
+        expected_names = set(GROUP_ESTIMATORS) - (set() if greedy else {"greedy"})
+        assert expected_names <= set(stats._estimators(batch))
+        gradients = stats.unit_gradients(batch, stats.weights(batch))
+        assert not ({"greedy"} - expected_names) & gradients.keys()
+        torch.testing.assert_close(
+            gradients["loss"], gradients["greedy" if greedy else "leave_one_out"]
+        )
+        for name in expected_names:
+            baseline, scale = {"group_mean_scaled": ("group_mean", True)}.get(name, (name, False))
+            if greedy and baseline != "greedy":  # the others learn from sampled episodes
+                rows = ~torch.tensor(self.GREEDY)
+            else:
+                rows = torch.ones(len(self.LENGTHS), dtype=torch.bool)
+            for unit, group in enumerate(sorted(set(self.GROUPS))):
+                own = rows & (torch.tensor(self.GROUPS) == group)
+                part = batch[own]
+                if baseline != "greedy":
+                    part = part.exclude("greedy")
+                expected = self._loss_gradient(actor, part, baseline, scale)
+                torch.testing.assert_close(gradients[name][unit], expected, msg=name)
+
+    def test_greedy_episodes_count_in_no_estimator(self):
+        torch.manual_seed(0)
+        actor = make_categorical_actor()
+        batch = _grouped(self.LENGTHS, self.GROUPS, self.GREEDY)
+        sampled = batch[~torch.tensor(self.GREEDY)].exclude("greedy")
+        estimators = ["episode_return", "reward_to_go", "leave_one_out", "group_mean"]
+        stats = GradientStatistics(ReinforceLoss(actor), unit="group", estimators=estimators)
+        got, expected = stats(batch), stats(sampled)
+        for name in estimators:
+            torch.testing.assert_close(got[name, "mean_gradient"], expected[name, "mean_gradient"])
+        assert got["reward_to_go", "units"].item() == 4
+
+    def test_the_greedy_estimator_needs_greedy_episodes_when_asked_for(self):
+        loss = ReinforceLoss(make_categorical_actor())
+        batch = _grouped(self.LENGTHS, self.GROUPS)
+        with pytest.raises(KeyError, match="baseline='greedy': the key greedy"):
+            GradientStatistics(loss, unit="group", estimators=["greedy"])(batch)
+
+    def test_a_cut_episode_is_refused(self):
+        loss = ReinforceLoss(make_categorical_actor())
+        batch = _grouped(self.LENGTHS, self.GROUPS)
+        batch["next", "done"][0] = False
+        with pytest.raises(ValueError, match="compares whole episodes"):
+            GradientStatistics(loss, unit="group", estimators=["leave_one_out"])(batch)
+
+    def test_every_group_baseline_is_measured(self):
+        assert {b for b in GROUP_BASELINES} <= set(GROUP_ESTIMATORS) <= set(ESTIMATORS)

@@ -65,6 +65,23 @@ class TestLabCommand:
         held = json.loads((root / "variance.json").read_text())["held"]
         assert set(held["0"]) == {"holds", "greedy", "sampled"} and held["1"] is None
 
+    def test_runs_in_groups_are_measured_and_tabulated_by_group(self, tmp_path, capsys):
+        root = tmp_path / "lab"
+        args = ["lab", "variance", "gridworld", "--seeds", "0", "1", "--every", "1"]
+        grouped = ["--baseline", "leave_one_out", "--batch-mode", "episodes", "--group-size", "3",
+                   "--num-envs", "6"]  # fmt: skip
+        status, out, err = in_process(
+            *args, "--run-dir", str(root), *QUICK, *grouped, capsys=capsys
+        )
+        assert status == 0, err
+        assert "| noise scale B (groups of 3) |" in out.splitlines()[0]
+        table = json.loads((root / "variance.json").read_text())
+        assert (table["unit"], table["group_size"]) == ("group", 3)
+        for name in ("loss", "reward_to_go", "leave_one_out", "group_mean", "group_mean_scaled"):
+            assert table["estimators"][name]["units"] == 2, name  # 6 episodes, 2 groups
+        leave_one_out = table["estimators"]["leave_one_out"]
+        assert leave_one_out["variance_relative_to_episode_return"] > 0
+
     @pytest.mark.parametrize(
         ("flags", "match"),
         [(["--seeds"], "at least one seed"), (["--every", "0"], "positive number of updates")],

@@ -30,6 +30,7 @@ import numpy as np
 
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
+from rl_pg.groups import GROUP_BASELINES
 from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
@@ -154,7 +155,7 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
         raise FileNotFoundError(
             f"No gradient statistics in the runs under {root}: train them with --grad-stats N."
         )
-    table: dict[str, Any] = {"seeds": list(runs), "estimators": {}}
+    table: dict[str, Any] = {"seeds": list(runs), **_units(runs), "estimators": {}}
     for estimator in estimators:
         measured = {seed: measurements(run_dir, estimator) for seed, run_dir in runs.items()}
         end = max(m["frames"].max() for m in measured.values()) + 1
@@ -191,6 +192,24 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
     )
     write_atomically(root / "variance.json", json.dumps(table, indent=2))
     return table
+
+
+def _units(runs: dict[int, Path]) -> dict[str, Any]:
+    """The unit the runs were measured by: ``{"unit": "episode"}``, or for runs
+    collected in groups ``{"unit": "group", "group_size": K}`` (K sampled episodes each,
+    so a noise scale of B groups is about K·B episodes)."""
+    configs = [json.loads((r / "config.json").read_text()) for r in runs.values()]
+    grouped = {c.get("baseline") in GROUP_BASELINES for c in configs}
+    if grouped == {True}:
+        sizes = {c["group_size"] for c in configs}
+        if len(sizes) == 1:
+            return {"unit": "group", "group_size": sizes.pop()}
+    if True in grouped:
+        raise ValueError(
+            "The runs were measured by different units (some in groups, some by episode, or "
+            "groups of different sizes): summarise runs of one kind together."
+        )
+    return {"unit": "episode"}
 
 
 def _held(run_dir: Path) -> dict[str, Any] | None:
@@ -276,9 +295,12 @@ def _markdown(table: dict[str, Any]) -> str:
     """The table: each estimator's noise scale over every seed's measurements pooled,
     in the first and the second half of training, the SNR at the batch size used, and
     each seed alone (— where the mean signal was not positive: noise dominates)."""
+    scale, units = "noise scale B", "units"
+    if table.get("unit") == "group":  # B counts groups
+        scale, units = f"noise scale B (groups of {table['group_size']})", "groups"
     lines = [
-        "| estimator | tr Σ / tr Σ of R(τ) | noise scale B | first half | second half "
-        "| SNR at the batch size (units) | B by seed |",
+        f"| estimator | tr Σ / tr Σ of R(τ) | {scale} | first half | second half "
+        f"| SNR at the batch size ({units}) | B by seed |",
         "|---|---:|---:|---:|---:|---:|---|",
     ]
     for estimator, row in table["estimators"].items():

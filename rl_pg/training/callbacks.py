@@ -214,7 +214,8 @@ class GradientNoise(Callback):
     Keyword Args:
         estimators (sequence of str, optional): as ``GradientStatistics`` takes them.
             Defaults to all the loss can compute.
-        unit (str): ``"episode"`` or ``"row"``. Defaults to ``"episode"``.
+        unit (str): ``"episode"``, ``"row"`` or ``"group"``. Defaults to
+            ``"episode"``.
     """
 
     STATISTICS = (

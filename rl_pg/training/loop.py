@@ -34,6 +34,7 @@ from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EvaluationEnv
+from rl_pg.groups import GROUP_BASELINES
 from rl_pg.training.callbacks import (
     Callback,
     Callbacks,
@@ -380,7 +381,9 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
     if cfg.keep_every is not None:
         callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:
-        callbacks.append(GradientNoise(cfg.grad_stats))
+        # Episodes of one group share their start: the group is the independent unit.
+        grouped = cfg.baseline in GROUP_BASELINES
+        callbacks.append(GradientNoise(cfg.grad_stats, unit="group" if grouped else "episode"))
     if cfg.lr_control == "kl":
         callbacks.append(LearningRateByKL(cfg.target_kl))
     if cfg.entropy_target is not None:
