@@ -156,6 +156,35 @@ def test_the_plain_loop_with_bookkeeping_writes_what_a_cleanrl_script_writes(tmp
     assert returns and all(r >= 1 for r in returns)  # CartPole pays 1 a step
 
 
+@pytest.mark.parametrize("tool", ["rl_pg", "sb3_a2c", "sb3_trpo"])
+def test_held_both_ways(tool, tmp_path, monkeypatch):
+    pytest.importorskip("sb3_contrib" if tool == "sb3_trpo" else "stable_baselines3")
+    module = _script("held_both_ways")
+    cfg = module.Config(
+        seeds=[0], tools=[tool], rl_pg_stored=None, budget_frames=2048, eval_interval=1024,
+        eval_episodes=1, final_episodes=2, json_path=tmp_path / "h.json",
+    )  # fmt: skip
+    out = module.main(cfg)
+    (run,) = out["runs"][tool].values()
+    assert run["best_at_frames"] >= 1024 and out["held"] == {tool: "0/1"}
+    assert set(run["greedy"]) == {"mean_return", "std_return"} == set(run["sampled"])
+    # A second call continues the file: nothing is trained again.
+    monkeypatch.setattr(module, "run_sb3", None)
+    monkeypatch.setattr(module, "run_rl_pg", None)
+    assert module.main(cfg)["runs"][tool][0] == run
+    with pytest.raises(SystemExit, match="continue them with that budget"):
+        module.main(module.Config(**{**vars(cfg), "budget_frames": 4096}))
+
+
+def test_held_both_ways_reads_rl_pg_from_the_stored_runs(tmp_path):
+    module = _script("held_both_ways")
+    stored = Path(__file__).resolve().parents[1] / "results" / "lunarlander-seeds.json"
+    runs = module.stored_rl_pg(stored, [0, 1])
+    assert runs[0]["greedy"]["mean_return"] > 0 and set(runs) == {0, 1}
+    with pytest.raises(SystemExit, match="no run evaluated both ways for seeds"):
+        module.stored_rl_pg(stored, [0, 99])
+
+
 def test_time_to_solve_counts_unsolved_runs_as_never_solving():
     """A tool that spends its short budget without solving must not look fast."""
     module = _script("time_to_solve")

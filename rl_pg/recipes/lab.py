@@ -352,7 +352,10 @@ def relative_variance(
 
 def _comparable(estimator: str, runs: dict[int, Path]) -> bool:
     """Whether ``estimator``'s variance is at the scale of the returns': the loss's own
-    `Ψ` is not when the runs standardise it (``normalize_advantage``)."""
+    `Ψ` is not when the runs standardise it (``normalize_advantage``), nor a group
+    advantage divided by its group's standard deviation."""
+    if estimator == "group_mean_scaled":
+        return False
     if estimator != "loss":
         return True
     configs = [json.loads((r / "config.json").read_text()) for r in runs.values()]
@@ -401,6 +404,8 @@ def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: 
         bottom.set_ylim(bottom=np.percentile(returns, 5))  # early collapses off the scale
         top.set(yscale="log", ylabel=f"tr Σ relative to {reference}", title=title)
         top.legend(loc="best", fontsize="small")
-        middle.set(yscale="log", ylabel="noise scale B (units)")
+        units = _units(runs)
+        unit = f"groups of {units['group_size']}" if units["unit"] == "group" else "units"
+        middle.set(yscale="log", ylabel=f"noise scale B ({unit})")
         bottom.set(ylabel="evaluation mean return", xlabel="frames")
         bottom.legend(loc="best", fontsize="small")
