@@ -314,6 +314,11 @@ class TestTrain:
                     entropy_target=2.0, total_updates=4))  # fmt: skip
         lr = _logged(tmp_path / "run", "train/lr")
         assert lr[0] == 0.02 and lr[-1] < lr[0]  # every update moved far more than 1e-6
+        # Updates far below the target raise the rate, to its bound (factors of lr).
+        capped = tmp_path / "capped"
+        _train(_cfg(tmp_path, run_dir=capped, lr_control="kl", target_kl=10.0,
+                    kl_lr_range=(0.5, 2.0), total_updates=4, log_interval=1))  # fmt: skip
+        assert _logged(capped, "train/lr") == pytest.approx([0.02, 0.03, 0.04, 0.04])
         assert len(_logged(tmp_path / "run", "train/kl")) == 4
         coeff = _logged(tmp_path / "run", "train/entropy_coeff")
         assert coeff[0] == 0.05 and coeff[-1] > coeff[0]  # entropy below 2 nats: up
@@ -867,6 +872,8 @@ class TestTrain:
             ({"group_scale": True}, "--group-scale divides group advantages"),
             ({"lr_control": "kl", "optimizer": "natural"}, "--lr-control kl sets the learning"),
             ({"lr_control": "kl", "lr_schedule": "linear"}, "use one"),
+            ({"kl_lr_range": (2.0, 10.0)}, r"LOW must be in \(0, 1\] and HIGH finite"),
+            ({"kl_lr_range": (0.0, 10.0)}, r"--kl-lr-range 0.0 10.0 bounds the rate"),
             ({"entropy_target": 0.5}, "--entropy-target 0.5 learns the entropy coefficient"),
             ({"entropy_coeff_min": -0.1}, "--entropy-coeff-min -0.1 bounds the learned"),
             ({"max_kl": 0.0}, r"max_kl \(--max-kl\) must be a finite number > 0"),

@@ -296,15 +296,21 @@ class LearningRateByKL(Callback):
 
     Args:
         target_kl (float): the KL divergence per update aimed at.
+        lr_range (tuple of float): the rate's bounds, as factors of the run's ``lr``.
+            Defaults to ``(0.01, 10.0)``.
     """
 
-    def __init__(self, target_kl: float) -> None:
+    def __init__(self, target_kl: float, lr_range: tuple[float, float] = (0.01, 10.0)) -> None:
         self.target_kl = check_real("target_kl", target_kl, low=0, low_open=True)
+        low = check_real("lr_range[0]", lr_range[0], low=0, low_open=True, high=1)
+        self.lr_range = (low, check_real("lr_range[1]", lr_range[1], low=1))
         self._step_size: KLStepSize | None = None
 
     def on_start(self, run: Run) -> None:
+        low, high = self.lr_range
         self._step_size = KLStepSize(
             run.optimizer, run.loss.actor_network, target_kl=self.target_kl,
+            lr_min=low * run.cfg.lr, lr_max=high * run.cfg.lr,
             action_key=run.loss.tensor_keys.action,
         )  # fmt: skip
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import math
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,7 +83,7 @@ class TrainConfig:
         )),
         "optimiser": ("The optimiser and its step size.", (
             "optimizer", "max_kl", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
-            "lr_control", "target_kl", "weight_decay", "max_grad_norm", "clip_scope",
+            "lr_control", "target_kl", "kl_lr_range", "weight_decay", "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
             "eval_interval", "eval_episodes", "eval_greedy", "policy_ema", "confirm_episodes",
@@ -248,6 +249,10 @@ class TrainConfig:
     below half of it (rl_pg.controllers.KLStepSize)."""
     target_kl: Positive = 0.01
     """KL divergence per update that lr_control 'kl' aims at."""
+    kl_lr_range: tuple[float, float] = (0.01, 10.0)
+    """With lr_control 'kl': the rate's bounds, as factors of lr (LOW HIGH). The upper
+    one keeps a run of small KLs from growing the rate to where one update wrecks the
+    policy."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -506,6 +511,13 @@ class TrainConfig:
                 f"which --optimizer natural (its step is set by --max-kl) and --lr-schedule "
                 f"linear also set: use one (got --optimizer {self.optimizer}, --lr-schedule "
                 f"{self.lr_schedule})."
+            )
+        low, high = self.kl_lr_range
+        if not 0 < low <= 1 <= high < math.inf:
+            raise ValueError(
+                f"--kl-lr-range {low} {high} bounds the rate --lr-control kl sets, as "
+                f"factors of --lr, which it starts at: LOW must be in (0, 1] and HIGH finite "
+                f"and at least 1 (e.g. 0.01 10)."
             )
         if self.entropy_coeff_min != 0 and self.entropy_target is None:
             raise ValueError(

@@ -385,7 +385,7 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
         grouped = cfg.baseline in GROUP_BASELINES
         callbacks.append(GradientNoise(cfg.grad_stats, unit="group" if grouped else "episode"))
     if cfg.lr_control == "kl":
-        callbacks.append(LearningRateByKL(cfg.target_kl))
+        callbacks.append(LearningRateByKL(cfg.target_kl, cfg.kl_lr_range))
     if cfg.entropy_target is not None:
         callbacks.append(
             EntropyByTarget(cfg.entropy_target, cfg.entropy_target_lr, cfg.entropy_coeff_min)

@@ -138,8 +138,11 @@ class Loggers:
             self.loggers.append(_wandb(cfg, run_dir))
         if cfg.mlflow:
             self.loggers.append(_mlflow(cfg, run_dir, name))
+        # Loggers take scalars (TensorBoard's hparams refuses a list): a pair is shown whole.
         hyperparameters = {
-            key: value for key, value in config_dict(cfg).items() if value is not None
+            key: value if isinstance(value, int | float | str | bool) else str(value)
+            for key, value in config_dict(cfg).items()
+            if value is not None
         }
         for logger in self.loggers:
             logger.log_hparams(hyperparameters)
