@@ -85,7 +85,8 @@ class Config:
     eval_episodes: int = 20
     """Greedy episodes per evaluation."""
     final_episodes: int = 100
-    """Fresh episodes the kept policy plays, greedily and by sampling."""
+    """Fresh episodes the kept policy plays, greedily and by sampling (a multiple of 10:
+    ten environments play them)."""
     threshold: float = 200.0
     """Both means must reach it for a seed to hold."""
     threads: int = 1
@@ -110,7 +111,8 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
 
         def __init__(self) -> None:
             super().__init__()
-            self.env = make_vec_env("LunarLander-v3", n_envs=1, seed=10_000 + seed)
+            # One environment per episode: the policy acts on all of them at once.
+            self.env = make_vec_env("LunarLander-v3", n_envs=cfg.eval_episodes, seed=10_000 + seed)
             self.next_eval, self.best, self.best_at, self.weights = cfg.eval_interval, None, 0, None
 
         def _on_step(self) -> bool:
@@ -134,7 +136,7 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
     model.policy.load_state_dict(keep.weights)
     out = {"best_eval": keep.best, "best_at_frames": keep.best_at, "wall_s": wall}
     for mode, deterministic in (("greedy", True), ("sampled", False)):
-        final = make_vec_env("LunarLander-v3", n_envs=1, seed=2_000_000 + seed)
+        final = make_vec_env("LunarLander-v3", n_envs=10, seed=2_000_000 + seed)
         mean, std = evaluate_policy(
             model, final, n_eval_episodes=cfg.final_episodes, deterministic=deterministic
         )
@@ -215,6 +217,8 @@ def summarise(runs: dict[str, dict[int, dict]], threshold: float) -> dict[str, A
 
 def main(cfg: Config) -> dict[str, Any]:
     torch.set_num_threads(cfg.threads)
+    if cfg.final_episodes % 10:
+        raise SystemExit(f"--final-episodes must be a multiple of 10, got {cfg.final_episodes}.")
     unknown = set(cfg.tools) - {"rl_pg", *ZOO}
     if unknown:
         raise SystemExit(f"--tools takes rl_pg, sb3_a2c and sb3_trpo, got {sorted(unknown)}.")

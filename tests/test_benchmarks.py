@@ -162,7 +162,7 @@ def test_held_both_ways(tool, tmp_path, monkeypatch):
     module = _script("held_both_ways")
     cfg = module.Config(
         seeds=[0], tools=[tool], rl_pg_stored=None, budget_frames=2048, eval_interval=1024,
-        eval_episodes=1, final_episodes=2, json_path=tmp_path / "h.json",
+        eval_episodes=2, final_episodes=10, json_path=tmp_path / "h.json",
     )  # fmt: skip
     out = module.main(cfg)
     (run,) = out["runs"][tool].values()
