@@ -225,8 +225,9 @@ def batch_group_advantage(
         >>> batch = TensorDict({"group": torch.tensor([0, 0, 0, 0, 0, 0]).unsqueeze(-1),
         ...                     "next": {"done": done}}, [6])
         >>> to_go = torch.tensor([3.0, 1.0, 2.0, 6.0, 4.0, 0.0]).unsqueeze(-1)
+        >>> # Four episodes, one group; first steps' mean 2.75, second steps' 1.25 (0s count)
         >>> batch_group_advantage(batch, to_go, baseline="group_mean").squeeze(-1)
-        tensor([-0.6667, -0.6667, -1.6667,  2.3333,  2.3333, -1.6667])
+        tensor([ 0.2500, -0.2500, -0.7500,  3.2500,  2.7500, -2.7500])
     """
     lead = f"baseline={baseline!r}: "
     group = _required(

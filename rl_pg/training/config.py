@@ -361,11 +361,12 @@ class TrainConfig:
         the run had: their defaults, or ``absent_means`` where a default has changed
         since. Values as ``config_dict`` writes them (paths as strings)."""
         defaults = {
-            field.name: str(field.default) if isinstance(field.default, Path) else field.default
+            field.name: _plain(field.default)
             for field in dataclasses.fields(cls)
             if field.default is not dataclasses.MISSING
         }
-        return {**defaults, **cls.absent_means, **stored}
+        return {key: _plain(value) for key, value in {**defaults, **cls.absent_means,
+                                                      **stored}.items()}  # fmt: skip
 
     def torch_device(self) -> torch.device:
         """``device`` as a ``torch.device`` ('auto' resolved).
@@ -535,8 +536,15 @@ class TrainConfig:
 
 
 def config_dict(cfg: TrainConfig) -> dict[str, Any]:
-    """The config as plain JSON-able values (paths as strings)."""
-    return {
-        key: str(value) if isinstance(value, Path) else value
-        for key, value in dataclasses.asdict(cfg).items()
-    }
+    """The config as plain JSON-able values (paths as strings, pairs as lists), as a
+    run's config.json holds them: a stored config and a new one compare entry by entry."""
+    return {key: _plain(value) for key, value in dataclasses.asdict(cfg).items()}
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as JSON gives it back: a path as a string, a tuple as a list."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, tuple | list):
+        return [_plain(item) for item in value]
+    return value
