@@ -7,7 +7,10 @@ batches (8 landers, 64-step segments), the same batches for every contender:
   one backward pass, the gradient clip, Adam's step on both networks);
 - ``natural``: ``NaturalGradient.step`` (10 conjugate-gradient iterations, the line
   search) and the critic's own Adam step on ``loss.value_loss``;
-- ``natural, Fisher on 1/4``: the same with ``fisher_fraction=0.25``.
+- ``natural, Fisher on 1/4``: the same with ``fisher_fraction=0.25``;
+- ``natural, K-FAC``: the Kronecker-factored Fisher inverted in closed form
+  (``fisher="kfac"``) in place of the conjugate-gradient solve, with the line search;
+- ``natural, K-FAC, no line search``: the same, taking the full step.
 
 Each round times every contender over the batches, from the same starting weights,
 in a rotating order; the medians of the rounds' per-update times are compared, with a
@@ -55,6 +58,9 @@ CONTENDERS = {
     "adam": None,
     "natural": {},
     "natural, Fisher on 1/4": {"fisher_fraction": 0.25},
+    "natural, K-FAC": {"fisher": "kfac"},
+    "natural, K-FAC, no line search": {"fisher": "kfac", "line_search": False},
+    "natural, K-FAC on 1/4": {"fisher": "kfac", "fisher_fraction": 0.25},
 }
 
 

@@ -159,6 +159,21 @@ def check_bool(name: str, value: Any) -> bool:
     raise TypeError(f"{name} must be True or False, got {_received(value)}.")
 
 
+def check_choice(name: str, value: Any, choices: tuple) -> Any:
+    """``value`` if it is one of ``choices``.
+
+    Examples:
+        >>> from rl_pg._checks import check_choice
+        >>> check_choice("unit", "step", ("episode", "group"))
+        Traceback (most recent call last):
+        ...
+        ValueError: unit must be one of ('episode', 'group'), got 'step'.
+    """
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {choices}, got {value!r}.")
+    return value
+
+
 def check_names(name: str, value: Any) -> tuple[str, ...]:
     """A sequence of strings (entry or info names); a lone string is refused, not split.
 

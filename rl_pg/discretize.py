@@ -10,7 +10,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, MultiOneHot, OneHot
 from torchrl.envs.transforms import Transform
 
-from rl_pg._checks import check_bool, check_int, check_key, check_tensor
+from rl_pg._checks import check_bool, check_choice, check_int, check_key, check_tensor
 
 __all__ = ["DiscretizeAction"]
 
@@ -84,8 +84,7 @@ class DiscretizeAction(Transform):
             raise ValueError(
                 "Pass exactly one of counts= (a grid) or actions= (a table of action vectors)."
             )
-        if mode not in _MODES:
-            raise ValueError(f"mode must be one of {_MODES}, got {mode!r}.")
+        check_choice("mode", mode, _MODES)
         if mode == "per_dim" and actions is not None:
             raise ValueError(
                 "mode='per_dim' discretises each dimension: it needs counts=, not actions=."

@@ -26,6 +26,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from rl_pg._checks import check_choice
+
 __all__ = ["noise_statistics", "unit_index"]
 
 _UNITS = ("episode", "row", "group")
@@ -135,8 +137,7 @@ def unit_index(
         >>> unit_index(batch, unit="group")[0].tolist()
         [[0, 0, 0], [0, 1, 1]]
     """
-    if unit not in _UNITS:
-        raise ValueError(f"unit must be one of {_UNITS}, got {unit!r}.")
+    check_choice("unit", unit, _UNITS)
     if batch.batch_dims < 1:
         raise ValueError(
             f"unit_index needs a batch with a time dimension, got batch_size "

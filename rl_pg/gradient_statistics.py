@@ -11,7 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import CompositeDistribution
 from torchrl.objectives.value import GAE
 
-from rl_pg._checks import check_real
+from rl_pg._checks import check_choice, check_real
 from rl_pg.estimators import RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
 from rl_pg.gradient_noise import _UNITS, noise_statistics, unit_index
@@ -148,8 +148,7 @@ class GradientStatistics:
                 f"The estimators {missing} subtract the critic's V(s), but the loss has no "
                 f"critic: drop them, or give the loss a critic_network."
             )
-        if unit not in _UNITS:
-            raise ValueError(f"unit must be one of {_UNITS}, got {unit!r}.")
+        check_choice("unit", unit, _UNITS)
         grouped = [e for e in estimators if e in _GROUP]
         if grouped and unit != "group":
             raise ValueError(
@@ -161,9 +160,7 @@ class GradientStatistics:
             isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
         ):
             raise ValueError(f"chunk must be a positive integer, got {chunk!r}.")
-        if method not in _METHODS:
-            raise ValueError(f"method must be one of {_METHODS}, got {method!r}.")
-        self.method = method
+        self.method = check_choice("method", method, _METHODS)
         estimator = loss.value_estimator
         gamma = float(estimator.gamma)
         if gae_lambda is None:

@@ -513,17 +513,21 @@ class ReinforceLoss(TorchRLReinforceLoss):
         tensordict: TensorDictBase,
         weights: torch.Tensor,
         valid: torch.Tensor | None = None,
+        *,
+        dist: torch.distributions.Distribution | None = None,
     ) -> TensorDictBase:
         """``loss_actor`` (and ``loss_entropy``, ``entropy``) under the current policy
         parameters, for the ``weights`` and ``valid`` steps that
         [`policy_weights`][rl_pg.ReinforceLoss.policy_weights] gave for this batch.
         Reduced as ``forward`` reduces them; changes no state, so it may be called as
-        often as needed.
+        often as needed. ``dist``: the policy's distribution on this batch under the
+        current parameters, when the caller has built it already (it is then not
+        built again).
 
         Returns:
             A ``TensorDict`` of batch size ``[]``.
         """
-        out = self._policy_terms(tensordict, weights, valid)
+        out = self._policy_terms(tensordict, weights, valid, dist)
         for name, value in out.items():
             if name.startswith("loss_"):
                 out[name] = self._reduce_steps(value, tensordict, valid).squeeze(-1)
@@ -544,10 +548,15 @@ class ReinforceLoss(TorchRLReinforceLoss):
         return taken
 
     def _policy_terms(
-        self, tensordict: TensorDictBase, weights: torch.Tensor, valid: torch.Tensor | None
+        self,
+        tensordict: TensorDictBase,
+        weights: torch.Tensor,
+        valid: torch.Tensor | None,
+        dist: torch.distributions.Distribution | None = None,
     ) -> dict:
         """The per-step policy loss terms (unreduced) and the mean entropy."""
-        dist = self._policy(tensordict)
+        if dist is None:
+            dist = self._policy(tensordict)
         log_prob = self._log_prob(dist, tensordict, weights)
         out = {"loss_actor": -log_prob * weights}
         if self.entropy_coeff is not None:

@@ -289,11 +289,13 @@ class TestTrain:
             torch.testing.assert_close(weights["gae1"][key], weights["rtg"][key])
         assert any(not torch.allclose(weights["gae05"][k], weights["rtg"][k]) for k in actor)
 
-    def test_natural_steps_move_the_policy_by_max_kl(self, tmp_path):
+    @pytest.mark.parametrize("fisher", ["exact", "kfac"])
+    def test_natural_steps_move_the_policy_by_max_kl(self, tmp_path, fisher):
         summary = _train(
             _cfg(
                 tmp_path,
                 optimizer="natural",
+                fisher=fisher,
                 max_kl=0.005,
                 total_updates=5,
                 baseline="running_mean",
@@ -608,6 +610,7 @@ class TestTrain:
             {
                 "baseline": "leave_one_out",
                 "optimizer": "natural",
+                "fisher": "kfac",  # samples actions for its factors: the random stream resumes
                 "entropy_coeff": 0.05,
                 "entropy_target": 0.8,
             },
@@ -871,6 +874,7 @@ class TestTrain:
             ({"baseline": "leave_one_out", "group_size": 1}, r"group_size \(--group-size\)"),
             ({"group_scale": True}, "--group-scale divides group advantages"),
             ({"lr_control": "kl", "optimizer": "natural"}, "--lr-control kl sets the learning"),
+            ({"fisher": "kfac"}, "--fisher kfac sets how the natural-gradient step"),
             ({"lr_control": "kl", "lr_schedule": "linear"}, "use one"),
             ({"kl_lr_range": (2.0, 10.0)}, r"LOW must be in \(0, 1\] and HIGH finite"),
             ({"kl_lr_range": (0.0, 10.0)}, r"--kl-lr-range 0.0 10.0 bounds the rate"),

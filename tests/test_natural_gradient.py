@@ -155,6 +155,8 @@ class TestNaturalGradient:
             ({"backtrack_ratio": 1}, "backtrack_ratio"),
             ({"accept_ratio": 2}, "accept_ratio"),
             ({"kl_tolerance": 0.5}, "kl_tolerance"),
+            ({"fisher": "diagonal"}, r"fisher must be one of \('exact', 'kfac'\)"),
+            ({"fisher": "kfac", "damping": 0}, "fisher='kfac' needs damping > 0"),
         ],
     )
     def test_bad_arguments_are_refused(self, categorical_actor, kwargs, match):
@@ -182,6 +184,131 @@ class TestNaturalGradient:
         loss = ReinforceLoss(actor, baseline="running_mean")
         loss.make_value_estimator("reward_to_go", gamma=1.0)
         update = NaturalGradient(loss, max_kl=0.05)
+        collector = EpisodeCollector(SegmentCollector(env, actor, frames_per_batch=240), 30)
+        for _ in range(30):
+            batch = collector.next()
+            update.step(batch)
+        collector.shutdown()
+        assert float(batch["next", "reward"].sum()) / 30 >= 0.3
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            greedy = GridWorldEnv(max_steps=100).rollout(100, actor)
+        assert float(greedy["next", "reward"].sum()) == pytest.approx(0.5, abs=1e-5)
+
+
+class TestKroneckerFactoredFisher:
+    """``fisher="kfac"``: the factors, the step they size, the policies they take."""
+
+    def _mlp_actor(self):
+        net = nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 4))
+        return ProbabilisticActor(
+            TensorDictModule(net, ["observation"], ["logits"]),
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+        )
+
+    def test_the_factors_are_the_second_moments_of_inputs_and_sampled_scores(self):
+        # A plain recomputation: A from the layer's inputs with a 1 for the bias, G from
+        # the per-step gradient of log pi(a~|s) at the layer's outputs (a~ resampled
+        # with the same random numbers), over the steps the loss learns from.
+        from rl_pg.natural_gradient import _kronecker_factors, _recording
+
+        torch.manual_seed(4)
+        actor = self._mlp_actor()
+        update = NaturalGradient(ReinforceLoss(actor), fisher="kfac")
+        batch = _batch(4)
+        rows = update._fisher_rows(batch, None)
+        with _recording(update._layers) as seen:
+            dist = actor.get_dist(batch)
+        torch.manual_seed(5)
+        factors = _kronecker_factors(update._layers, seen, dist, batch.batch_size, rows)
+        torch.manual_seed(5)
+        flat = batch.reshape(-1)
+        hidden = torch.tanh(actor.module[0].module[0](flat["observation"]))
+        logits = actor.module[0].module[2](hidden.detach().requires_grad_())
+        sampled = torch.distributions.Categorical(logits=actor.get_dist(batch).logits).sample()
+        first_a = torch.cat([flat["observation"], torch.ones(len(flat), 1)], -1)
+        second_a = torch.cat([hidden, torch.ones(len(flat), 1)], -1)
+        score_logits = torch.nn.functional.one_hot(sampled.reshape(-1), 4) - logits.softmax(-1)
+        second_g = score_logits
+        first_g = (score_logits @ actor.module[0].module[2].weight) * (1 - hidden**2)
+        n = len(flat)
+        expected = [(first_a.T @ first_a / n, first_g.T @ first_g / n),
+                    (second_a.T @ second_a / n, second_g.T @ second_g / n)]  # fmt: skip
+        for (a, g), (want_a, want_g) in zip(factors, expected, strict=True):
+            torch.testing.assert_close(a, want_a.detach(), atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(g, want_g.detach(), atol=1e-5, rtol=1e-5)
+
+    def test_steps_left_out_count_in_no_factor(self):
+        # Greedy and padding steps (valid False) change neither the factors nor the step.
+        from rl_pg.natural_gradient import _kronecker_factors, _recording
+
+        torch.manual_seed(6)
+        actor = self._mlp_actor()
+        update = NaturalGradient(ReinforceLoss(actor), fisher="kfac")
+        batch = _batch(6)
+        valid = torch.rand(batch.batch_size) < 0.6
+        rows = update._fisher_rows(batch, valid.unsqueeze(-1))
+        assert torch.equal(rows, valid.reshape(-1).nonzero().squeeze(-1))
+        changed = batch.clone()
+        changed["observation"][~valid] = 100.0
+        factors = []
+        for data in (batch, changed):
+            with _recording(update._layers) as seen:
+                dist = actor.get_dist(data)
+            torch.manual_seed(7)
+            factors.append(_kronecker_factors(update._layers, seen, dist, data.batch_size, rows))
+        for (a, g), (a2, g2) in zip(*factors, strict=True):
+            torch.testing.assert_close(a, a2)
+            torch.testing.assert_close(g, g2)
+
+    def test_a_step_moves_the_policy_by_about_max_kl(self):
+        # K-FAC's quadratic leaves out the layers' cross terms: the measured KL is near
+        # max_kl, not at it; the line search keeps it within kl_tolerance.
+        torch.manual_seed(0)
+        actor = self._mlp_actor()
+        update = NaturalGradient(ReinforceLoss(actor), max_kl=0.005, fisher="kfac")
+        batch = _batch()
+        old = {k: v.clone() for k, v in actor.state_dict().items()}
+        out = update.step(batch)
+        kl = _measured_kl(actor, batch, old)
+        assert 0.001 < kl <= 1.5 * 0.005
+        assert float(out["kl"]) == pytest.approx(kl, rel=1e-4)
+        assert float(out["improvement"]) > 0
+
+    def test_a_gaussian_whose_parameters_are_all_in_linear_layers(self):
+        torch.manual_seed(2)
+        actor = make_gaussian_actor(n_act=2, distribution_class=torch.distributions.Normal)
+        root = TensorDict({"observation": torch.randn(64, 3)}, batch_size=[64])
+        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+            action = actor(root)["action"]
+        batch = make_batch(torch.zeros(64, 1, 2), seed=2).reshape(64)
+        batch.update({"observation": root["observation"], "action": action})
+        out = NaturalGradient(ReinforceLoss(actor), max_kl=0.005, fisher="kfac").step(batch)
+        assert 0 < float(out["kl"]) <= 1.5 * 0.005
+        assert float(out["improvement"]) > 0
+
+    def test_a_parameter_outside_linear_layers_is_refused(self):
+        # A Gaussian's learned scale, one per action dimension, is no layer's weight.
+        from rl_pg.envs import GridWorldEnv
+        from rl_pg.models import mlp_actor
+
+        env = GridWorldEnv()
+        actor = mlp_actor(env, hidden=(8,))
+        actor.module[0].module.register_parameter("extra", nn.Parameter(torch.zeros(2)))
+        with pytest.raises(ValueError, match=r"parameters of shapes \[\(2,\)\] outside them"):
+            NaturalGradient(ReinforceLoss(actor), fisher="kfac")
+
+    def test_learns_the_gridworld(self):
+        from rl_pg.collectors import EpisodeCollector, SegmentCollector
+        from rl_pg.envs import GridWorldEnv
+        from rl_pg.models import mlp_actor
+
+        torch.manual_seed(0)
+        env = GridWorldEnv(batch_size=30, max_steps=100)
+        actor = mlp_actor(env, hidden=(32,))
+        loss = ReinforceLoss(actor, baseline="running_mean")
+        loss.make_value_estimator("reward_to_go", gamma=1.0)
+        update = NaturalGradient(loss, max_kl=0.05, fisher="kfac")
         collector = EpisodeCollector(SegmentCollector(env, actor, frames_per_batch=240), 30)
         for _ in range(30):
             batch = collector.next()

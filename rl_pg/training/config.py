@@ -82,7 +82,7 @@ class TrainConfig:
             "value_norm", "critic_steps",
         )),
         "optimiser": ("The optimiser and its step size.", (
-            "optimizer", "max_kl", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
+            "optimizer", "max_kl", "fisher", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
             "lr_control", "target_kl", "kl_lr_range", "weight_decay", "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
@@ -226,6 +226,10 @@ class TrainConfig:
     steps at lr."""
     max_kl: Positive = 0.01
     """KL divergence of each natural-gradient step (optimizer 'natural')."""
+    fisher: Literal["exact", "kfac"] = "exact"
+    """How the natural step solves with the policy's Fisher (optimizer 'natural'):
+    'exact', conjugate gradient on Fisher-vector products; 'kfac', a Kronecker-factored
+    Fisher per linear layer, inverted in closed form (cheaper, approximate)."""
     adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
     """Adam's first-moment decay. Each step follows an average of about 1 / (1 -
     adam_beta1) batches' gradients. Where one batch's gradient is mostly noise (gradient
@@ -503,6 +507,11 @@ class TrainConfig:
                 f"--group-scale divides group advantages by their group's standard "
                 f"deviation, but --baseline is {self.baseline!r}: pick leave_one_out, "
                 f"group_mean or greedy, or use --normalize-advantage."
+            )
+        if self.fisher != "exact" and self.optimizer != "natural":
+            raise ValueError(
+                f"--fisher {self.fisher} sets how the natural-gradient step uses the policy's "
+                f"Fisher: add --optimizer natural (got --optimizer {self.optimizer})."
             )
         if self.lr_control == "kl" and (
             self.optimizer == "natural" or self.lr_schedule != "constant"

@@ -82,14 +82,15 @@ def warm_up(loss: ReinforceLoss, env: EnvBase, device: torch.device) -> None:
 
 class NaturalOptimiser:
     """The run's optimiser with ``optimizer='natural'``: natural-gradient steps of KL
-    ``max_kl`` for the policy ([`NaturalGradient`][rl_pg.natural_gradient.NaturalGradient])
-    and Adam for the critic (if any), at the run's learning rate.
+    ``max_kl`` for the policy, solved with the Fisher ``fisher`` names
+    ([`NaturalGradient`][rl_pg.natural_gradient.NaturalGradient]), and Adam for the
+    critic (if any), at the run's learning rate.
 
     ``param_groups``, ``state_dict`` and ``load_state_dict`` are the critic's Adam's
     (the natural step keeps no state between updates)."""
 
     def __init__(self, cfg: TrainConfig, loss: ReinforceLoss) -> None:
-        self.natural = NaturalGradient(loss, max_kl=cfg.max_kl)
+        self.natural = NaturalGradient(loss, max_kl=cfg.max_kl, fisher=cfg.fisher)
         self.critic = None
         if loss.has_critic:
             params = [p for p in loss.critic_network.parameters() if p.requires_grad]
