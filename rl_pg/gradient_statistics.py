@@ -183,7 +183,8 @@ class GradientStatistics:
         rl_pg's estimators do, and GAE is the reward-to-go of the TD errors
         `δ_t = r_t + γ V(s_{t+1}) − V(s_t)` discounted by `γλ` (TorchRL's GAE).
         """
-        loss, wanted = self.loss, set(self._estimators(batch))
+        loss, names = self.loss, self._estimators(batch)
+        wanted = set(names)
         keys = loss.tensor_keys
         psi = {}
         with torch.no_grad():
@@ -218,11 +219,10 @@ class GradientStatistics:
                 ended = done if terminated is None else terminated
                 delta = reward + gamma * next_value * ~ended.bool() - value
                 psi["gae"] = reward_to_go(delta, done, gamma * self.gae_lambda, time_dim=time_dim)
-        valid = padding = loss._padding_mask(batch, torch.zeros(batch.batch_size))
-        if keys.greedy in batch.keys(True):  # greedy episodes are no samples of the policy
-            sampled = ~greedy_flags(batch, keys.greedy).reshape(batch.batch_size)
-            valid = sampled if valid is None else valid & sampled
-        with torch.no_grad():
+            valid = padding = loss._padding_mask(batch, torch.zeros(batch.batch_size))
+            if keys.greedy in batch.keys(True):  # greedy episodes are no samples of the policy
+                sampled = ~greedy_flags(batch, keys.greedy).reshape(batch.batch_size)
+                valid = sampled if valid is None else valid & sampled
             for name in wanted & _GROUP.keys():
                 baseline, scale = _GROUP[name]
                 # The greedy baseline reads the greedy episodes; the others must not.
@@ -238,7 +238,7 @@ class GradientStatistics:
                     mask=None if mask is None else mask.unsqueeze(-1),
                 )
         out = {}
-        for name in self._estimators(batch):
+        for name in names:
             value = psi[name].reshape(batch.batch_size)
             if valid is not None:
                 value = value.masked_fill(~valid, 0.0)
