@@ -435,6 +435,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     # one row per stored setting: the flags its runs share beyond the recipe's defaults
     for run in saved_runs["runs"]:
         run["config"]["lr"] = 0.5
+        run["config"]["target_kl"] = 0.5  # inert without --lr-control kl: no setting
     saved_runs["runs"][1]["config"]["gamma"] = 0.9  # a flag the runs disagree on
     other.write_text(json.dumps(saved_runs))
     status, out, err = in_process("report", "--stored", str(stored), str(other), "--settings",
@@ -444,6 +445,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert first.startswith("| defaults | 0 1 |")  # what both share is said once, below
     assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
     assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
+    assert "--target-kl" not in second
     reports = [run["report"] for run in saved_runs["runs"]]
     held = sum(
         min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]

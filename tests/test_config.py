@@ -63,3 +63,15 @@ def test_recipes_declare_only_the_fields_they_add(name):
     body = ast.parse(inspect.getsource(config)).body[0].body
     declared = {node.target.id for node in body if isinstance(node, ast.AnnAssign)}
     assert not declared & {f.name for f in dataclasses.fields(TrainConfig)}
+
+
+def test_the_fields_that_act_only_with_another_name_real_fields_and_values():
+    # A renamed field or value would leave a flag that does nothing labelled as a setting.
+    import typing
+
+    hints = typing.get_type_hints(TrainConfig, include_extras=True)
+    names = {field.name for field in dataclasses.fields(TrainConfig)}
+    for name, (other, values) in TrainConfig.acts_only_with.items():
+        assert name in names and other in names, (name, other)
+        if values != "not None":
+            assert set(values) <= set(typing.get_args(hints[other])), (other, values)

@@ -698,7 +698,9 @@ def _seeds(seeds: list[int]) -> str:
 
 def _setting(runs: list[dict[str, Any]]) -> list[str]:
     """The flags every run shares that differ from its recipe's defaults, as rl-pg
-    train would take them; a flag the runs disagree on is listed with all its values."""
+    train would take them; a flag the runs disagree on is listed with all its values.
+    A field that does nothing in a run (``TrainConfig.inert``: ``--target-kl`` without
+    ``--lr-control kl``) counts as the default there."""
     from rl_pg.recipes import load
     from rl_pg.recipes.cli import _flag
     from rl_pg.training import TrainConfig
@@ -714,7 +716,12 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     for name in defaults:
         if name in quiet:
             continue
-        values = [run["config"].get(name, defaults[name]) for run in runs]
+        values = [
+            defaults[name]
+            if TrainConfig.inert(name, {**defaults, **run["config"]})
+            else run["config"].get(name, defaults[name])
+            for run in runs
+        ]
         distinct = [v for i, v in enumerate(values) if v not in values[:i]]
         if distinct != [defaults[name]]:
             shown = [_flag(name, v) for v in distinct]

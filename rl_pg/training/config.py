@@ -97,6 +97,20 @@ class TrainConfig:
     }  # fmt: skip
     """The fields by concern, as ``--help`` shows them: group -> (what it holds, fields).
     A recipe's own fields form a group of their own."""
+    acts_only_with: ClassVar[dict[str, tuple[str, tuple[Any, ...]]]] = {
+        "gae_lambda": ("returns", ("gae",)),
+        "baseline_rate": ("baseline", ("ema",)),
+        "group_size": ("baseline", ("leave_one_out", "group_mean", "greedy")),
+        "entropy_target_lr": ("entropy_target", "not None"),
+        "max_kl": ("optimizer", ("natural",)),
+        "fisher": ("optimizer", ("natural",)),
+        "target_kl": ("lr_control", ("kl",)),
+        "kl_lr_range": ("lr_control", ("kl",)),
+    }  # fmt: skip
+    """Fields that act only when another field takes one of some values (``"not
+    None"``: any value but None): field -> (that field, those values). A run's value of
+    such a field is no setting of the run when the other field says it is unused
+    (``inert``)."""
     absent_means: ClassVar[dict[str, Any]] = {}
     """Fields whose default changed after they were added, each with the value a stored
     config that lacks the field ran with (it was written before the field existed). A
@@ -358,6 +372,24 @@ class TrainConfig:
         stored config lacks take the values the run had (``as_run``)."""
         names = {field.name for field in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in {**cls.as_run(stored), **changes}.items() if k in names})
+
+    @classmethod
+    def inert(cls, name: str, config: dict[str, Any]) -> bool:
+        """Whether field ``name`` does nothing in ``config`` (a stored config, as
+        ``as_run`` completes it), by ``acts_only_with``.
+
+        Examples:
+            >>> from rl_pg.training import TrainConfig
+            >>> TrainConfig.inert("target_kl", {"lr_control": "none"})
+            True
+            >>> TrainConfig.inert("target_kl", {"lr_control": "kl"})
+            False
+        """
+        if name not in cls.acts_only_with:
+            return False
+        other, values = cls.acts_only_with[name]
+        value = config.get(other)
+        return value is None if values == "not None" else value not in values
 
     @classmethod
     def as_run(cls, stored: dict[str, Any]) -> dict[str, Any]:
