@@ -82,8 +82,9 @@ class TrainConfig:
             "value_norm", "critic_steps",
         )),
         "optimiser": ("The optimiser and its step size.", (
-            "optimizer", "max_kl", "fisher", "adam_beta1", "lr", "lr_schedule", "lr_schedule_start",
-            "lr_control", "target_kl", "kl_lr_range", "weight_decay", "max_grad_norm", "clip_scope",
+            "optimizer", "max_kl", "fisher", "adam_beta1", "lr", "lr_schedule",
+            "lr_schedule_start", "lr_control", "target_kl", "kl_lr_range", "weight_decay",
+            "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
             "eval_interval", "eval_episodes", "eval_greedy", "policy_ema", "confirm_episodes",
@@ -241,8 +242,8 @@ class TrainConfig:
     max_kl: Positive = 0.01
     """KL divergence of each natural-gradient step (optimizer 'natural')."""
     fisher: Literal["exact", "kfac"] = "exact"
-    """How the natural step solves with the policy's Fisher (optimizer 'natural'):
-    'exact', conjugate gradient on Fisher-vector products; 'kfac', a Kronecker-factored
+    """How the natural step solves with the policy's Fisher (optimizer 'natural').
+    'exact': conjugate gradient on Fisher-vector products; 'kfac': a Kronecker-factored
     Fisher per linear layer, inverted in closed form (cheaper, approximate)."""
     adam_beta1: Annotated[float, Range(0, 1, high_open=True)] = 0.9
     """Adam's first-moment decay. Each step follows an average of about 1 / (1 -
