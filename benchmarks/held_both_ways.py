@@ -36,6 +36,7 @@ import tyro
 from common import REPO, table, write_json
 
 from rl_pg.recipes import load
+from rl_pg.recipes.report import read_stored
 
 
 def _linear(start: float) -> Callable[[float], float]:
@@ -178,8 +179,7 @@ def run_rl_pg(seed: int, cfg: Config) -> dict[str, Any]:
 def stored_rl_pg(path: Path, seeds: list[int]) -> dict[int, dict[str, Any]]:
     """rl_pg's runs of ``seeds`` from a store of ``rl-pg report --store``."""
     runs = {}
-    for run in json.loads(path.read_text())["runs"]:
-        report = run["report"]
+    for report in read_stored(path)[0]:
         if report["seed"] in seeds and report.get("greedy") and report.get("sampled"):
             runs[report["seed"]] = {
                 "best_eval": report["best_eval_mean_return"],
