@@ -393,11 +393,19 @@ def _command_over_runs(command: str, name: str, args: list[str], own_args, folde
 
 
 def _flag(name: str, value) -> str:
+    """The flag that sets field ``name`` to ``value``, as ``rl-pg train`` takes it.
+
+    Examples:
+        >>> from rl_pg.recipes.cli import _flag
+        >>> _flag("kl_lr_range", [0.1, 3.0]), _flag("lr", 0.001), _flag("progress", False)
+        ('--kl-lr-range 0.1 3.0', '--lr 0.001', '--no-progress')
+    """
     flag = name.replace("_", "-")
     if isinstance(value, bool):
         return f"--{flag}" if value else f"--no-{flag}"
+    values = value if isinstance(value, (list, tuple)) else [value]  # a pair: LOW HIGH
     # Every digit (repr): a run is repeatable from its seed only with the exact values.
-    return f"--{flag} {value!r}" if isinstance(value, float) else f"--{flag} {value}"
+    return f"--{flag} " + " ".join(repr(v) if isinstance(v, float) else str(v) for v in values)
 
 
 def _resume(run_dir: Path, args: list[str]) -> None:
