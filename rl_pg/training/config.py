@@ -553,7 +553,8 @@ class TrainConfig:
                 f"--lr-control kl sets the learning rate from each update's KL divergence, "
                 f"which --optimizer natural (its step is set by --max-kl) and --lr-schedule "
                 f"linear also set: use one (got --optimizer {self.optimizer}, --lr-schedule "
-                f"{self.lr_schedule})."
+                f"{self.lr_schedule}; --lr-control none turns the KL-set rate off where a "
+                f"recipe has it on)."
             )
         low, high = self.kl_lr_range
         if not 0 < low <= 1 <= high < math.inf:
