@@ -406,3 +406,18 @@ def test_a_run_shorter_than_its_log_interval_ends_with_its_summary(tmp_path):
     summary = bandit.train(bandit.config(run_dir=tmp_path, total_updates=5, progress=False))
     assert summary["updates"] == 5 and summary["final_running_reward"] is None
     assert json.loads((tmp_path / "summary.json").read_text())["updates"] == 5
+
+
+def test_pendulum_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate():
+    # The recipe's rate became KL-set: a run whose stored config predates the field ran
+    # at --lr alone, and resumes (and is labelled in comparisons) so.
+    from rl_pg.training.config import config_dict
+
+    pendulum = load("pendulum")
+    stored = config_dict(pendulum.config(seed=3))
+    assert (stored["lr_control"], stored["target_kl"]) == ("kl", 0.002)
+    for field in ("lr_control", "target_kl"):
+        del stored[field]  # as a version without the field wrote it
+    old = pendulum.config.from_stored(stored)
+    assert (old.lr_control, old.target_kl) == ("none", 0.01)
+    assert pendulum.config.from_stored(stored, lr_control="kl").lr_control == "kl"

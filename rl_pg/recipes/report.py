@@ -712,15 +712,15 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     config = recipe.config() if recipe.prepare is None else recipe.prepare(recipe.config())
     defaults = json.loads(json.dumps(vars(config), default=str))
     quiet = NOT_SETTINGS | set(TrainConfig.groups["logging"][1])
+    # each run's config as it ran: a field newer than the run at the value it had then
+    configs = [{**defaults, **recipe.config.as_run(run["config"])} for run in runs]
     flags = []
     for name in defaults:
         if name in quiet:
             continue
         values = [
-            defaults[name]
-            if TrainConfig.inert(name, {**defaults, **run["config"]})
-            else run["config"].get(name, defaults[name])
-            for run in runs
+            defaults[name] if TrainConfig.inert(name, config) else config[name]
+            for config in configs
         ]
         distinct = [v for i, v in enumerate(values) if v not in values[:i]]
         if distinct != [defaults[name]]:
