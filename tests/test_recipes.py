@@ -118,6 +118,22 @@ def test_lunarlander_refuses_a_state_dependent_scale_without_a_gaussian(flags):
         lunarlander.config(state_dependent_scale=True, **flags)
 
 
+def test_continuous_lunarlander_starts_at_the_scale_asked():
+    (scale,) = _scale_parameters(lunarlander.config(continuous=True, init_scale=0.3))
+    torch.testing.assert_close(scale.detach().exp(), torch.full((2,), 0.3))
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [{}, {"continuous": True, "bounded": "beta"},
+     {"continuous": True, "state_dependent_scale": True}],
+    ids=["discrete", "beta", "state_dependent"],
+)  # fmt: skip
+def test_lunarlander_refuses_a_starting_scale_without_one_learned_scale(flags):
+    with pytest.raises(ValueError, match=r"--init-scale 0.3 sets the starting scale"):
+        lunarlander.config(init_scale=0.3, **flags)
+
+
 def test_continuous_lunarlander_can_output_its_scale():
     assert not _scale_parameters(lunarlander.config(continuous=True, state_dependent_scale=True))
 

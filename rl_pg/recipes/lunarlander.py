@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
-from rl_pg.training import Count, TrainConfig
+from rl_pg.training import Count, Positive, TrainConfig
 from rl_pg.training.recipe import Recipe
 
 
@@ -55,6 +55,9 @@ class Config(
     Gaussian policy: the network outputs the scale as it does the mean, instead of one
     learned scale per thrust dimension, the same in every state (the default, as in
     Stable-Baselines3 and CleanRL; the docs page has the runs)."""
+    init_scale: Positive = 1.0
+    """With continuous and a Gaussian policy of one learned scale: that scale at the
+    start, in thrust units (the thrust is in [-1, 1])."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
@@ -70,6 +73,12 @@ class Config(
 
     def validate(self) -> None:
         super().validate()
+        if self.init_scale != 1.0 and not (self.gaussian and not self.state_dependent_scale):
+            raise ValueError(
+                f"--init-scale {self.init_scale} sets the starting scale of a Gaussian thrust "
+                f"policy with one learned scale: use it with --continuous (and --bounded "
+                f"normal or tanh_normal, without --state-dependent-scale)."
+            )
         if self.state_dependent_scale and not self.gaussian:
             raise ValueError(
                 "--state-dependent-scale sets the scale of a Gaussian thrust policy: use it "
@@ -108,6 +117,7 @@ def make_models(env: EnvBase, cfg: Config):
         hidden=(cfg.hidden, cfg.hidden),
         bounded=cfg.bounded,
         state_independent_scale=cfg.gaussian and not cfg.state_dependent_scale,
+        init_scale=cfg.init_scale,
     )
 
 
