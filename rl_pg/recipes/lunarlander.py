@@ -56,8 +56,8 @@ class Config(
     learned scale per thrust dimension, the same in every state (the default, as in
     Stable-Baselines3 and CleanRL; the docs page has the runs)."""
     init_scale: Positive = 1.0
-    """With continuous and a Gaussian policy of one learned scale: that scale at the
-    start, in thrust units (the thrust is in [-1, 1])."""
+    """Starting scale of the continuous Gaussian's one learned scale. In thrust units
+    (the thrust is in [-1, 1]); with --continuous, without --state-dependent-scale."""
     num_envs: Count = 8
     """Landers stepped together as one batch in this process."""
     hidden: Count = 128
