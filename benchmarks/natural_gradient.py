@@ -6,7 +6,8 @@ batches (8 landers, 64-step segments), the same batches for every contender:
 - ``adam``: the recipe's update (``rl_pg.training.optimisation.update``: the loss,
   one backward pass, the gradient clip, Adam's step on both networks);
 - ``natural``: ``NaturalGradient.step`` (10 conjugate-gradient iterations, the line
-  search) and the critic's own Adam step on ``loss.value_loss``;
+  search) and the critic's own Adam step on ``loss.value_loss``, on the critic's
+  values of the returns' pass (one critic call per batch, as in the Adam update);
 - ``natural, Fisher on 1/4``: the same with ``fisher_fraction=0.25``;
 - ``natural, K-FAC``: the Kronecker-factored Fisher inverted in closed form
   (``fisher="kfac"``) in place of the conjugate-gradient solve, with the line search;
@@ -76,9 +77,10 @@ def _updater(cfg, actor, critic, natural: dict | None):
     optimizer = torch.optim.Adam(critic_params, lr=cfg.lr)
 
     def natural_update(batch):
-        step.step(batch)
+        weights, valid, value = loss.policy_weights(batch, keep_value=True)
+        step.step(batch, weights, valid)
         optimizer.zero_grad(set_to_none=True)
-        loss.value_loss(batch).backward()
+        loss.value_loss(batch, value=value).backward()
         torch.nn.utils.clip_grad_norm_(critic_params, cfg.max_grad_norm)
         optimizer.step()
 

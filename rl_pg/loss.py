@@ -466,8 +466,11 @@ class ReinforceLoss(TorchRLReinforceLoss):
         return td_out
 
     def policy_weights(
-        self, tensordict: TensorDictBase
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        self, tensordict: TensorDictBase, *, keep_value: bool = False
+    ) -> (
+        tuple[torch.Tensor, torch.Tensor | None]
+        | tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]
+    ):
         """The weights `Ψ_t` of this batch's steps, as ``forward`` weights ``log π``.
 
         Computes the returns when the batch has none (written into it, as ``forward``
@@ -476,10 +479,18 @@ class ReinforceLoss(TorchRLReinforceLoss):
         it is ``forward``'s policy part in two steps, for updates that evaluate the
         policy loss at several parameters on one batch (a line search, a trust region).
 
+        With ``keep_value=True`` it also gives the critic's ``V(s_t)`` as the value
+        estimator computed it here, still attached to the critic's parameters (None
+        when it was not computed in one plain pass: returns already in the batch,
+        ``clip_value``, ``value_norm``, a functional loss): hand it to
+        [`value_loss`][rl_pg.ReinforceLoss.value_loss] (``value=``) and the critic is
+        not called again for its first step on the batch.
+
         Returns:
             ``(weights, valid)``: the detached weights, ``[*B, 1]``, and the steps to
             learn from (``[*B, 1]`` booleans: padding and greedy episodes left out), or
-            ``None`` when every step counts.
+            ``None`` when every step counts; with ``keep_value``, ``(weights, valid,
+            value)``.
 
         Examples:
             >>> import torch
@@ -505,8 +516,8 @@ class ReinforceLoss(TorchRLReinforceLoss):
             >>> bool(terms["loss_actor"] == loss(data)["loss_actor"])
             True
         """
-        weights, _, _, valid = self._take_in(tensordict)
-        return weights, valid
+        weights, _, value, valid = self._take_in(tensordict)
+        return (weights, valid, value) if keep_value else (weights, valid)
 
     def policy_loss(
         self,
@@ -883,16 +894,22 @@ class ReinforceLoss(TorchRLReinforceLoss):
             target = target[valid].reshape(-1, *self.value_norm.shape)
         self.value_norm.update(target.detach())
 
-    def value_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
+    def value_loss(
+        self, tensordict: TensorDictBase, *, value: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """``loss_value`` alone, on a batch whose value targets ``forward`` already wrote.
 
         Fits the critic with more gradient steps per batch than the policy takes (the
         value-function iterations of "vanilla" policy gradient): each call evaluates
         the critic afresh, while the targets stay those of the batch. Reduced (and
         masked) as ``forward`` reduces ``loss_value``, and weighted by ``critic_coeff``.
+        ``value``: the critic's ``V(s_t)`` on this batch, still attached to its current
+        parameters, as ``policy_weights(batch, keep_value=True)`` gave it (the critic
+        is then not called; None calls it).
 
         Raises:
-            ValueError: the loss has no critic.
+            ValueError: the loss has no critic; ``value`` detached from the critic, or
+                given with ``clip_value`` or ``value_norm``.
             KeyError: the batch has no value target yet; call ``forward`` (or the
                 value estimator) on it first.
 
@@ -925,7 +942,23 @@ class ReinforceLoss(TorchRLReinforceLoss):
                 f"The batch has no value target {self.tensor_keys.value_target!r} yet: call "
                 f"the loss (or its value estimator) on it before value_loss."
             )
-        loss_value, _ = self.loss_critic(tensordict)
+        if value is None:
+            loss_value, _ = self.loss_critic(tensordict)
+        else:
+            if self.clip_value is not None or self.value_norm is not None:
+                raise ValueError(
+                    "value_loss(value=...) regresses the given values as they are, which "
+                    "skips clip_value's and value_norm's treatment: leave value=None "
+                    "with them (policy_weights gives None for them anyway)."
+                )
+            if not value.requires_grad:
+                raise ValueError(
+                    "value_loss(value=...) got a value detached from the critic: its loss "
+                    "would train nothing. Pass the value policy_weights(batch, "
+                    "keep_value=True) gave, under torch.enable_grad(), or leave value=None."
+                )
+            target = tensordict.get(self.tensor_keys.value_target)
+            loss_value = self._critic_distance(target, value)
         valid = self._valid_steps(tensordict, loss_value)
         return self._reduce_steps(self.critic_coeff * loss_value, tensordict, valid).squeeze(-1)
 

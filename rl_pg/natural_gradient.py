@@ -51,7 +51,10 @@ class NaturalGradient:
     distribution's parameters), else the mean outer product of the stored actions'
     scores (e.g. a ``TanhNormal``). The critic is not touched: train it with
     its own optimiser on ``loss.value_loss(batch)`` (the value targets are in the
-    batch after ``step``); it must not share parameters with the policy.
+    batch after ``step``); it must not share parameters with the policy. To call the
+    critic once per batch, take ``weights, valid, value = loss.policy_weights(batch,
+    keep_value=True)``, then ``step(batch, weights, valid)`` and
+    ``loss.value_loss(batch, value=value)``.
 
     With ``fisher="kfac"`` each ``nn.Linear`` layer's block of the Fisher is taken as
     the Kronecker product ``A ⊗ G`` of the second moments of its inputs (``A``, with a
@@ -218,9 +221,16 @@ class NaturalGradient:
             direction @ product(direction) - self.damping * direction @ direction
         )
 
-    def step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def step(
+        self,
+        tensordict: TensorDictBase,
+        weights: torch.Tensor | None = None,
+        valid: torch.Tensor | None = None,
+    ) -> TensorDictBase:
         """One natural-gradient step on ``tensordict``: the policy's parameters move in
-        place.
+        place. ``weights`` and ``valid``: the loss's ``policy_weights`` of this batch,
+        when the caller took them already (with ``keep_value=True``, say, to fit the
+        critic on the value they computed); computed here when not given.
 
         Returns:
             A ``TensorDict`` of batch size ``[]``: ``loss_actor`` (and ``loss_entropy``,
@@ -232,7 +242,8 @@ class NaturalGradient:
             for the step taken.
         """
         loss = self.loss
-        weights, valid = loss.policy_weights(tensordict)
+        if weights is None:
+            weights, valid = loss.policy_weights(tensordict)
         before, objective, gradient, factors, old = self._first_order(tensordict, weights, valid)
         # The step is sized by the Fisher itself, without the damping, so that the
         # quadratic model of its KL divergence is max_kl.
@@ -310,13 +321,15 @@ class NaturalGradient:
                 return self._gauss_newton_product(steps, actor, head)
         return self._score_product(steps)
 
-    def _fisher_rows(self, tensordict: TensorDictBase, valid) -> torch.Tensor:
-        """The steps the Fisher is taken on, as indices into the flat batch: every
-        ``1 / fisher_fraction``-th step the loss learns from, in the batch's order."""
+    def _fisher_rows(self, tensordict: TensorDictBase, valid) -> torch.Tensor | slice:
+        """The steps the Fisher is taken on, as an index into the flat batch: every
+        ``1 / fisher_fraction``-th step the loss learns from, in the batch's order (a
+        slice, which indexes without a copy, when every step counts)."""
+        stride = max(1, round(1 / self.fisher_fraction))
+        if valid is None:
+            return slice(None, None, stride)
         index = torch.arange(tensordict.numel(), device=tensordict.device)
-        if valid is not None:
-            index = index[valid.reshape(-1)]
-        return index[:: max(1, round(1 / self.fisher_fraction))]
+        return index[valid.reshape(-1)][::stride]
 
     def _fisher_steps(self, tensordict: TensorDictBase, valid) -> TensorDictBase:
         """The steps the Fisher is taken on (``_fisher_rows``), flat."""
@@ -446,14 +459,16 @@ def _recording(layers):
             hook.remove()
 
 
-def _kronecker_factors(layers, seen, dist, batch_size: torch.Size, rows: torch.Tensor):
+def _kronecker_factors(layers, seen, dist, batch_size: torch.Size, rows: torch.Tensor | slice):
     """Each layer's ``A`` (second moment of its inputs, a 1 appended for a bias) and ``G``
     (of the gradient of ``log π(ã|s)`` at its outputs, ``ã`` sampled from ``dist``,
     one per step) over the flat batch's ``rows``, from the forward pass ``seen``
     recorded."""
     with torch.no_grad():
         sampled = dist.sample()
-    score = log_prob_per_step(dist, sampled, batch_size).reshape(-1)[rows].sum()
+    scores = log_prob_per_step(dist, sampled, batch_size).reshape(-1)[rows]
+    count = len(scores)
+    score = scores.sum()
     outputs = [seen[layer][1] for layer, _, _ in layers]
     grads = torch.autograd.grad(score, outputs, allow_unused=True)
     factors = []
@@ -462,11 +477,11 @@ def _kronecker_factors(layers, seen, dist, batch_size: torch.Size, rows: torch.T
         a = inputs.T @ inputs
         if bias is not None:  # the bias's input is a constant 1
             total = inputs.sum(0, keepdim=True)
-            corner = total.new_full((1, 1), float(len(rows)))
+            corner = total.new_full((1, 1), float(count))
             a = torch.cat([torch.cat([a, total.T], 1), torch.cat([total, corner], 1)], 0)
         grad = torch.zeros_like(output) if grad is None else grad
         grad = grad.detach().reshape(-1, layer.out_features)[rows]
-        factors.append((a / len(rows), grad.T @ grad / len(rows)))
+        factors.append((a / count, grad.T @ grad / count))
     return factors
 
 

@@ -607,6 +607,56 @@ class TestValueLoss:
         for before, after in zip(actor_before, categorical_actor.parameters(), strict=True):
             assert torch.equal(before, after)
 
+    @pytest.mark.parametrize("padded", [False, True])
+    def test_the_value_kept_by_policy_weights_gives_the_same_loss_and_gradient(
+        self, categorical_actor, critic, categorical_batch, padded
+    ):
+        if padded:
+            mask = torch.ones(3, 7, 1, dtype=torch.bool)
+            mask[1, 3:] = False
+            categorical_batch["collector", "mask"] = mask
+        loss = ReinforceLoss(categorical_actor, critic, critic_coeff=0.5, functional=False)
+        loss.make_value_estimator("reward_to_go", gamma=0.9)
+        weights, valid, value = loss.policy_weights(categorical_batch.clone(), keep_value=True)
+        assert value is not None and value.requires_grad
+        batch = categorical_batch.clone()
+        expected_weights, expected_valid = loss.policy_weights(batch)
+        torch.testing.assert_close(weights, expected_weights)
+        assert (valid is None) == (expected_valid is None) == (not padded)
+        if padded:
+            assert torch.equal(valid, expected_valid)
+        kept = loss.value_loss(batch, value=value)
+        called = loss.value_loss(batch)
+        torch.testing.assert_close(kept, called)
+        grads = [torch.autograd.grad(x, list(critic.parameters())) for x in (kept, called)]
+        for a, b in zip(*grads, strict=True):
+            torch.testing.assert_close(a, b)
+
+    @pytest.mark.parametrize(
+        "setting, returns", [({"clip_value": 0.5}, "reward_to_go"), ({"functional": True},
+        "reward_to_go"), ({}, "gae")]
+    )  # fmt: skip
+    def test_no_value_is_kept_where_the_returns_pass_is_not_plain(
+        self, categorical_actor, critic, categorical_batch, setting, returns
+    ):
+        loss = ReinforceLoss(categorical_actor, critic, **{"functional": False, **setting})
+        loss.make_value_estimator(returns, gamma=0.9)
+        *_, value = loss.policy_weights(categorical_batch, keep_value=True)
+        assert value is None
+
+    def test_a_detached_or_clipped_value_is_refused(
+        self, categorical_actor, critic, categorical_batch
+    ):
+        loss = ReinforceLoss(categorical_actor, critic, functional=False)
+        loss.make_value_estimator("reward_to_go", gamma=0.9)
+        *_, value = loss.policy_weights(categorical_batch, keep_value=True)
+        with pytest.raises(ValueError, match="detached from the critic: its loss"):
+            loss.value_loss(categorical_batch, value=value.detach())
+        clipped = ReinforceLoss(categorical_actor, critic, clip_value=0.5)
+        clipped(categorical_batch)
+        with pytest.raises(ValueError, match="skips clip_value's and value_norm's"):
+            clipped.value_loss(categorical_batch, value=value)
+
     def test_without_a_critic(self, categorical_actor, categorical_batch):
         loss = ReinforceLoss(categorical_actor)
         loss(categorical_batch)

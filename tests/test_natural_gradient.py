@@ -4,6 +4,8 @@ tests/test_exact_gradients.py.)"""
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 from conftest import make_batch, make_categorical_actor, make_critic, make_gaussian_actor
@@ -134,6 +136,27 @@ class TestNaturalGradient:
         loss.value_loss(batch).backward()  # the targets the step wrote
         optimiser.step()
         assert not torch.equal(critic_before[0], next(critic.parameters()))
+
+    @pytest.mark.parametrize("fisher", ["exact", "kfac"])
+    def test_weights_taken_beforehand_give_the_same_step(self, categorical_actor, critic, fisher):
+        steps = []
+        for given in (False, True):
+            actor = copy.deepcopy(categorical_actor)
+            loss = ReinforceLoss(actor, copy.deepcopy(critic), functional=False)
+            loss.make_value_estimator("reward_to_go", gamma=0.99)
+            batch = _batch()
+            torch.manual_seed(1)
+            if given:
+                weights, valid, value = loss.policy_weights(batch, keep_value=True)
+                out = NaturalGradient(loss, fisher=fisher).step(batch, weights, valid)
+                assert value is not None
+            else:
+                out = NaturalGradient(loss, fisher=fisher).step(batch)
+            steps.append((out, [p.detach().clone() for p in actor.parameters()]))
+        (out_a, after_a), (out_b, after_b) = steps
+        for a, b in zip(after_a, after_b, strict=True):
+            torch.testing.assert_close(a, b)
+        torch.testing.assert_close(out_a["kl"], out_b["kl"])
 
     def test_a_critic_that_shares_the_policys_parameters_is_refused(self):
         trunk = nn.Linear(3, 8)

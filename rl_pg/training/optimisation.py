@@ -279,7 +279,10 @@ def _after_step(cfg, loss, optimizer, batch, losses, metrics: dict, max_norm: fl
 def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch, lr) -> dict:
     """The policy's natural-gradient step, then the critic's Adam step on the value
     targets the step wrote into the batch."""
-    out = optimizer.natural.step(batch)
+    # The critic's V(s_t) from the returns' pass is regressed as it is: one critic
+    # call per batch, as in the Adam update.
+    weights, valid, value = loss.policy_weights(batch, keep_value=True)
+    out = optimizer.natural.step(batch, weights, valid)
     policy = out["loss_actor"] + out.get("loss_entropy", 0.0)
     _check_finite(policy, f"The policy loss became {policy.item()} ({_describe(out)})")
     metrics = {
@@ -289,7 +292,7 @@ def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch
         metrics[f"train/{key}"] = out[key].item()
     max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
     if optimizer.critic is not None:
-        value_loss = loss.value_loss(batch)
+        value_loss = loss.value_loss(batch, value=value)
         _check_finite(value_loss, f"The critic's loss became {value_loss.item()}")
         grad_norm = _step(cfg, loss, optimizer, value_loss, lr, max_norm)
         metrics["loss/value"] = value_loss.item()
