@@ -197,20 +197,18 @@ def stored_rl_pg(path: Path, seeds: list[int]) -> dict[int, dict[str, Any]]:
 
 
 def summarise(runs: dict[str, dict[int, dict]], threshold: float) -> dict[str, Any]:
-    """The table (printed) and each tool's held count."""
+    """The table (printed) and each tool's held count over the seeds it has run so far
+    (a stopped benchmark's tools may have run different seeds: "—" where one has not)."""
+    seeds = sorted({seed for by_seed in runs.values() for seed in by_seed})
     rows, held = [], {}
     for tool, by_seed in runs.items():
         holds = [min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= threshold
                  for r in by_seed.values()]  # fmt: skip
         held[tool] = f"{sum(holds)}/{len(holds)}"
-        rows.append(
-            [tool, held[tool]]
-            + [
-                f"{r['greedy']['mean_return']:.0f} / {r['sampled']['mean_return']:.0f}"
-                for _, r in sorted(by_seed.items())
-            ]
-        )
-    seeds = sorted(next(iter(runs.values()))) if runs else []
+        means = {s: (r["greedy"]["mean_return"], r["sampled"]["mean_return"])
+                 for s, r in by_seed.items()}  # fmt: skip
+        cells = [f"{means[s][0]:.0f} / {means[s][1]:.0f}" if s in means else "—" for s in seeds]
+        rows.append([tool, held[tool], *cells])
     print(table(rows, ["tool", "held both ways"] + [f"seed {s}: greedy / sampled" for s in seeds]))
     return {"held": held}
 
@@ -248,7 +246,7 @@ def main(cfg: Config) -> dict[str, Any]:
                 f"sampled {run['sampled']['mean_return']:.1f} ({run['wall_s']:.0f} s)",
                 flush=True,
             )
-            write_json(cfg.json_path, cfg, runs=runs)
+            write_json(cfg.json_path, cfg, runs=runs, **summarise(runs, cfg.threshold))
     return write_json(cfg.json_path, cfg, runs=runs, **summarise(runs, cfg.threshold))
 
 

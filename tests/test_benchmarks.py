@@ -185,6 +185,21 @@ def test_held_both_ways_reads_rl_pg_from_the_stored_runs(tmp_path):
         module.stored_rl_pg(stored, [0, 99])
 
 
+def test_held_both_ways_summarises_tools_that_ran_different_seeds():
+    module = _script("held_both_ways")
+
+    def run(greedy, sampled):
+        return {"greedy": {"mean_return": greedy}, "sampled": {"mean_return": sampled}}
+
+    runs = {
+        "rl_pg (stored)": {0: run(240, 210), 1: run(201, 123), 2: run(252, 231)},
+        "sb3_a2c": {0: run(96, 87), 1: run(74, 38)},
+        "sb3_trpo": {0: run(214, 205)},
+    }
+    out = module.summarise(runs, 200.0)
+    assert out["held"] == {"rl_pg (stored)": "2/3", "sb3_a2c": "0/2", "sb3_trpo": "1/1"}
+
+
 def test_time_to_solve_counts_unsolved_runs_as_never_solving():
     """A tool that spends its short budget without solving must not look fast."""
     module = _script("time_to_solve")
