@@ -29,7 +29,9 @@ from rl_pg.training.recipe import Recipe
 @dataclass
 class Config(
     TrainConfig,
-    total_frames=500_000,
+    # Most seeds' best checkpoints come after 700k frames; at 500k some were still
+    # swinging up too slowly (docs/lab/pendulum.md, "A larger budget: 1M frames").
+    total_frames=1_000_000,
     batch_mode="segments",
     segment_length=8,
     returns="gae",
