@@ -243,7 +243,18 @@ class NaturalGradient:
         """
         loss = self.loss
         if weights is None:
+            if valid is not None:
+                raise ValueError(
+                    "NaturalGradient.step got valid without weights: pass both as "
+                    "loss.policy_weights(batch) gave them, or neither."
+                )
             weights, valid = loss.policy_weights(tensordict)
+        elif valid is None and loss._valid_steps(tensordict, weights) is not None:
+            raise ValueError(
+                "NaturalGradient.step got weights without valid for a batch with steps to "
+                "leave out (padding, greedy episodes): pass the valid that "
+                "loss.policy_weights(batch) gave with them."
+            )
         before, objective, gradient, factors, old = self._first_order(tensordict, weights, valid)
         # The step is sized by the Fisher itself, without the damping, so that the
         # quadratic model of its KL divergence is max_kl.

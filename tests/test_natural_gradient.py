@@ -158,6 +158,19 @@ class TestNaturalGradient:
             torch.testing.assert_close(a, b)
         torch.testing.assert_close(out_a["kl"], out_b["kl"])
 
+    def test_weights_and_valid_go_together(self, categorical_actor):
+        loss = ReinforceLoss(categorical_actor)
+        batch = _batch()
+        batch["collector", "mask"] = torch.ones(6, 10, 1, dtype=torch.bool)
+        batch["collector", "mask"][0, 5:] = False
+        weights, valid = loss.policy_weights(batch)
+        update = NaturalGradient(loss)
+        with pytest.raises(ValueError, match="weights without valid for a batch with steps"):
+            update.step(batch, weights)
+        with pytest.raises(ValueError, match="valid without weights"):
+            update.step(batch, valid=valid)
+        assert float(update.step(batch, weights, valid)["kl"]) > 0
+
     def test_a_critic_that_shares_the_policys_parameters_is_refused(self):
         trunk = nn.Linear(3, 8)
         actor = ProbabilisticActor(
