@@ -33,7 +33,9 @@ class KLStepSize:
     was above twice ``target_kl``, multiplied by it when below half (the adaptive rule
     of rl_games and of PPO with an adaptive KL, Schulman et al. 2017), within
     ``[lr_min, lr_max]``. Any ``torch.optim`` optimiser; the learning rate it holds is
-    in its ``state_dict``, so a checkpoint keeps it.
+    in its ``state_dict``, so a checkpoint keeps it. Several groups set change by one
+    factor, so their rates keep their ratios (a larger step for some parameters stays
+    larger); the bounds hold the first group's rate.
 
     Args:
         optimizer (torch.optim.Optimizer): the optimiser of the policy.
@@ -47,6 +49,7 @@ class KLStepSize:
         lr_max (float): the highest learning rate. Defaults to ``1.0``.
         groups (Sequence[int], optional): the optimiser's parameter groups to set (the
             policy's, when a critic shares the optimiser). Defaults to ``None``: all.
+            The first one named is the one ``lr_min`` and ``lr_max`` bound.
         action_key (NestedKey): the stored actions (for policies without a closed-form
             KL). Defaults to ``"action"``.
 
@@ -154,9 +157,11 @@ class KLStepSize:
             change = 1 / self.factor
         elif kl < self.target_kl / 2:
             change = self.factor
+        groups = self.optimizer.param_groups
+        first = groups[self.groups[0]]["lr"]
+        change = min(max(first * change, self.lr_min), self.lr_max) / first
         for index in self.groups:
-            group = self.optimizer.param_groups[index]
-            group["lr"] = min(max(group["lr"] * change, self.lr_min), self.lr_max)
+            groups[index]["lr"] *= change
         return {"kl": kl, "lr": self.optimizer.param_groups[self.groups[0]]["lr"]}
 
 

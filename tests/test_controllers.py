@@ -57,6 +57,22 @@ class TestKLStepSize:
         step_size.after(batch)
         assert [g["lr"] for g in optimizer.param_groups] == [1.0, 0.9]  # only group 1, clamped
 
+    def test_groups_keep_their_ratio_and_the_first_is_bounded(self, categorical_actor):
+        linear = categorical_actor.module[0].module
+        optimizer = torch.optim.SGD(
+            [{"params": [linear.weight], "lr": 0.1}, {"params": [linear.bias], "lr": 1.0}]
+        )
+        step_size = KLStepSize(optimizer, categorical_actor, lr_min=0.05, lr_max=1.0)
+        batch = make_batch(torch.randint(0, 4, (4, 8)))
+        for expected in (0.1 / 1.5, 0.05):  # the second change stops at the first's bound
+            step_size.before(batch)
+            with torch.no_grad():
+                linear.weight.mul_(10)  # a huge move
+            step_size.after(batch)
+            lrs = [g["lr"] for g in optimizer.param_groups]
+            assert lrs[0] == pytest.approx(expected)
+            assert lrs[1] == pytest.approx(10 * expected)  # above lr_max: the ratio holds
+
     def test_it_holds_the_kl_near_its_target_while_training(self):
         # CartPole with Adam at a learning rate far too large (the first update moves
         # the policy by a KL above 1): within 20 updates the rate has come down and the

@@ -84,3 +84,36 @@ def _step(cfg, loss, batch) -> dict[str, list[torch.Tensor]]:
         k: [b - p.detach() for b, p in zip(before[k], net.parameters(), strict=True)]
         for k, net in nets.items()
     }
+
+
+def test_scale_lr_factor_steps_the_gaussian_scale_apart_at_every_rate(tmp_path):
+    # SGD moves each weight by lr times its gradient: the scale's step is factor x larger.
+    env = gym_env("Pendulum-v1")
+    actor, critic = mlp_actor_critic(env, state_independent_scale=True)
+    with torch.no_grad():
+        batch = env.rollout(50, actor, break_when_any_done=False)
+    cfg = TrainConfig(run_dir=tmp_path, lr=0.01, optimizer="sgd", gamma=0.99)
+    steps = {}
+    for factor in (1.0, 10.0):
+        cfg = replace(cfg, scale_lr_factor=factor)
+        loss = make_loss(cfg, *copy.deepcopy((actor, critic)))
+        optimizer = make_optimizer(cfg, loss)
+        scale = next(p for n, p in loss.actor_network.named_parameters() if "scale" in n)
+        before = scale.detach().clone()
+        update(cfg, loss, optimizer, batch, lr=0.5 * cfg.lr)  # a scheduled rate
+        steps[factor] = scale.detach() - before
+        assert [g["lr"] for g in optimizer.param_groups] == (
+            [0.005] if factor == 1 else [0.005, 0.05]
+        )
+    assert steps[1.0].abs().min() > 0
+    torch.testing.assert_close(steps[10.0], 10 * steps[1.0])
+
+
+def test_scale_lr_factor_refuses_a_policy_without_a_learned_scale(tmp_path):
+    env = gym_env("Pendulum-v1")
+    cfg = TrainConfig(run_dir=tmp_path, scale_lr_factor=10.0)
+    loss = make_loss(cfg, *mlp_actor_critic(env))  # the scale is an output of the network
+    with pytest.raises(ValueError, match=r"--scale-lr-factor 10\.0 .* has none"):
+        make_optimizer(cfg, loss)
+    with pytest.raises(ValueError, match="--optimizer natural has no learning rate"):
+        TrainConfig(run_dir=tmp_path, scale_lr_factor=10.0, optimizer="natural").validate()

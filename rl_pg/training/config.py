@@ -83,7 +83,8 @@ class TrainConfig:
         )),
         "optimiser": ("The optimiser and its step size.", (
             "optimizer", "max_kl", "fisher", "adam_beta1", "lr", "lr_schedule",
-            "lr_schedule_start", "lr_control", "target_kl", "kl_lr_range", "weight_decay",
+            "lr_schedule_start", "lr_control", "target_kl", "kl_lr_range", "scale_lr_factor",
+            "weight_decay",
             "max_grad_norm", "clip_scope",
         )),
         "evaluation": ("Evaluations during training and the checkpoint they keep as best.", (
@@ -272,6 +273,12 @@ class TrainConfig:
     """With lr_control 'kl': the rate's bounds, as factors of lr (LOW HIGH). The upper
     one keeps a run of small KLs from growing the rate to where one update wrecks the
     policy."""
+    scale_lr_factor: Positive = 1.0
+    """Learning rate of a Gaussian's learned scale, as a factor of lr.
+    For a policy with one scale per action dimension, the same in every state (its own
+    parameter group; the ratio holds through lr_schedule and lr_control). Its gradient
+    changes sign from batch to batch, so at the rate of the rest the scale barely
+    moves from where it starts."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -555,6 +562,12 @@ class TrainConfig:
                 f"linear also set: use one (got --optimizer {self.optimizer}, --lr-schedule "
                 f"{self.lr_schedule}; --lr-control none turns the KL-set rate off where a "
                 f"recipe has it on)."
+            )
+        if self.scale_lr_factor != 1 and self.optimizer == "natural":
+            raise ValueError(
+                f"--scale-lr-factor {self.scale_lr_factor} sets the learning rate of a "
+                f"Gaussian policy's scale, but --optimizer natural has no learning rate (its "
+                f"step is set by --max-kl): use --optimizer adam or sgd, or drop the flag."
             )
         low, high = self.kl_lr_range
         if not 0 < low <= 1 <= high < math.inf:

@@ -128,6 +128,8 @@ def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss):
         return NaturalOptimiser(cfg, loss)
     params = [p for p in loss.parameters() if p.requires_grad]
     fused = {"fused": True} if _fused_kernels(params) else {}
+    if cfg.scale_lr_factor != 1:
+        params = _scale_apart(loss, params, cfg.scale_lr_factor, cfg.lr)
     if cfg.optimizer == "sgd":
         return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
     return torch.optim.Adam(
@@ -137,6 +139,26 @@ def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss):
         weight_decay=cfg.weight_decay,
         **fused,
     )
+
+
+def _scale_apart(loss: ReinforceLoss, params: list, factor: float, lr: float) -> list[dict]:
+    """Two parameter groups: the Gaussian's state-independent scales at ``factor``
+    times ``lr`` (``lr_factor`` in the group, which ``_set_lr`` keeps), the rest."""
+    scales = {
+        id(module.state_independent_scale)
+        for module in loss.actor_network.modules()
+        if isinstance(getattr(module, "state_independent_scale", None), nn.Parameter)
+    }
+    if not scales:
+        raise ValueError(
+            f"--scale-lr-factor {factor} sets the learning rate of a Gaussian policy's "
+            f"learned scale, one per action dimension, but this policy has none (a "
+            f"categorical or Beta policy, or a scale output by the network): drop the "
+            f"flag, or build a Gaussian policy with a state-independent scale."
+        )
+    rest = [p for p in params if id(p) not in scales]
+    scale = [p for p in params if id(p) in scales]
+    return [{"params": rest}, {"params": scale, "lr": factor * lr, "lr_factor": factor}]
 
 
 def learning_rate(cfg: TrainConfig, frames: int) -> float | None:
@@ -248,7 +270,7 @@ def _step(cfg, loss, optimizer, total: torch.Tensor, lr, max_norm: float) -> tor
 def _set_lr(optimizer, lr: float | None) -> None:
     if lr is not None:
         for group in optimizer.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group.get("lr_factor", 1.0)
 
 
 def _after_step(cfg, loss, optimizer, batch, losses, metrics: dict, max_norm: float) -> dict:
