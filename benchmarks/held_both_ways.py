@@ -9,9 +9,10 @@ policy then plays ``final_episodes`` fresh episodes greedily and as many by samp
 its actions; a seed *holds* when both means reach the threshold. SB3's settings are
 rl-baselines3-zoo's for LunarLander (their linear schedules decay over the budget
 given here, not the zoo's shorter one). rl_pg's row is read from the recipe's stored
-runs (``--rl-pg-stored``, the same protocol: ``rl-pg train lunarlander --seed S``, then
-``rl-pg evaluate RUN --episodes 100`` and ``--sample``), or trained here with
-``--tools rl_pg ...``.
+runs (``--rl-pg-stored``: ``rl-pg train lunarlander --seed S``, then ``rl-pg evaluate
+RUN --episodes 100`` and ``--sample``; the recipe's defaults confirm a candidate
+``best.pt`` on 100 more episodes both ways, its former defaults kept the best greedy
+evaluation as the other tools do), or trained here with ``--tools rl_pg ...``.
 
 Each finished (tool, seed) is written to the JSON at once: a killed run starts again
 where it stopped (``--fresh`` discards what is there).
@@ -76,9 +77,16 @@ class Config:
     """Seeds run by every tool."""
     tools: list[str] = field(default_factory=lambda: ["sb3_a2c", "sb3_trpo"])
     """Tools trained here (any of rl_pg, sb3_a2c, sb3_trpo)."""
-    rl_pg_stored: Path | None = REPO / "results" / "lunarlander-seeds.json"
-    """rl_pg's runs, stored by rl-pg report --store (None, or rl_pg among --tools: none
-    read)."""
+    rl_pg_stored: list[Path] = field(
+        default_factory=lambda: [
+            REPO / "results" / "lunarlander-kl-rate-0.001-confirm-entropy-0.json",
+            REPO / "results" / "lunarlander-seeds.json",
+        ]
+    )
+    """rl_pg's runs, stored by rl-pg report --store, one row per file, named by it (the
+    recipe's defaults, whose best.pt is confirmed both ways on 100 more episodes, and
+    its former defaults, kept by the best greedy evaluation as the other tools' are).
+    None read with rl_pg among --tools."""
     budget_frames: int = 1_000_000
     """Frames every tool trains."""
     eval_interval: int = 25_000
@@ -230,8 +238,9 @@ def main(cfg: Config) -> dict[str, Any]:
             )
         done = {t: {int(s): r for s, r in by.items()} for t, by in kept["runs"].items()}
     runs: dict[str, dict[int, dict]] = {}
-    if cfg.rl_pg_stored is not None and "rl_pg" not in cfg.tools:
-        runs["rl_pg (stored)"] = stored_rl_pg(cfg.rl_pg_stored, cfg.seeds)
+    if "rl_pg" not in cfg.tools:
+        for path in cfg.rl_pg_stored:
+            runs[f"rl_pg: {path.stem}"] = stored_rl_pg(path, cfg.seeds)
     for tool in cfg.tools:
         runs[tool] = {s: r for s, r in done.get(tool, {}).items() if s in cfg.seeds}
     for seed in cfg.seeds:  # seeds interleaved: machine noise hits every tool alike

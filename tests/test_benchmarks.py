@@ -161,7 +161,7 @@ def test_held_both_ways(tool, tmp_path, monkeypatch):
     pytest.importorskip("sb3_contrib" if tool == "sb3_trpo" else "stable_baselines3")
     module = _script("held_both_ways")
     cfg = module.Config(
-        seeds=[0], tools=[tool], rl_pg_stored=None, budget_frames=2048, eval_interval=1024,
+        seeds=[0], tools=[tool], rl_pg_stored=[], budget_frames=2048, eval_interval=1024,
         eval_episodes=2, final_episodes=10, json_path=tmp_path / "h.json",
     )  # fmt: skip
     out = module.main(cfg)

@@ -442,7 +442,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
                                   capsys=capsys)  # fmt: skip
     assert status == 0, err
     first, second, _, shared = out.strip().splitlines()[2:]
-    assert first.startswith("| defaults | 0 1 |")  # what both share is said once, below
+    # what both share is said once, below; the row of those flags alone is no default
+    assert first.startswith("| only the flags below | 0 1 |")
     assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
     assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
     assert "--target-kl" not in second

@@ -437,3 +437,18 @@ def test_pendulum_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate():
     old = pendulum.config.from_stored(stored)
     assert (old.lr_control, old.target_kl) == ("none", 0.01)
     assert pendulum.config.from_stored(stored, lr_control="kl").lr_control == "kl"
+
+
+def test_lunarlander_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate():
+    # LunarLander's defaults became the KL-set rate without the entropy bonus, best.pt
+    # confirmed both ways: a stored config that predates lr_control ran at --lr alone.
+    from rl_pg.training.config import config_dict
+
+    lunarlander = load("lunarlander")
+    stored = config_dict(lunarlander.config(seed=3))
+    assert (stored["lr_control"], stored["target_kl"]) == ("kl", 0.001)
+    assert (stored["entropy_coeff"], stored["confirm_episodes"]) == (0.0, 100)
+    for field in ("lr_control", "target_kl"):
+        del stored[field]  # as a version without the field wrote it
+    old = lunarlander.config.from_stored(stored)
+    assert (old.lr_control, old.target_kl) == ("none", 0.01)

@@ -14,7 +14,7 @@ Needs the box2d extra::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, ClassVar, Literal
 
 from torchrl.envs import EnvBase
 
@@ -33,7 +33,9 @@ class Config(
     segment_length=64,
     episodes_per_batch=16,
     lr=1e-3,
-    entropy_coeff=0.01,
+    lr_control="kl",  # the rate set by each update's KL divergence, from lr
+    target_kl=0.001,
+    entropy_coeff=0.0,
     critic_coeff=0.5,
     max_grad_norm=0.5,
     checkpoint_interval=100,
@@ -42,8 +44,12 @@ class Config(
     eval_interval=25_000,
     threshold=200.0,
     stop_when_solved=False,  # the first pass is often lucky; best.pt keeps the best one
+    confirm_episodes=100,  # best.pt: the candidate best both greedily and by sampling
 ):
     """REINFORCE with reward-to-go and a learned value baseline on LunarLander-v3."""
+
+    # Runs stored before the KL-set rate was the default trained at --lr alone.
+    absent_means: ClassVar[dict[str, Any]] = {"lr_control": "none", "target_kl": 0.01}
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))), with the policy bounded says."""

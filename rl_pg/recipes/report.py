@@ -659,9 +659,12 @@ def format_settings(paths: list[Path]) -> str:
             if evaluated and threshold is not None
             else "—"
         )
+        # a row of the shared flags alone is not the defaults: say where its flags are
+        label = " ".join(f"`{f}`" for f in setting if f not in shared) or (
+            "only the flags below" if setting else "defaults"
+        )
         lines.append(
-            f"| {recipe + ': ' if mixed else ''}"
-            f"{' '.join(f'`{f}`' for f in setting if f not in shared) or 'defaults'} | "
+            f"| {recipe + ': ' if mixed else ''}{label} | "
             f"{_seeds([r['seed'] for r in reports])} | "
             f"{sum(at is not None for at in reached)}/{len(reports)} | "
             + ("—" if not np.isfinite(median) else f"{median:,.0f}")
