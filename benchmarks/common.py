@@ -37,13 +37,20 @@ def machine() -> dict[str, Any]:
 def write_json(path: Path, config: Any, **results: Any) -> dict[str, Any]:
     """Writes ``{"config", "machine", **results}`` to ``path`` and returns it."""
     if dataclasses.is_dataclass(config):
-        config = {
-            k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(config).items()
-        }
+        config = {k: _plain_paths(v) for k, v in dataclasses.asdict(config).items()}
     result = {"config": config, "machine": machine(), **results}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2))
     return result
+
+
+def _plain_paths(value: Any) -> Any:
+    """``value`` with every ``Path`` in it (in lists and tuples too) as a string."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, list | tuple):
+        return [_plain_paths(v) for v in value]
+    return value
 
 
 def ratio_interval(

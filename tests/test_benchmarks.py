@@ -181,6 +181,13 @@ def test_held_both_ways_reads_rl_pg_from_the_stored_runs(tmp_path):
     stored = Path(__file__).resolve().parents[1] / "results" / "lunarlander-seeds.json"
     runs = module.stored_rl_pg(stored, [0, 1])
     assert runs[0]["greedy"]["mean_return"] > 0 and set(runs) == {0, 1}
+    # one row per store, named by it; the file keeps the stores' paths
+    cfg = module.Config(seeds=[0, 1], tools=[], rl_pg_stored=[stored, stored],
+                        json_path=tmp_path / "h.json")  # fmt: skip
+    out = module.main(cfg)
+    assert set(out["held"]) == {"rl_pg: lunarlander-seeds"}
+    kept = json.loads((tmp_path / "h.json").read_text())
+    assert kept["config"]["rl_pg_stored"] == [str(stored)] * 2
     with pytest.raises(SystemExit, match="no run evaluated both ways for seeds"):
         module.stored_rl_pg(stored, [0, 99])
 
