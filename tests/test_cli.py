@@ -628,6 +628,21 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         assert status == 1 and message in err, (args, err)
 
 
+def test_no_value_marker_opens_a_line_of_a_page():
+    # Markdown opens an HTML block at a comment that starts a line: the sentence around
+    # the value would be cut into paragraphs (and the comment shown raw on GitHub).
+    pages = [REPO / "README.md", REPO / "RESULTS.md", REPO / "benchmarks" / "README.md",
+             *sorted((REPO / "docs").rglob("*.md"))]  # fmt: skip
+    opening = []
+    for page in pages:
+        fenced = False
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            fenced ^= line.lstrip().startswith("```")
+            if not fenced and line.lstrip().startswith("<!-- value"):
+                opening.append(f"{page.relative_to(REPO)}:{number}")
+    assert not opening, f"value markers that open a line (join them to words): {opening}"
+
+
 def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
     from matplotlib.testing.compare import compare_images
 
