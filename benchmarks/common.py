@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from rl_pg.training.config import config_dict
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -37,20 +39,11 @@ def machine() -> dict[str, Any]:
 def write_json(path: Path, config: Any, **results: Any) -> dict[str, Any]:
     """Writes ``{"config", "machine", **results}`` to ``path`` and returns it."""
     if dataclasses.is_dataclass(config):
-        config = {k: _plain_paths(v) for k, v in dataclasses.asdict(config).items()}
+        config = config_dict(config)
     result = {"config": config, "machine": machine(), **results}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=2))
     return result
-
-
-def _plain_paths(value: Any) -> Any:
-    """``value`` with every ``Path`` in it (in lists and tuples too) as a string."""
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, list | tuple):
-        return [_plain_paths(v) for v in value]
-    return value
 
 
 def ratio_interval(

@@ -591,9 +591,10 @@ class TrainConfig:
             )
 
 
-def config_dict(cfg: TrainConfig) -> dict[str, Any]:
-    """The config as plain JSON-able values (paths as strings, pairs as lists), as a
-    run's config.json holds them: a stored config and a new one compare entry by entry."""
+def config_dict(cfg: Any) -> dict[str, Any]:
+    """The config (a ``TrainConfig``, or any dataclass) as plain JSON-able values (paths
+    as strings, pairs as lists), as a run's config.json holds them: a stored config and
+    a new one compare entry by entry."""
     return {key: _plain(value) for key, value in dataclasses.asdict(cfg).items()}
 
 
