@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import hide_module
 
-from rl_pg.recipes import NAMES
+from rl_pg.recipes import NAMES, load
 from rl_pg.recipes.cli import field_docs, main
 from rl_pg.training import TrainConfig
 
@@ -626,6 +626,33 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     ]:
         status, _, err = in_process(*args, capsys=capsys)
         assert status == 1 and message in err, (args, err)
+
+
+def test_a_setting_names_a_resolved_default_only_where_a_run_left_it():
+    # LunarLander's scale_lr_factor defaults to None, resolved by the policy (30 for the
+    # continuous Gaussian, 1 otherwise) and stored resolved: a run at its policy's
+    # value shows no flag, a run that set another one does.
+    from rl_pg.recipes.report import _setting
+    from rl_pg.training.config import config_dict
+
+    lunarlander = load("lunarlander")
+
+    def runs(**flags):
+        config = config_dict(lunarlander.config(**flags))
+        return [{"report": {"recipe": "lunarlander"}, "config": config}]
+
+    assert _setting(runs()) == []
+    assert _setting(runs(continuous=True)) == ["--continuous"]
+    assert sorted(_setting(runs(continuous=True, scale_lr_factor=1.0))) == [
+        "--continuous",
+        "--scale-lr-factor 1.0",
+    ]
+    assert _setting(runs(scale_lr_factor=1.0)) == []
+    both = runs(continuous=True) + runs(continuous=True, scale_lr_factor=10.0)
+    assert sorted(_setting(both)) == [
+        "--continuous",
+        "--scale-lr-factor 30.0 / --scale-lr-factor 10.0",
+    ]
 
 
 def test_no_value_marker_opens_a_line_of_a_page():

@@ -439,6 +439,35 @@ def test_pendulum_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate():
     assert pendulum.config.from_stored(stored, lr_control="kl").lr_control == "kl"
 
 
+@pytest.mark.parametrize(
+    ("flags", "factor"),
+    [
+        ({}, 1.0),  # discrete engines: no scale
+        ({"continuous": True}, 30.0),  # one learned scale per thrust dimension
+        ({"continuous": True, "bounded": "tanh_normal"}, 30.0),
+        ({"continuous": True, "state_dependent_scale": True}, 1.0),  # the network's
+        ({"continuous": True, "bounded": "beta"}, 1.0),
+        ({"continuous": True, "scale_lr_factor": 5.0}, 5.0),  # given: kept
+        ({"continuous": True, "optimizer": "natural", "lr_control": "none"}, 1.0),
+    ],
+)
+def test_lunarlander_steps_the_continuous_gaussians_scale_at_thirty_times_the_rate(flags, factor):
+    # The default None resolves by the policy, and is stored resolved: config.json says
+    # what ran, and a run stored before the field trained at one rate.
+    from rl_pg.training.config import config_dict
+
+    lunarlander = load("lunarlander")
+    cfg = lunarlander.config(**flags)
+    assert cfg.scale_lr_factor == factor
+    stored = config_dict(cfg)
+    assert stored["scale_lr_factor"] == factor
+    assert lunarlander.config.from_stored(stored).scale_lr_factor == factor
+    del stored["scale_lr_factor"]  # as a version without the field wrote it
+    assert lunarlander.config.from_stored(stored).scale_lr_factor == 1.0
+    # a recipe that does not choose by policy: None is the one rate
+    assert load("pendulum").config(scale_lr_factor=None).scale_lr_factor == 1.0
+
+
 def test_lunarlander_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate():
     # LunarLander's defaults became the KL-set rate without the entropy bonus, best.pt
     # confirmed both ways: a stored config that predates lr_control ran at --lr alone.

@@ -4,7 +4,8 @@
 bootstrapped from V where episodes are cut (whole-episode batches,
 ``--batch-mode episodes``, learned but did not hold 200 in our run: see RESULTS.md).
 Discrete engines by default; ``--continuous`` switches to continuous thrust with a
-Gaussian policy (one learned scale per dimension; the environment clips its samples).
+Gaussian policy (one learned scale per dimension, stepped at 30 times the rest's rate;
+the environment clips its samples).
 Needs the box2d extra::
 
     pip install -c constraints.txt "rl_pg[box2d]"
@@ -45,11 +46,21 @@ class Config(
     threshold=200.0,
     stop_when_solved=False,  # the first pass is often lucky; best.pt keeps the best one
     confirm_episodes=100,  # best.pt: the candidate best both greedily and by sampling
+    scale_lr_factor=None,  # resolved by the policy: 30 for --continuous's Gaussian
 ):
-    """REINFORCE with reward-to-go and a learned value baseline on LunarLander-v3."""
+    """REINFORCE with reward-to-go and a learned value baseline on LunarLander-v3.
+
+    With --continuous, the Gaussian's learned scale steps at 30 times the rate of the
+    rest (--scale-lr-factor None resolves so): at the rest's rate it stays near where
+    it starts and the sampled lander hovers (the docs' lab has the runs)."""
 
     # Runs stored before the KL-set rate was the default trained at --lr alone.
-    absent_means: ClassVar[dict[str, Any]] = {"lr_control": "none", "target_kl": 0.01}
+    # and, before the continuous Gaussian's scale had a rate of its own, at one rate.
+    absent_means: ClassVar[dict[str, Any]] = {
+        "lr_control": "none",
+        "target_kl": 0.01,
+        "scale_lr_factor": 1.0,
+    }
 
     continuous: bool = False
     """Continuous thrust (Box(-1, 1, (2,))), with the policy bounded says."""
@@ -76,6 +87,12 @@ class Config(
     def gaussian(self) -> bool:
         """Whether the policy is a Gaussian on continuous thrust."""
         return self.continuous and self.bounded != "beta"
+
+    def __post_init__(self) -> None:
+        if self.scale_lr_factor is None:  # stored resolved: config.json says what ran
+            one_scale = self.gaussian and not self.state_dependent_scale
+            self.scale_lr_factor = 30.0 if one_scale and self.optimizer != "natural" else 1.0
+        super().__post_init__()
 
     def validate(self) -> None:
         super().validate()

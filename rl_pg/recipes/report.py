@@ -40,6 +40,7 @@ pointer gathers every entry there, which the format summarises (``{0.count}/{0.n
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import sys
@@ -703,7 +704,9 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     """The flags every run shares that differ from its recipe's defaults, as rl-pg
     train would take them; a flag the runs disagree on is listed with all its values.
     A field that does nothing in a run (``TrainConfig.inert``: ``--target-kl`` without
-    ``--lr-control kl``) counts as the default there."""
+    ``--lr-control kl``) counts as the default there; a field whose default None is
+    resolved by the run's other fields (LunarLander's ``scale_lr_factor``, the
+    gridworld's ``threshold``) is compared with what it resolves to for that run."""
     from rl_pg.recipes import load
     from rl_pg.recipes.cli import _flag
     from rl_pg.training import TrainConfig
@@ -717,19 +720,35 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     quiet = NOT_SETTINGS | set(TrainConfig.groups["logging"][1])
     # each run's config as it ran: a field newer than the run at the value it had then
     configs = [{**defaults, **recipe.config.as_run(run["config"])} for run in runs]
+    resolved = [
+        field.name
+        for field in dataclasses.fields(recipe.config)
+        if field.default is None and defaults.get(field.name) is not None
+    ]
     flags = []
     for name in defaults:
         if name in quiet:
             continue
-        values = [
-            defaults[name] if TrainConfig.inert(name, config) else config[name]
-            for config in configs
-        ]
-        distinct = [v for i, v in enumerate(values) if v not in values[:i]]
-        if distinct != [defaults[name]]:
+        values, own = [], []  # each run's value, and whether it is its default
+        for config in configs:
+            default = _resolved(recipe, config, name) if name in resolved else defaults[name]
+            inert = TrainConfig.inert(name, config)
+            values.append(default if inert else config[name])
+            own.append(inert or config[name] == default)
+        if not all(own):
+            distinct = [v for i, v in enumerate(values) if v not in values[:i]]
             shown = [_flag(name, v) for v in distinct]
             flags.append(shown[0] if len(shown) == 1 else " / ".join(shown))
     return flags
+
+
+def _resolved(recipe, config: dict[str, Any], name: str) -> Any:
+    """What field ``name``'s default None resolves to in a run of ``config`` (its
+    other fields as they are, by the config or the recipe's ``prepare``), as
+    ``config_dict`` writes it."""
+    own = recipe.config.from_stored(config, **{name: None})
+    own = own if recipe.prepare is None else recipe.prepare(own)
+    return json.loads(json.dumps(getattr(own, name), default=str))
 
 
 def figure_ylim(match: re.Match) -> tuple[float, float] | None:

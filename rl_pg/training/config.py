@@ -273,12 +273,13 @@ class TrainConfig:
     """With lr_control 'kl': the rate's bounds, as factors of lr (LOW HIGH). The upper
     one keeps a run of small KLs from growing the rate to where one update wrecks the
     policy."""
-    scale_lr_factor: Positive = 1.0
-    """Learning rate of a Gaussian's learned scale, as a factor of lr.
+    scale_lr_factor: Positive | None = 1.0
+    """A Gaussian scale's rate, times lr (None: the recipe's choice).
     For a policy with one scale per action dimension, the same in every state (its own
     parameter group; the ratio holds through lr_schedule and lr_control). Its gradient
     changes sign from batch to batch, so at the rate of the rest the scale barely
-    moves from where it starts."""
+    moves from where it starts. None lets a recipe choose by its policy (its page says
+    how; 1 where it does not)."""
     weight_decay: NonNegative = 0.0
     """L2 weight decay."""
     max_grad_norm: Positive | None = None
@@ -371,6 +372,8 @@ class TrainConfig:
             setattr(cls, name, value)
 
     def __post_init__(self) -> None:
+        if self.scale_lr_factor is None:  # a recipe that chooses by policy did so first
+            self.scale_lr_factor = 1.0
         self.validate()
 
     @classmethod
