@@ -450,19 +450,27 @@ class EpisodeCollector:
         group_size (int, optional): play the episodes in groups of ``group_size`` that
             start alike, for the group baselines of
             [`ReinforceLoss`][rl_pg.ReinforceLoss] (``baseline="leave_one_out"``,
-            ``"group_mean"``, ``"greedy"``; see [`rl_pg.groups`][rl_pg.groups]). Each
-            environment then plays one episode per batch (``episodes`` is the number
-            of environments); before each batch the environments are reset with one
-            fresh seed per group (``collector.reset(seed=[...])``, which TorchRL's
-            ``Collector`` hands to the environment's ``reset``: a gymnasium vector
-            environment seeds environment ``i`` with ``seed[i]``), and each step gets
-            its group's id under ``"group"``, unique over the collector's batches.
-            Defaults to ``None``: independent episodes.
-        greedy (bool): with ``group_size``, each group has one more environment, the
+            ``"group_mean"``, ``"greedy"``; see [`rl_pg.groups`][rl_pg.groups]). The
+            batch is then played in rounds of one episode per environment
+            (``episodes`` a multiple of the number of environments ``n``): episode
+            ``i`` of round ``r`` is the batch's episode ``e = r·n + i`` and belongs
+            to its group ``e // group_size``. Before each round the environments are
+            reset with their groups' seeds, one fresh seed per group
+            (``collector.reset(seed=[...])``, which TorchRL's ``Collector`` hands to
+            the environment's ``reset``: a gymnasium vector environment seeds
+            environment ``i`` with ``seed[i]``; an environment of batch size ``[]``
+            gets the one seed). With as many environments as episodes that is one
+            round; with one environment (a simulator that runs one engine per
+            process) a group's episodes are played one after the other from the same
+            seed. Each step gets its group's id under ``"group"``, unique over the
+            collector's batches. Defaults to ``None``: independent episodes.
+        greedy (bool): with ``group_size``, each group has one more episode, the
             last, whose episode is the group's greedy one (``"greedy"`` is ``True`` on
             its steps). The collector's policy must act greedily there: wrap it in
-            [`GreedyInGroups`][rl_pg.groups.GreedyInGroups]. Its steps count in
-            ``frames``. Defaults to ``False``.
+            [`GreedyInGroups`][rl_pg.groups.GreedyInGroups], which picks the greedy
+            environments by their place in the batch (so ``n`` must be a multiple of
+            ``group_size + 1``). Its steps count in ``frames``. Defaults to
+            ``False``.
         seed (int, optional): seeds the groups' seeds (``set_seed`` reseeds them too).
             Defaults to ``None``: drawn from torch's global generator.
 
@@ -533,15 +541,20 @@ class EpisodeCollector:
                 f"environments in this process (TorchRL's Collector, rl_pg's "
                 f"SegmentCollector), got {type(self.collector).__name__}."
             )
-        n = env.batch_size.numel()
-        if n != self.episodes or n % self._group_width:
-            extra = " plus its greedy one" if self.greedy else ""
+        n, width = env.batch_size.numel(), self._group_width
+        extra = " plus its greedy one" if self.greedy else ""
+        if self.episodes % n or self.episodes % width:
             raise ValueError(
-                f"With group_size={self.group_size}, each of the {n} environments plays one "
-                f"episode per batch and each group takes {self._group_width} environments "
-                f"({self.group_size} sampled episodes{extra}): build a multiple of "
-                f"{self._group_width} environments and set episodes to their number "
-                f"(got episodes={self.episodes})."
+                f"With group_size={self.group_size}, the {n} environment(s) play the batch "
+                f"in rounds of one episode each, and each group is {width} episodes "
+                f"({self.group_size} sampled{extra}): set episodes to a multiple of both "
+                f"{n} and {width} (got episodes={self.episodes})."
+            )
+        if self.greedy and n % width:
+            raise ValueError(
+                f"With greedy=True, GreedyInGroups plays the last environment of every "
+                f"{width} greedily: build a multiple of {width} environments ({self.group_size} "
+                f"sampled episodes plus its greedy one per group; got {n})."
             )
 
     def __iter__(self) -> Iterator[TensorDictBase]:
@@ -555,22 +568,33 @@ class EpisodeCollector:
     def next(self) -> TensorDictBase:
         """Collects one batch (``StopIteration`` when the collector has no more)."""
         if self.group_size is not None:
-            self._start_groups()
+            return self._grouped()
+        rows, keep = self._shares(None)
+        batch = rows[keep]  # row-major: environment after environment
+        if self.reset_each_batch:
+            self.reset()
+        return batch
+
+    def _shares(self, share: torch.Tensor | None) -> tuple[TensorDictBase, torch.Tensor]:
+        """Segments until every environment has ended its ``share`` of episodes (None:
+        ``episodes`` shared out evenly), as ``[environments, T]`` rows and the mask of
+        the steps that belong to those episodes."""
         if self._segments is None:
             self._segments = iter(self.collector)
         segments, keeps = [], []
-        share = ended = None
-        while share is None or bool((ended < share).any()):
+        ended = None
+        while ended is None or bool((ended < share).any()):
             segment = next(self._segments)
             if segment.ndim == 0:
                 raise ValueError("The collector's batches must have a time dimension.")
             self.frames += segment.numel()
             rows = segment.reshape(-1, segment.shape[-1])  # [environments, T]
             done = rows.get(("next", "done")).reshape(*rows.shape, -1).any(-1).long()
-            if share is None:
+            if ended is None:
                 n = rows.shape[0]
-                share = torch.full((n,), self.episodes // n, device=done.device)
-                share[: self.episodes % n] += 1
+                if share is None:
+                    share = torch.full((n,), self.episodes // n, device=done.device)
+                    share[: self.episodes % n] += 1
                 ended = torch.zeros(n, dtype=torch.long, device=done.device)
             # An environment's step belongs to its k-th episode of the batch, k counted
             # from 0: keep it while k is below the environment's share.
@@ -579,37 +603,43 @@ class EpisodeCollector:
             segments.append(rows)
             ended = ended + done.sum(-1)
         rows = torch.cat(segments, dim=1) if len(segments) > 1 else segments[0]
-        if self.group_size is not None:
-            self._mark_groups(rows)
-        batch = rows[torch.cat(keeps, dim=1)]  # row-major: environment after environment
-        if self.reset_each_batch and self.group_size is None:
-            self.reset()  # (groups are reset with their seeds as the next batch starts)
-        return batch
+        return rows, torch.cat(keeps, dim=1)
 
-    def _start_groups(self) -> None:
-        """Resets the environments, those of a group with the same fresh seed."""
-        groups = self.episodes // self._group_width
+    def _grouped(self) -> TensorDictBase:
+        """A batch of groups, in rounds of one episode per environment, each round's
+        environments reset with their groups' seeds (the rounds one after the other)."""
+        env = self.collector.env
+        n, width = env.batch_size.numel(), self._group_width
+        groups = self.episodes // width
         seeds = torch.randint(2**31 - 1, (groups,), generator=self._generator)
-        seeds = seeds.repeat_interleave(self._group_width).tolist()
+        rounds = []
+        for start in range(0, self.episodes, n):
+            episode = torch.arange(start, start + n)  # the batch's episodes this round
+            group = episode // width
+            round_seeds = seeds[group].tolist()  # one environment of batch size []: an int
+            self._reset_groups(round_seeds if env.batch_dims else round_seeds[0])
+            rows, keep = self._shares(torch.ones(n, dtype=torch.long))
+            length = rows.shape[1]
+            device = rows.device
+            first = self._batches * groups
+            rows.set("group", (first + group).to(device)[:, None].expand(n, length).contiguous())
+            if self.greedy:
+                greedy = (episode % width == self.group_size).to(device)
+                rows.set("greedy", greedy[:, None].expand(n, length).contiguous())
+            rounds.append(rows[keep])
+        self._batches += 1
+        return torch.cat(rounds) if len(rounds) > 1 else rounds[0]
+
+    def _reset_groups(self, seed: list[int] | int) -> None:
+        """Resets the environments with their groups' seeds (the next round's)."""
         try:
-            self.collector.reset(seed=seeds)
+            self.collector.reset(seed=seed)
         except TypeError as err:
             raise TypeError(
                 f"group_size resets the environments with a seed each, by "
                 f"collector.reset(seed=[...]); {type(self.collector).__name__} does not "
                 f"take it ({err})."
             ) from err
-
-    def _mark_groups(self, rows: TensorDictBase) -> None:
-        """Writes each step's group id (unique over the batches) and greedy flag."""
-        n, length = rows.shape
-        env = torch.arange(n, device=rows.device)
-        group = self._batches * (n // self._group_width) + env // self._group_width
-        rows.set("group", group.unsqueeze(-1).expand(n, length).contiguous())
-        if self.greedy:
-            greedy = env % self._group_width == self.group_size
-            rows.set("greedy", greedy.unsqueeze(-1).expand(n, length).contiguous())
-        self._batches += 1
 
     def reset(self) -> None:
         """Resets the environments: the next batch begins new episodes."""

@@ -161,6 +161,54 @@ def test_groups_start_alike_and_each_batch_draws_new_starts(torchrl, greedy):
     collector.shutdown()
 
 
+@pytest.mark.parametrize(
+    ("envs", "k", "greedy", "episodes", "torchrl"),
+    [
+        (None, 3, False, 6, False),  # one environment of batch size []: a group after another
+        (None, 2, False, 4, True),  # the same through TorchRL's Collector
+        (2, 4, False, 8, False),  # a group spans two rounds
+        (2, 4, False, 8, True),
+        (4, 2, False, 8, False),  # two groups a round, two rounds
+        (4, 1, True, 8, False),  # the greedy episode in every round
+    ],
+)
+def test_groups_play_in_rounds_of_one_episode_per_environment(envs, k, greedy, episodes, torchrl):
+    """Fewer environments than episodes: rounds, each environment reset with its
+    episode's group seed; the batch's episode e = round * n + i is in group e // width."""
+    from rl_pg.envs import gym_env
+    from rl_pg.groups import GreedyInGroups
+
+    torch.manual_seed(0)
+    env = gym_env("CartPole-v1", num_envs=envs)
+    actor = mlp_actor(env, hidden=(8,))
+    policy = GreedyInGroups(actor, group_size=k) if greedy else actor
+    if torchrl:
+        segments = Collector(env, policy, frames_per_batch=(envs or 1) * 16, total_frames=-1,
+                             auto_register_policy_transforms=False)  # fmt: skip
+    else:
+        segments = SegmentCollector(env, policy, frames_per_batch=(envs or 1) * 16)
+    collector = EpisodeCollector(segments, episodes, group_size=k, greedy=greedy, seed=3)
+    width = k + greedy
+    groups = episodes // width
+    for batch_index in range(2):
+        frames = collector.frames
+        batch = collector.next()
+        assert int(batch["next", "done"].sum()) == episodes
+        assert collector.frames - frames >= batch.numel()  # dropped steps count too
+        starts = _starts(batch)
+        assert starts["group"].squeeze(-1).tolist() == [
+            batch_index * groups + e // width for e in range(episodes)
+        ]
+        first = starts["observation"].reshape(groups, width, -1)
+        assert torch.equal(first, first[:, :1].expand_as(first))  # alike within a group
+        assert len({tuple(row.tolist()) for row in first[:, 0]}) == groups  # not across
+        if greedy:
+            assert starts["greedy"].squeeze(-1).tolist() == [
+                e % width == k for e in range(episodes)
+            ]
+    collector.shutdown()
+
+
 def test_the_groups_seeds_are_reproducible():
     from rl_pg.envs import gym_env
 
@@ -178,10 +226,12 @@ def test_the_groups_seeds_are_reproducible():
 @pytest.mark.parametrize(
     ("envs", "kwargs", "error", "match"),
     [
-        (6, {"episodes": 4, "group_size": 2}, ValueError, "set episodes to their number"),
-        (6, {"episodes": 6, "group_size": 4}, ValueError, "build a multiple of 4"),
+        (6, {"episodes": 4, "group_size": 2}, ValueError, "a multiple of both 6 and 2"),
+        (6, {"episodes": 6, "group_size": 4}, ValueError, "a multiple of both 6 and 4"),
         (6, {"episodes": 6, "group_size": 3, "greedy": True}, ValueError,
-         "plus its greedy one"),
+         "3 sampled plus its greedy one"),
+        (6, {"episodes": 12, "group_size": 3, "greedy": True}, ValueError,
+         "build a multiple of 4 environments"),
         (6, {"episodes": 6, "greedy": True}, ValueError, "set group_size"),
         (6, {"episodes": 6, "group_size": 0}, ValueError, "group_size must be an integer"),
     ],

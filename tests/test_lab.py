@@ -3,6 +3,7 @@ gradient statistics, then a figure and a table drawn from their logs alone."""
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -81,6 +82,45 @@ class TestLabCommand:
             assert table["estimators"][name]["units"] == 2, name  # 6 episodes, 2 groups
         leave_one_out = table["estimators"]["leave_one_out"]
         assert leave_one_out["variance_relative_to_episode_return"] > 0
+
+    def test_one_environment_plays_its_groups_in_rounds(self, tmp_path, capsys):
+        # A simulator with one engine per process (MetaDrive) plays a group's episodes
+        # one after another from one seed: the lab measures them by group as well.
+        root = tmp_path / "lab"
+        grouped = ["--baseline", "leave_one_out", "--batch-mode", "episodes", "--group-size", "3",
+                   "--num-envs", "1"]  # fmt: skip
+        status, _, err = in_process(
+            "lab", "variance", "gridworld", "--seeds", "0", "--every", "1", "--run-dir",
+            str(root), *QUICK, *grouped, capsys=capsys,
+        )  # fmt: skip
+        assert status == 0, err
+        table = json.loads((root / "variance.json").read_text())
+        assert (table["unit"], table["group_size"]) == ("group", 3)
+        assert table["estimators"]["leave_one_out"]["units"] == 2  # 6 episodes, 2 groups
+        assert (root / "variance_by_seed.png").read_bytes()[:4] == b"\x89PNG"
+
+    @pytest.mark.parametrize(
+        ("values", "scale"),
+        [([[0.5, -1.0, np.nan]], "log"), ([[-1.0, 0.0], [np.nan]], "linear"), ([], "linear")],
+    )
+    def test_a_panel_without_positive_values_stays_linear(self, values, scale):
+        # A noise scale estimated on few batches can be <= 0; a log axis of nothing
+        # positive fails in matplotlib, so the panel stays linear and says so.
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from rl_pg.recipes.lab import _log_scale
+
+        figure, ax = plt.subplots()
+        for line in values:
+            ax.plot(range(len(line)), line)
+        _log_scale(ax, "noise scale B")
+        assert ax.get_yscale() == scale
+        assert ("none > 0" in ax.get_ylabel()) == (scale == "linear")
+        figure.savefig(io.BytesIO(), format="png")  # draws: no error either way
+        plt.close(figure)
 
     @pytest.mark.parametrize(
         ("flags", "match"),

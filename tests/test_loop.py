@@ -887,13 +887,19 @@ class TestTrain:
         with pytest.raises(ValueError, match=message):
             _cfg(tmp_path, **override)
 
-    def test_a_recipe_with_more_environments_than_episodes_refuses_groups(self, tmp_path):
+    def test_groups_need_whole_rounds_of_the_recipes_environments(self, tmp_path):
+        # Grouped batches play rounds of one episode per environment: the episodes a
+        # multiple of the environments, and the greedy ones at fixed places.
         @dataclass
         class Config(TrainConfig):
             num_envs: int = 16
 
-        with pytest.raises(ValueError, match="set --num-envs to --episodes-per-batch"):
+        with pytest.raises(ValueError, match=r"a multiple of --num-envs .* 8 and 16"):
             Config(baseline="leave_one_out", episodes_per_batch=8)
+        assert Config(baseline="leave_one_out", episodes_per_batch=32).num_envs == 16
+        assert Config(baseline="leave_one_out", num_envs=1, episodes_per_batch=8).num_envs == 1
+        with pytest.raises(ValueError, match="set --num-envs to a multiple of 5"):
+            Config(baseline="greedy", num_envs=4, episodes_per_batch=20)
 
     def test_a_config_changed_after_it_was_made_is_checked_again(self, tmp_path):
         cfg = _cfg(tmp_path)

@@ -182,15 +182,16 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
                 for seed, m in measured.items()
             },
         }
+    table["held"] = {seed: _held(run_dir) for seed, run_dir in runs.items()}
+    # the data first: a figure that fails loses no measurement
+    write_atomically(root / "variance.json", json.dumps(table, indent=2))
     write_atomically(root / "variance.md", _markdown(table))
     _figure(runs, estimators, root / "variance.png", title=title)
-    table["held"] = {seed: _held(run_dir) for seed, run_dir in runs.items()}
     # The quietest estimator resolves the signal |∇J|² best (they share it, GAE nearly).
     quietest = next(e for e in ("gae", "reward_to_go_minus_value", *estimators) if e in estimators)
     _seed_figure(
         runs, table["held"], root / "variance_by_seed.png", title=title, estimator=quietest
     )
-    write_atomically(root / "variance.json", json.dumps(table, indent=2))
     return table
 
 
@@ -270,9 +271,23 @@ def _seed_figure(runs, held, path: Path, *, title: str, estimator: str) -> None:
             ylabel="evaluation mean return", title=f"{recipe}: seeds that hold, seeds that drop"
         )
         top.legend(loc="best", fontsize="small", title="best checkpoint on fresh episodes")
-        scale_ax.set(yscale="log", ylabel=f"noise scale B, {estimator}")
-        snr_ax.set(yscale="log", ylabel="SNR at the batch size")
+        _log_scale(scale_ax, f"noise scale B, {estimator}")
+        _log_scale(snr_ax, "SNR at the batch size")
         entropy_ax.set(ylabel="policy entropy (training)", xlabel="frames")
+
+
+def _log_scale(ax, label: str) -> None:
+    """A log scale for a panel of positive quantities, labelled. A noise scale or an SNR
+    measured on few batches can come out at or below 0 (``|G|²``'s estimate is a
+    difference), and such points are left out of a log scale; a panel with no positive
+    point at all (a short run, one seed) stays linear and says why."""
+    values = np.concatenate(
+        [np.asarray(line.get_ydata(), dtype=float) for line in ax.lines] or [np.empty(0)]
+    )
+    if np.any(np.isfinite(values) & (values > 0)):
+        ax.set(yscale="log", ylabel=label)
+    else:
+        ax.set(ylabel=f"{label} (none > 0 yet: linear)")
 
 
 def _windowed(run_dir: Path, metric: str, edges: np.ndarray) -> np.ndarray | None:
@@ -402,10 +417,11 @@ def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: 
             bottom.plot(*read_curve(run_dir, "eval/mean_return"), label=f"seed {seed}")
         returns = np.concatenate([read_curve(r, "eval/mean_return")[1] for r in runs.values()])
         bottom.set_ylim(bottom=np.percentile(returns, 5))  # early collapses off the scale
-        top.set(yscale="log", ylabel=f"tr Σ relative to {reference}", title=title)
+        _log_scale(top, f"tr Σ relative to {reference}")
+        top.set(title=title)
         top.legend(loc="best", fontsize="small")
         units = _units(runs)
         unit = f"groups of {units['group_size']}" if units["unit"] == "group" else "units"
-        middle.set(yscale="log", ylabel=f"noise scale B ({unit})")
+        _log_scale(middle, f"noise scale B ({unit})")
         bottom.set(ylabel="evaluation mean return", xlabel="frames")
         bottom.legend(loc="best", fontsize="small")

@@ -539,11 +539,18 @@ class TrainConfig:
                 f"{self.episodes_per_batch})."
             )
         num_envs = getattr(self, "num_envs", None)
-        if grouped and num_envs is not None and num_envs != self.episodes_per_batch:
+        if grouped and num_envs is not None and self.episodes_per_batch % num_envs:
             raise ValueError(
-                f"--baseline {self.baseline} plays one episode per environment and batch: "
-                f"set --num-envs to --episodes-per-batch (got {num_envs} and "
-                f"{self.episodes_per_batch})."
+                f"--baseline {self.baseline} plays each batch in rounds of one episode per "
+                f"environment: set --episodes-per-batch to a multiple of --num-envs (got "
+                f"{self.episodes_per_batch} and {num_envs}; as many environments as "
+                f"episodes is one round)."
+            )
+        if self.baseline == "greedy" and num_envs is not None and num_envs % width:
+            raise ValueError(
+                f"--baseline greedy plays the last environment of every {width} greedily: "
+                f"set --num-envs to a multiple of {width} (--group-size {self.group_size} "
+                f"and the greedy one; got {num_envs})."
             )
         if self.group_scale and not grouped:
             raise ValueError(
