@@ -475,7 +475,8 @@ class EpisodeCollector:
             Defaults to ``None``: drawn from torch's global generator.
 
     Each batch is flat, batch size ``[total steps]``: the episodes one after the other
-    (those of the first environment first), each ending on ``("next", "done")``, as
+    (those of the first environment first; with groups, round after round, the
+    environments in order within each), each ending on ``("next", "done")``, as
     TorchRL's ``traj_format="cat"`` lays them out.
 
     Examples:
@@ -529,7 +530,7 @@ class EpisodeCollector:
 
     @property
     def _group_width(self) -> int:
-        """Environments per group: its sampled episodes and, with ``greedy``, one more."""
+        """Episodes per group: its sampled ones and, with ``greedy``, one more."""
         return self.group_size + self.greedy
 
     def _check_groups(self) -> None:
