@@ -7,7 +7,10 @@ A checkpoint file is a short header followed by the ``torch.save`` bytes of the 
 
 [`load_checkpoint`][rl_pg.checkpoint.load_checkpoint] recomputes the digest before it
 unpickles anything, so a file damaged on disk (a flipped byte, a truncated copy) is an
-error instead of weights that load and play wrong.
+error instead of weights that load and play wrong. The digest proves a file whole, not
+who made it: the state is read with ``torch.load(weights_only=True)``, which rebuilds
+tensors and plain Python data (and, for files of earlier versions, numpy arrays) and
+refuses anything else, so a file shared by somebody else cannot run code when it loads.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import hashlib
 import io
 import os
 import pickle
+import re
 import stat
 import tempfile
 import warnings
@@ -23,6 +27,7 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -128,6 +133,14 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
     buffer = io.BytesIO()
     torch.save({**state, "format": FORMAT}, buffer)
     payload = buffer.getvalue()
+    with torch.serialization.safe_globals(_NUMPY_DATA):
+        foreign = torch.serialization.get_unsafe_globals_in_checkpoint(io.BytesIO(payload))
+    if foreign:  # a file that needs them could not be loaded again: say so now
+        raise TypeError(
+            f"save_checkpoint saves tensors and plain data (dicts, lists, numbers, "
+            f"strings, numpy arrays), which load without running code; the state holds "
+            f"{', '.join(sorted(foreign))}. Store its state_dict() or plain values instead."
+        )
     header = _MAGIC + FORMAT.to_bytes(4, "little") + hashlib.sha256(payload).digest()
     return write_atomically(path, header + payload)
 
@@ -191,14 +204,51 @@ def _load_unverified(path: Path) -> dict[str, Any]:
     return state
 
 
+# Earlier versions stored numpy's generator state as a pickled array: data, not code.
+# numpy 2 moved its array constructor from numpy.core to numpy._core; a file names the
+# module it was written with.
+_reconstruct = np.ndarray.__reduce__(np.zeros(1))[0]
+_scalar = np.float64(0).__reduce__()[0]
+_NUMPY_DATA = [
+    np.ndarray,
+    np.dtype,
+    *{type(np.dtype(code)) for code in np.typecodes["All"] if code != "O"},
+    *[
+        (f, f"numpy.{core}.multiarray.{f.__name__}")
+        for f in (_reconstruct, _scalar)
+        for core in ("core", "_core")
+    ],
+]
+
+
 def _unpickle(path: Path, source) -> dict[str, Any]:
+    """The state, read with ``weights_only=True``: tensors and plain data only."""
     try:
-        state = torch.load(source, map_location="cpu", weights_only=False)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as err:
+        with torch.serialization.safe_globals(_NUMPY_DATA):
+            state = torch.load(source, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        # torch names what a weights-only load refused: "... GLOBAL posix.system ..."
+        refused = re.search(r"GLOBAL ([\w.]+)", str(err))
+        if refused is None:
+            _raise_corrupted(path, f"it cannot be read ({_first_line(err)})", err)
+        raise CheckpointError(
+            f"{path} holds more than tensors and plain data (it refers to "
+            f"{refused.group(1)}): loading it could run code its author put in it, so "
+            f"rl_pg does not load it. Files rl_pg writes hold no code; train or export "
+            f"the agent again with rl_pg, or ask its author for one."
+        ) from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError) as err:
         _raise_corrupted(path, f"it cannot be read ({err})", err)
     if not isinstance(state, dict) or "format" not in state:
         raise CheckpointError(f"{path} is not an rl_pg checkpoint.")
     return state
+
+
+def _first_line(err: BaseException) -> str:
+    """torch's weights-only errors are paragraphs; their reason is the WeightsUnpickler's."""
+    text = str(err)
+    reason = re.search(r"WeightsUnpickler error: (.+)", text, re.DOTALL)
+    return " ".join((reason.group(1) if reason else text).strip().split("\n\n")[0].split())
 
 
 def _raise_corrupted(path: Path, why: str, cause: BaseException | None = None):

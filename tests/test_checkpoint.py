@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import stat
 
+import numpy as np
 import pytest
 import torch
 
@@ -106,6 +109,50 @@ class TestCheckpoint:
         torch.save({"format": 99}, tmp_path / "future.pt")
         with pytest.raises(CheckpointError, match="has checkpoint format 99"):
             load_checkpoint(tmp_path / "future.pt")
+
+
+class _RunsCode:
+    """Unpickling this runs ``touch <path>``: what a file made to attack its reader does."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.path}",))
+
+
+class TestNoCodeRuns:
+    """A shared agent or checkpoint is data: loading it never runs its author's code."""
+
+    @pytest.mark.parametrize("checksummed", [True, False], ids=["format 2", "format 1"])
+    def test_a_file_whose_unpickling_runs_code_is_refused(self, tmp_path, checksummed):
+        marker, path = tmp_path / "ran", tmp_path / "agent.pt"
+        buffer = io.BytesIO()
+        torch.save({"format": 2 if checksummed else 1, "policy": _RunsCode(marker)}, buffer)
+        payload = buffer.getvalue()
+        if checksummed:  # a checksum proves the file whole, not who wrote it
+            header = b"RLPGCKPT" + (2).to_bytes(4, "little") + hashlib.sha256(payload).digest()
+            payload = header + payload
+        path.write_bytes(payload)
+        with pytest.raises(
+            CheckpointError, match=r"agent.pt holds more than tensors .* refers to \S*system"
+        ):
+            load_checkpoint(path)
+        assert not marker.exists()
+        assert path.read_bytes() == payload  # left as it was
+
+    def test_what_could_not_be_loaded_again_is_not_saved(self, tmp_path):
+        with pytest.raises(TypeError, match=r"the state holds builtins\.object"):
+            save_checkpoint({"a": np.array([object()])}, tmp_path / "c.pt")
+        assert not (tmp_path / "c.pt").exists()
+
+    def test_numpy_data_of_earlier_versions_still_loads(self, tmp_path):
+        # Checkpoints before weights-only loading held np.random.get_state()'s array.
+        state = {"format": 1, "rng": np.random.get_state(), "x": np.float64(2.5)}
+        torch.save(state, tmp_path / "old.pt")
+        with pytest.warns(UserWarning, match="before checkpoints carried a checksum"):
+            loaded = load_checkpoint(tmp_path / "old.pt")
+        assert np.array_equal(loaded["rng"][1], state["rng"][1]) and loaded["x"] == 2.5
 
 
 class TestTemporaryFiles:

@@ -459,6 +459,21 @@ class TestTrain:
             _train(_cfg(tmp_path, total_updates=1))
         assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
 
+    def test_a_checkpoint_restores_every_random_generator_from_plain_data(self, tmp_path):
+        import random
+
+        from rl_pg.training.checkpoints import restore_rng
+
+        _train(_cfg(tmp_path, total_updates=1))
+        saved = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+        assert isinstance(saved["rng"]["numpy"]["state"]["key"], torch.Tensor)  # no pickled array
+        draws = []
+        for scramble in (1, 2):  # the generators anywhere else before the restore
+            np.random.seed(scramble), random.seed(scramble), torch.manual_seed(scramble)
+            restore_rng(saved)
+            draws.append((np.random.rand(3).tolist(), random.random(), torch.rand(2).tolist()))
+        assert draws[0] == draws[1]
+
     def test_resume_without_checkpoint(self, tmp_path):
         with pytest.raises(CheckpointError, match="No checkpoint at"):
             _train(_cfg(tmp_path, resume=True))

@@ -103,7 +103,7 @@ def save(
             "state": dataclasses.asdict(state),
             "rng": {
                 "torch": torch.get_rng_state(),
-                "numpy": np.random.get_state(),
+                "numpy": _numpy_state(),
                 "random": random.getstate(),
             },
         },
@@ -135,8 +135,29 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
 def restore_rng(saved: dict) -> None:
     """Sets torch's, numpy's and Python's generators to the checkpoint's states."""
     torch.set_rng_state(saved["rng"]["torch"])
-    np.random.set_state(saved["rng"]["numpy"])
+    np.random.set_state(_numpy_state_of(saved["rng"]["numpy"]))
     random.setstate(saved["rng"]["random"])
+
+
+def _numpy_state() -> dict[str, Any]:
+    """numpy's global generator state as a tensor and plain data (what a weights-only
+    load reads back), not the pickled array ``np.random.get_state()`` holds."""
+    state = np.random.get_state(legacy=False)
+    return {
+        **state,
+        "state": {
+            **state["state"],
+            "key": torch.from_numpy(state["state"]["key"].astype(np.int64)),
+        },
+    }
+
+
+def _numpy_state_of(saved) -> dict[str, Any] | tuple:
+    """What ``np.random.set_state`` takes, from either form checkpoints have held."""
+    if isinstance(saved, tuple):  # earlier checkpoints: get_state()'s own tuple
+        return saved
+    key = saved["state"]["key"].numpy().astype(np.uint32)
+    return {**saved, "state": {**saved["state"], "key": key}}
 
 
 def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
