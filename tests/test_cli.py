@@ -874,3 +874,67 @@ def test_a_frozen_heap_still_collects_what_the_process_makes_afterwards(capsys):
         gc.unfreeze()  # this test process goes on living
     gc.collect()
     assert before() is None
+
+
+def test_commands_write_only_names_they_own(tmp_path, capsys, monkeypatch):
+    """report --store/--plot/--profile and export --out never replace a run's files, and
+    replace another existing file only with --replace; their own earlier output they do."""
+    monkeypatch.chdir(tmp_path)
+    assert in_process("train", "gridworld", "--run-dir", "run", *QUICK, capsys=capsys)[0] == 0
+    run_files = {p.name: p.read_bytes() for p in Path("run").iterdir() if p.is_file()}
+    refused = [
+        ("report", "run", "--store", "run/checkpoint.pt"),
+        ("report", "run", "--store", "run/config.json", "--replace"),
+        ("report", "run", "--plot", "run/best.pt"),
+        ("report", "run", "--plot", "run/learning_curve.png", "--replace"),
+        ("export", "run", "--out", "run/checkpoint.pt"),
+        ("export", "run", "--out", "run/summary.json", "--replace"),
+    ]
+    for args in refused:
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status != 0 and "never replaces a run's own files" in err, (args, err)
+    assert {p.name: p.read_bytes() for p in Path("run").iterdir() if p.is_file()} == run_files
+
+    Path("notes.txt").write_text("mine")
+    for args in (
+        ("report", "run", "--store", "notes.txt"),
+        ("report", "run", "--plot", "notes.txt"),
+        ("export", "run", "--out", "notes.txt"),
+    ):
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status != 0 and "pass --replace to overwrite it" in err, (args, err)
+    assert Path("notes.txt").read_text() == "mine"
+
+    for twice in ("first", "second"):  # their own output, again: replaced
+        assert in_process("report", "run", "--store", "s.json", "--plot", "p.png",
+                          capsys=capsys)[0] == 0, twice  # fmt: skip
+        assert in_process("export", "run", "--out", "agent.pt", capsys=capsys)[0] == 0, twice
+    assert in_process("report", "run", "--store", "notes.txt", "--replace", capsys=capsys)[0] == 0
+    assert json.loads(Path("notes.txt").read_text())["runs"]
+
+
+def test_a_stored_figure_never_replaces_a_file_that_is_not_a_figure(tmp_path):
+    from rl_pg.recipes.report import refresh
+
+    (tmp_path / "store.json").write_text(json.dumps({"runs": []}))
+    (tmp_path / "setup.cfg").write_text("[tool]\n")
+    page = tmp_path / "page.md"
+    page.write_text("<!-- rl-pg report --stored store.json --plot setup.cfg -->\n")
+    with pytest.raises(ValueError, match=r"setup\.cfg exists and is a file this command did not"):
+        refresh(page)
+    assert (tmp_path / "setup.cfg").read_text() == "[tool]\n"
+
+
+def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(tmp_path):
+    from rl_pg.training.run_dir import RunDirectory, locked
+
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / ".lock").symlink_to(target)
+    with pytest.raises(OSError, match=r"\.lock is a symbolic link"), RunDirectory(tmp_path / "run"):
+        pass
+    (tmp_path / ".study.lock").symlink_to(target)
+    with pytest.raises(OSError, match="is a symbolic link"), locked(tmp_path / ".study.lock"):
+        pass
+    assert target.read_text() == "keep me"

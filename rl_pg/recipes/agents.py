@@ -32,9 +32,10 @@ from typing import Any, Literal
 import tyro
 
 from rl_pg._checks import require_extra
-from rl_pg.checkpoint import load_checkpoint, save_checkpoint
+from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
+from rl_pg.training.run_dir import claim_output
 
 __all__ = [
     "HUB_FILE",
@@ -215,16 +216,20 @@ def push_agent(agent_file: str | Path, repo_id: str, *, private: bool = False) -
     return str(commit.commit_url)
 
 
-def export_agent(run: str | Path, out: str | Path, *, which: str = "best") -> dict[str, Any]:
+def export_agent(
+    run: str | Path, out: str | Path, *, which: str = "best", replace: bool = False
+) -> dict[str, Any]:
     """Writes the deployed agent of ``run`` (a run directory or a checkpoint file) to
     ``out`` as an agent file (see the module's description); returns what it wrote.
 
+    ``out`` may be a new file or an agent file written before; any other file only with
+    ``replace``, and a run's own files (its checkpoints) never.
+
     Raises:
         CheckpointError: ``run`` has no such checkpoint, or it is damaged.
-        ValueError: ``out`` is a directory.
+        ValueError: ``out`` is a directory, or a file it may not replace.
     """
-    if Path(out).is_dir():
-        raise ValueError(f"--out {out} is a directory: name the agent file, e.g. {out}/agent.pt.")
+    claim_output(out, flag="--out", writes="an agent file", ours=is_agent_file, replace=replace)
     saved = read_run(run, which=which)
     weights = {
         key: value
@@ -252,6 +257,14 @@ def export_agent(run: str | Path, out: str | Path, *, which: str = "best") -> di
     }
     save_checkpoint(agent, out)
     return agent
+
+
+def is_agent_file(path: str | Path) -> bool:
+    """Whether ``path`` is an agent file ``rl-pg export`` wrote (not a checkpoint)."""
+    try:
+        return "agent" in load_checkpoint(path)
+    except CheckpointError:
+        return False
 
 
 def _history(run: Path) -> dict[str, Any]:
@@ -287,6 +300,9 @@ class ExportArgs:
     login`). Others play it with rl-pg play owner/name --hub."""
     private: bool = False
     """With --push-to-hub: create the repository private."""
+    replace: bool = False
+    """Overwrite --out when it is a file rl-pg export did not write. Never a run's own
+    files (its checkpoints)."""
 
 
 def main(args: ExportArgs) -> Path:
@@ -303,7 +319,7 @@ def main(args: ExportArgs) -> Path:
                 f"--push-to-hub takes a Hub repository id, owner/name; "
                 f"{args.push_to_hub!r} is not one ({err})."
             ) from err
-    agent = export_agent(args.run, args.out, which=args.checkpoint)
+    agent = export_agent(args.run, args.out, which=args.checkpoint, replace=args.replace)
     size = Path(args.out).stat().st_size
     print(
         f"{args.out}: the {agent['recipe']} agent of {args.run} ({args.checkpoint} checkpoint, "

@@ -54,6 +54,7 @@ import tyro
 from rl_pg.checkpoint import write_atomically
 from rl_pg.recipes.evaluate import EVALUATIONS
 from rl_pg.training.curves import (
+    is_png,
     plot_profiles,
     plot_runs,
     plot_seeds,
@@ -62,7 +63,7 @@ from rl_pg.training.curves import (
     plot_solved_settings,
     read_curve,
 )
-from rl_pg.training.run_dir import CONFIG, SUMMARY
+from rl_pg.training.run_dir import CONFIG, SUMMARY, claim_output
 from rl_pg.training.seeds import fresh_seed
 
 __all__ = [
@@ -159,6 +160,9 @@ class Args:
     """With --stored: draw the files' performance profiles into this PNG. One curve per
     file: the share of its runs whose best checkpoint scores above τ both ways (the
     lower of its greedy and sampled results), with a 95 % bootstrap band."""
+    replace: bool = False
+    """Let --store, --plot and --profile overwrite a file rl-pg report did not write.
+    Never a run's own files; a store or a PNG written before is replaced without it."""
 
 
 def read_report(run_dir: Path) -> dict[str, Any]:
@@ -219,6 +223,15 @@ def read_report(run_dir: Path) -> dict[str, Any]:
             if kept is None or record["seed"] == fresh or kept["seed"] != fresh:
                 results[record["mode"]] = record
     return report
+
+
+def is_store(path: str | Path) -> bool:
+    """Whether ``path`` is a table store ``--store`` wrote (JSON with its ``"runs"``)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("runs"), list)
 
 
 def store_report(runs: list[Path], path: Path, *, metric: str = "eval/mean_return") -> None:
@@ -438,6 +451,9 @@ def refresh(page: Path) -> bool:
         write_atomically(page, refreshed)
     for match in STORED_FIGURE.finditer(refreshed):
         figure = page.parent / match["figure"]
+        claim_output(
+            figure, flag=f"the figure marker of {page}", writes="a figure (PNG)", ours=is_png
+        )
         before = figure.read_bytes() if figure.is_file() else None
         draw_stored(match, page.parent)
         changed |= figure.read_bytes() != before
@@ -994,6 +1010,14 @@ def main(args: Args) -> str:
         raise ValueError("--curves, --settings and --evaluations are three tables: ask for one.")
     if args.profile is not None and args.stored is None:
         raise ValueError("--profile draws stored files: name them with --stored.")
+    outputs = (
+        ("--store", args.store, "a table store (JSON)", is_store),
+        ("--plot", args.plot, "a figure (PNG)", is_png),
+        ("--profile", args.profile, "a figure (PNG)", is_png),
+    )
+    for flag, path, writes, ours in outputs:  # before any work: refused, it costs nothing
+        if path is not None:
+            claim_output(path, flag=flag, writes=writes, ours=ours, replace=args.replace)
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
     if sources != 1:
         raise ValueError(

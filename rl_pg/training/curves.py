@@ -394,6 +394,12 @@ def plot_settings(
     return path
 
 
+def is_png(path: str | Path) -> bool:
+    """Whether ``path`` is a PNG image (what the figure commands may draw over)."""
+    with open(path, "rb") as file:
+        return file.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
 @contextmanager
 def png_figure(path: str | Path, *, size: tuple[float, float] = (7, 4)) -> Iterator[Axes]:
     """Yields the axes of a new figure; on exit, lays it out and writes it to ``path``

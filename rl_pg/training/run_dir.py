@@ -14,7 +14,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -27,7 +27,7 @@ from rl_pg.checkpoint import (
 )
 from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
-from rl_pg.training.curves import plot_run
+from rl_pg.training.curves import CURVE, plot_run
 from rl_pg.training.provenance import session_record
 
 __all__ = [
@@ -35,15 +35,19 @@ __all__ = [
     "LOCK_FILE",
     "RunDirBusy",
     "RunDirectory",
+    "claim_output",
     "link_latest",
     "locked",
     "new_run_dir",
+    "run_directory_of",
 ]
 
 LOCK_FILE = ".lock"
 SUMMARY = "summary.json"
 CONFIG = "config.json"
 KEPT = "checkpoints"
+RUN_FILES = frozenset({CHECKPOINT, BEST, CONFIG, SUMMARY, LOCK_FILE, KEPT, CURVE, "logs"})
+"""What a run writes into its directory; no other command's output replaces them."""
 
 try:
     import fcntl
@@ -107,10 +111,10 @@ class RunDirectory:
         self._created = not self.path.exists()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = _open_lock(self.path / LOCK_FILE)
         except OSError as err:
             raise OSError(
-                f"Cannot use {self.path} as a run directory ({err.strerror}); choose a "
+                f"Cannot use {self.path} as a run directory ({err.strerror or err}); choose a "
                 f"writable --run-dir."
             ) from err
         try:
@@ -223,7 +227,7 @@ def locked(path: Path, *, wait: bool = False) -> Iterator[bool]:
     and yields True; if another process holds it, yields False, holding nothing (or,
     with ``wait``, waits for it). Like a run directory's, the lock dies with its
     process, however that ends."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = _open_lock(Path(path))
     try:
         try:
             _lock(fd, wait=wait)
@@ -235,6 +239,18 @@ def locked(path: Path, *, wait: bool = False) -> Iterator[bool]:
         os.close(fd)  # releases the lock
 
 
+def _open_lock(path: Path) -> int:
+    """A lock file's descriptor, never through a symbolic link: the holder's process id
+    is written into it, and a link planted there would have it truncate the link's
+    target."""
+    if path.is_symlink():
+        raise OSError(
+            f"{path} is a symbolic link, where rl_pg keeps a lock file of its own; remove "
+            f"the link (its target is left as it is)"
+        )
+    return os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+
+
 def _lock(fd: int, *, wait: bool = False) -> None:
     """An exclusive lock on ``fd``; ``OSError`` if another process has it (unless
     ``wait``: then it waits for it)."""
@@ -242,6 +258,63 @@ def _lock(fd: int, *, wait: bool = False) -> None:
         fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
     else:
         msvcrt.locking(fd, msvcrt.LK_LOCK if wait else msvcrt.LK_NBLCK, 1)
+
+
+def run_directory_of(path: str | Path) -> Path | None:
+    """The run directory ``path`` lies in (a folder with a run's ``config.json`` and its
+    lock, checkpoint or summary), or None."""
+    for folder in Path(path).absolute().parents:
+        if (folder / CONFIG).is_file() and any(
+            (folder / name).exists() for name in (LOCK_FILE, CHECKPOINT, SUMMARY)
+        ):
+            return folder
+    return None
+
+
+def claim_output(
+    path: str | Path,
+    *,
+    flag: str,
+    writes: str,
+    ours: Callable[[Path], bool],
+    replace: bool = False,
+) -> Path:
+    """Checks, before a command does its work, that it may write its output ``path``.
+
+    A command writes only names it owns: a new file, or a file it wrote itself before
+    (``ours(path)`` says so, e.g. a table store of ``rl-pg report``); a file of a run
+    directory that is not its own (a checkpoint, the config, the logs) never, and any
+    other existing file only when told to ``replace`` it.
+
+    Args:
+        path: the output the user named.
+        flag: the option that named it, for the messages (``"--store"``).
+        writes: what the command writes there (``"a table store (JSON)"``).
+        ours: whether an existing file is one this command writes.
+        replace: the user's leave to replace a file that is not ``ours``.
+
+    Raises:
+        ValueError: the path is a directory, or a file the command may not replace.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{flag} {path} is a directory: name the file for {writes}.")
+    if not (path.exists() or path.is_symlink()):
+        return path
+    run = run_directory_of(path)
+    own = run is not None and path.absolute().relative_to(run).parts[0] in RUN_FILES
+    if own or (run is not None and (path.is_symlink() or not ours(path))):
+        raise ValueError(
+            f"{flag} {path} is a file of the run {run}, not {writes}: rl_pg never replaces "
+            f"a run's own files. Name a file outside the run, or a new name."
+        )
+    if (path.is_symlink() or not ours(path)) and not replace:
+        what = "a symbolic link" if path.is_symlink() else "a file this command did not write"
+        raise ValueError(
+            f"{flag} {path} exists and is {what}; it was left as it is. Name another "
+            f"file for {writes}, or pass --replace to overwrite it."
+        )
+    return path
 
 
 def new_run_dir(recipe: str, seed: int) -> Path:
