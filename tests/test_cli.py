@@ -938,3 +938,26 @@ def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(tmp_path):
     with pytest.raises(OSError, match="is a symbolic link"), locked(tmp_path / ".study.lock"):
         pass
     assert target.read_text() == "keep me"
+
+
+@pytest.mark.parametrize(
+    ("args", "shows"),
+    [
+        (("train",), "usage: rl-pg train RECIPE"),
+        (("resume", "--help"), "usage: rl-pg resume RUN_DIR"),
+        (("tune", "-h"), "usage: rl-pg tune RECIPE"),
+        (("lab", "--help"), "usage: rl-pg lab variance RECIPE"),
+        (("lab", "variance", "--help"), "usage: rl-pg lab variance RECIPE"),
+        (("lab", "variance"), "usage: rl-pg lab variance RECIPE"),
+    ],
+)
+def test_every_command_has_its_own_usage(args, shows, capsys):
+    """`rl-pg COMMAND --help` (or a missing recipe) shows that command's usage, not the
+    top-level one; help exits 0 on stdout, a missing recipe 2 on stderr."""
+    status, out, err = in_process(*args, capsys=capsys)
+    asked = args[-1] in ("-h", "--help")
+    assert status == (0 if asked else 2)
+    text = out if asked else err
+    assert text.startswith(shows) and "rl-pg list" not in text
+    if args[0] != "resume":
+        assert "Recipes: bandit, gridworld, cartpole" in text

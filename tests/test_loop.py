@@ -1653,7 +1653,7 @@ class TestSessions:
         from rl_pg.training.console import format_summary
 
         printed = format_summary(second)  # what the console prints: counts, not records
-        assert "sessions: 2 (stopped and resumed 1 times)" in printed
+        assert "sessions: 2 (stopped and resumed once)" in printed
         assert "None" not in printed and "'code'" not in printed
         # a summary that cannot be read does not stop the run; its sessions are lost
         (tmp_path / "run" / "summary.json").write_text("{torn")

@@ -247,6 +247,47 @@ USAGE = """usage: rl-pg {list,train,resume,evaluate,play,export,tune,report,lab}
 """
 
 
+# The commands that take a recipe (or a run) first: their usage, for `--help` or a
+# missing first argument (the recipe's own flags come with `rl-pg COMMAND RECIPE --help`).
+COMMAND_USAGE = {
+    "train": """usage: rl-pg train RECIPE [FLAGS]
+
+Train a recipe: its run goes to --run-dir (default runs/RECIPE-seedS-TIME, with
+runs/latest pointing at it). `rl-pg train RECIPE --help` lists the recipe's flags.
+""",
+    "resume": """usage: rl-pg resume RUN_DIR [FLAGS]
+
+Continue a run from its last checkpoint with the configuration it stored; FLAGS may
+change only what is safe to change (the budget, the workers, logging).
+""",
+    "tune": """usage: rl-pg tune RECIPE [FLAGS]
+
+Search a recipe's hyperparameters with Optuna (needs rl_pg[tune]); each trial is a run
+of its own. `rl-pg tune RECIPE --help` lists the search's flags and the recipe's.
+""",
+    "lab": """usage: rl-pg lab variance RECIPE [FLAGS]
+
+The lab's experiments. variance: train a recipe's seeds measuring the gradient noise
+of every return estimator on the same batches, then draw it and tabulate it.
+`rl-pg lab variance RECIPE --help` lists the lab's flags and the recipe's.
+""",
+}
+COMMAND_USAGE["lab variance"] = COMMAND_USAGE["lab"]
+
+
+def _command_usage(command: str, rest: list[str]) -> str | None:
+    """The usage to print when ``rl-pg COMMAND REST`` asks for help or lacks its
+    recipe (None: the command runs)."""
+    if command == "lab":
+        command, rest = ("lab variance", rest[1:]) if rest[:1] == ["variance"] else ("lab", rest)
+    if command not in COMMAND_USAGE:
+        return None
+    if rest and rest[0] not in ("-h", "--help"):
+        return None
+    recipes = "" if command == "resume" else f"Recipes: {', '.join(NAMES)}.\n"
+    return COMMAND_USAGE[command] + recipes
+
+
 def run(argv: Sequence[str] | None = None) -> None:
     """The ``rl-pg`` command as a process of its own: [`main`][rl_pg.recipes.cli.main]
     with the imports' objects kept out of the garbage collector's walks, and none left
@@ -279,6 +320,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     command, rest = (args[0], args[1:]) if args else ("", [])
     with exit_quietly_on_interrupt(), _user_errors():
+        usage = _command_usage(command, rest)
+        if usage is not None:  # help asked for, or the recipe (or run) missing
+            asked = bool(rest) and rest[-1] in ("-h", "--help")
+            print(usage, end="", file=sys.stdout if asked else sys.stderr)
+            sys.exit(0 if asked else 2)
         if command == "list":
             _list()
         elif command == "train" and rest and not rest[0].startswith("-"):

@@ -124,9 +124,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     if summary.get("threshold") is not None:
         solved = summary.get("solved_at_frames")
         lines.append(
-            f"  solved: reached {summary['threshold']:g} at {solved:,} frames"
+            f"  solved: reached {summary['threshold']:.4g} at {solved:,} frames"
             if solved is not None
-            else f"  solved: not yet (threshold {summary['threshold']:g})"
+            else f"  solved: not yet (threshold {summary['threshold']:.4g})"
         )
     if summary.get("best_confirmed") is not None:
         lines.append(
@@ -134,7 +134,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         )
     sessions = summary.get("sessions", [])
     if len(sessions) > 1:
-        lines.append(f"  sessions: {len(sessions)} (stopped and resumed {len(sessions) - 1} times)")
+        resumed = len(sessions) - 1
+        times = "once" if resumed == 1 else f"{resumed} times"
+        lines.append(f"  sessions: {len(sessions)} (stopped and resumed {times})")
     extra = {
         k: v
         for k, v in summary.items()

@@ -70,7 +70,7 @@ def _frame_axes(ax, *, ylabel: str, title: str, threshold, ylim) -> None:
 def _threshold_line(ax, threshold: float | None) -> None:
     """The target as a dotted grey line, labelled, where there is one."""
     if threshold is not None:
-        ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:g}")
+        ax.axhline(threshold, color="grey", linestyle=":", label=f"threshold {threshold:.4g}")
 
 
 def plot_run(run_dir: str | Path, *, threshold: float | None, title: str) -> Path:
@@ -251,7 +251,7 @@ def plot_profiles(
             ax.fill_between(taus, low, high, step="post", color=color, alpha=0.2)
         if threshold is not None:
             ax.axvline(threshold, color="black", linestyle=":", linewidth=1,
-                       label=f"threshold {threshold:g}")  # fmt: skip
+                       label=f"threshold {threshold:.4g}")  # fmt: skip
         ax.set_xlabel(xlabel)
         ax.set_ylabel("share of runs scoring above τ")
         ax.set_ylim(-0.02, 1.02)
