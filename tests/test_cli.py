@@ -961,3 +961,17 @@ def test_every_command_has_its_own_usage(args, shows, capsys):
     assert text.startswith(shows) and "rl-pg list" not in text
     if args[0] != "resume":
         assert "Recipes: bandit, gridworld, cartpole" in text
+
+
+def test_a_report_over_runs_star_counts_the_newest_run_once(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for seed in ("0", "1"):  # default run directories: runs/gridworld-seedS-TIME, runs/latest
+        status, _, err = in_process("train", "gridworld", "--seed", seed, *QUICK, capsys=capsys)
+        assert status == 0, err
+    assert Path("runs/latest").is_symlink()
+    runs = sorted(str(p) for p in Path("runs").iterdir())
+    assert len(runs) == 3
+    status, out, err = in_process("report", *runs, capsys=capsys)
+    assert status == 0, err
+    rows = [line for line in out.splitlines() if line.startswith("| gridworld-seed")]
+    assert len(rows) == 2 and "latest" not in out, out

@@ -1052,6 +1052,7 @@ def main(args: Args) -> str:
         if args.profile is not None:
             print(f"performance profiles: {plot_profile(args.stored, args.profile)}")
         return table
+    args.runs = _distinct(args.runs)
     reports = [read_report(run) for run in args.runs]
     names = _names(args.runs)
     table = format_report(reports, names)
@@ -1072,6 +1073,22 @@ def main(args: Args) -> str:
         )
         print(f"curves: {figure}")
     return table
+
+
+def _distinct(runs: list[Path]) -> list[Path]:
+    """Each run once: ``runs/*`` also matches ``runs/latest``, a link to the newest run,
+    which would count it twice (a link to a run not named is kept, as is its name)."""
+    kept, seen = [], {}
+    for run in runs:
+        real = Path(run).resolve()
+        if real in seen:
+            if Path(run).is_symlink():
+                continue
+            kept[seen[real]] = run  # the folder's own name over the link's
+            continue
+        seen[real] = len(kept)
+        kept.append(run)
+    return kept
 
 
 def _names(runs: list[Path]) -> list[str]:
