@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import socket
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -65,3 +67,25 @@ class FrozenInWorkers:
 def _this_process() -> tuple[str, int]:
     """This process, among those of every machine of a cluster."""
     return socket.gethostname(), os.getpid()
+
+
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+"""The signals that ask a run to stop: Ctrl-C, ``kill`` (and schedulers), a closed
+terminal (POSIX only)."""
+
+
+@contextmanager
+def signal_handlers_kept() -> Iterator[None]:
+    """Sets the Python handlers of the ``STOP_SIGNALS`` again after the block, over
+    whatever its C code installed (``ray.init`` installs handlers of its own that abort
+    the process on SIGTERM, losing a run's stop: wrap it in this)."""
+    main = threading.current_thread() is threading.main_thread()
+    before = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS} if main else {}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            if handler is not None:  # None: set outside Python, nothing to restore
+                signal.signal(sig, handler)

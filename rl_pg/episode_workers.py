@@ -15,7 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_int, require_extra
-from rl_pg._process import FrozenInWorkers, frozen_heap
+from rl_pg._process import FrozenInWorkers, frozen_heap, signal_handlers_kept
 from rl_pg.evaluation import EpisodeRequest, episode_shares, play_episodes, policy_device
 
 __all__ = ["EpisodeWorkers"]
@@ -190,7 +190,8 @@ class EpisodeWorkers:
         import ray
 
         if not ray.is_initialized():  # RAY_ADDRESS's cluster, or a local instance
-            ray.init(log_to_driver=False)
+            with signal_handlers_kept():  # Ray's own would end a training run's stop
+                ray.init(log_to_driver=False)
             self._owns_ray = True
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 

@@ -211,6 +211,19 @@ class TestBuiltIn:
             _train(_cfg(tmp_path, "both", stop_when_solved=True, **base),
                    callbacks=[StopWhenSolved(threshold)])  # fmt: skip
 
+    def test_with_confirmation_solved_means_a_checkpoint_held_both_ways(self, tmp_path):
+        # The gridworld's shortest path returns 0.5: greedy play finds it long before
+        # sampled play does, so the first greedy pass is not yet done.
+        base = {"total_updates": 400, "eval_interval": 1, "threshold": 0.3, "lr": 0.05}
+        greedy = _train(_cfg(tmp_path, "greedy", stop_when_solved=True, **base))
+        held = _train(_cfg(tmp_path, "held", stop_when_solved=True, confirm_episodes=20, **base))
+        assert greedy["updates"] < 400 and held["updates"] < 400
+        assert held["best_confirmed"] >= 0.3  # the lower of greedy and sampled
+        assert held["updates"] > greedy["updates"]  # later than the first greedy pass
+        assert held["solved_at_frames"] == greedy["solved_at_frames"]  # same run until then
+        (callback,) = from_config(_cfg(tmp_path, confirm_episodes=5, threshold=0.3))[1:]
+        assert isinstance(callback, StopWhenSolved) and callback.confirmed
+
 
 class TestGradientNoise:
     def test_from_config(self, tmp_path):

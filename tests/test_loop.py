@@ -1489,6 +1489,29 @@ class TestInterruptedRun:
         saved = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
         assert saved["state"]["updates"] == summary["updates"]
 
+    def test_a_stop_is_kept_when_a_library_took_the_signals_during_the_run(self, tmp_path):
+        # ray.init (the Ray collectors and evaluators) sets a SIGTERM handler that ends
+        # the process at once; a library doing so while the run starts or runs must not
+        # cost the run its stop: the next update takes the signals back.
+        class LibraryTakesSignals(Callback):
+            def on_start(self, run):
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    signal.signal(sig, lambda *_: sys.exit(15))
+
+            def on_update(self, run, batch, metrics):
+                if run.state.updates == 2:
+                    signal.signal(signal.SIGTERM, lambda *_: sys.exit(15))  # again, mid-run
+                if run.state.updates == 3:
+                    os.kill(os.getpid(), signal.SIGTERM)
+
+        with pytest.raises(KeyboardInterrupt):
+            _train(_cfg(tmp_path, total_updates=50, checkpoint_interval=1_000),
+                   callbacks=[LibraryTakesSignals()])  # fmt: skip
+        summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+        assert summary["interrupted"] is True and summary["updates"] in (3, 4)
+        saved = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+        assert saved["state"]["updates"] == summary["updates"]
+
     def test_a_stop_once_the_budget_is_spent_lets_the_run_finish(self, tmp_path, capsys):
         # Landing during the last update's evaluation, the signal cuts nothing short: the
         # run ends as it would have, not as one to resume.
@@ -1539,6 +1562,19 @@ class TestConsole:
         assert len(lines) == 1  # the first update came before every_s had passed
         assert "frames 200/1,000" in lines[0] and "train return 3.00" in lines[0]
         assert "eval 7.00" in lines[0]
+
+    def test_progress_counts_to_the_limit_that_ends_the_run(self):
+        stream = io.StringIO()  # an update budget that ends the run at 2,000 frames
+        console = Console(
+            total_frames=10_000_000, initial_frames=0, enabled=True, stream=stream,
+            total_updates=200,
+        )  # fmt: skip
+        console.update(500, 500, None, {}, evaluated=True, updates=50)
+        assert "frames 500/2,000 | update 50/200 |" in stream.getvalue()
+        bar = Console(total_frames=10_000, initial_frames=0, enabled=True, stream=stream,
+                      total_updates=10**6)  # fmt: skip
+        bar.update(100, 100, None, {}, evaluated=True, updates=1)  # frames end it first
+        assert "frames 100/10,000 | update 1/1,000,000 |" in stream.getvalue()
 
     def test_nothing_when_disabled(self):
         stream = io.StringIO()

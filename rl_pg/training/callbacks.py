@@ -365,18 +365,27 @@ class EntropyByTarget(Callback):
 
 class StopWhenSolved(Callback):
     """Ends the run after an evaluation whose mean return reaches ``threshold``
-    (``--stop-when-solved`` with a recipe's ``threshold``).
+    (``--stop-when-solved`` with a recipe's ``threshold``); with ``confirmed``, once a
+    checkpoint is confirmed at the threshold both greedily and by sampling (the run's
+    ``best_confirmed``, kept by ``--confirm-episodes``): what the run keeps is then
+    done, not only its greedy play.
 
     Args:
         threshold (float): the evaluation mean return that counts as solved.
+        confirmed (bool): solved means a confirmed checkpoint at the threshold.
     """
 
-    def __init__(self, threshold: float) -> None:
+    def __init__(self, threshold: float, *, confirmed: bool = False) -> None:
         self.threshold = check_real("threshold", threshold)
+        self.confirmed = confirmed
         self._solved = False
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
-        self._solved = result["eval/mean_return"] >= self.threshold
+        if self.confirmed:  # the confirmation ran in this evaluation, before this call
+            best = run.state.best_confirmed
+            self._solved = best is not None and best >= self.threshold
+        else:
+            self._solved = result["eval/mean_return"] >= self.threshold
 
     def stop_training(self, run: Run) -> bool:
         solved, self._solved = self._solved, False

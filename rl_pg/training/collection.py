@@ -32,7 +32,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
-from rl_pg._process import FrozenInWorkers
+from rl_pg._process import FrozenInWorkers, signal_handlers_kept
 from rl_pg.collectors import DoubleBufferedCollector, EpisodeCollector, SegmentCollector
 from rl_pg.groups import GROUP_BASELINES, GreedyInGroups
 from rl_pg.lean import lean_policy
@@ -437,8 +437,9 @@ def _start_ray(workers: int) -> bool:
         previous = os.environ.get("PYTHONPATH")
         os.environ["PYTHONPATH"] = path
         try:
-            ray.init(address="local", num_cpus=workers, include_dashboard=False,
-                     log_to_driver=False)  # fmt: skip
+            with signal_handlers_kept():  # Ray's own would lose the run's stop
+                ray.init(address="local", num_cpus=workers, include_dashboard=False,
+                         log_to_driver=False)  # fmt: skip
         finally:
             if previous is None:
                 del os.environ["PYTHONPATH"]
@@ -446,8 +447,9 @@ def _start_ray(workers: int) -> bool:
                 os.environ["PYTHONPATH"] = previous
         return True
     _check_reachable(address)
-    ray.init(address=address, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
+    with signal_handlers_kept():
+        ray.init(address=address, log_to_driver=False,
+                 runtime_env={"env_vars": {"PYTHONPATH": path}})  # fmt: skip
     nodes = [node for node in ray.nodes() if node["Alive"]]
     cpus = sum(node["Resources"].get("CPU", 0) for node in nodes)
     print(

@@ -24,6 +24,10 @@ class Console:
     Keyword Args:
         total_frames (int): the run's frame budget.
         initial_frames (int): frames already done (a resumed run).
+        total_updates (int, optional): the run's update budget, when it has one. The
+            progress then counts to the frames at which the first of the two limits
+            ends the run (projected from the frames per update so far) and shows the
+            updates too.
         enabled (bool): show anything at all (``--progress``).
         stream (TextIO, optional): where to write. Defaults to ``sys.stderr``.
         every_s (float): seconds between two lines when not on a terminal.
@@ -36,6 +40,7 @@ class Console:
         total_frames: int,
         initial_frames: int,
         enabled: bool,
+        total_updates: int | None = None,
         stream: TextIO | None = None,
         every_s: float = 10.0,
     ) -> None:
@@ -49,6 +54,7 @@ class Console:
         )
         self.lines = enabled and not on_terminal
         self.total_frames = total_frames
+        self.total_updates = total_updates
         self._last = (time.monotonic(), initial_frames)
         self._train_return = math.nan
 
@@ -60,12 +66,20 @@ class Console:
         last_eval: dict[str, float],
         *,
         evaluated: bool = False,
+        updates: int | None = None,
     ) -> None:
-        """Reports the frames done; ``metrics`` when the update was logged."""
+        """Reports the frames done (and the ``updates``); ``metrics`` when the update
+        was logged."""
         if metrics is not None and math.isfinite(metrics.get("train/episode_return", math.nan)):
             self._train_return = metrics["train/episode_return"]  # else: no episode ended
         eval_mean = last_eval.get("eval/mean_return", math.nan)
+        end, of_updates = self.total_frames, ""
+        if self.total_updates is not None and updates:
+            end = min(end, frames + round((self.total_updates - updates) * frames / updates))
+            of_updates = f" | update {updates:,}/{self.total_updates:,}"
         if self.bar is not None:
+            if self.bar.total != end:
+                self.bar.total = end
             self.bar.set_postfix(
                 train=f"{self._train_return:.2f}", eval=f"{eval_mean:.2f}", refresh=False
             )
@@ -77,7 +91,7 @@ class Console:
                 self._last = (now, frames)
                 losses = "" if metrics is None else _losses(metrics)
                 print(
-                    f"frames {frames:,}/{self.total_frames:,} | {fps:,.0f} frames/s | train "
+                    f"frames {frames:,}/{end:,}{of_updates} | {fps:,.0f} frames/s | train "
                     f"return {self._train_return:.2f}{losses} | eval {eval_mean:.2f}",
                     file=self.stream,
                     flush=True,

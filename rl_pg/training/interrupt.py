@@ -26,14 +26,12 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from rl_pg._process import STOP_SIGNALS
+
 __all__ = ["InterruptRequest", "MainProcessInterrupts", "exit_quietly_on_interrupt"]
 
 
-SIGNALS = tuple(
-    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
-)
-"""The signals that ask a run to stop: Ctrl-C, ``kill`` (and schedulers), a closed
-terminal (POSIX only)."""
+SIGNALS = STOP_SIGNALS
 
 
 class InterruptRequest:
@@ -61,6 +59,15 @@ class InterruptRequest:
         if threading.current_thread() is threading.main_thread():
             self._previous = {sig: signal.signal(sig, self._handle) for sig in SIGNALS}
         return self
+
+    def reclaim(self) -> None:
+        """Takes the ``SIGNALS`` back from a library that set its own handlers while
+        the run was starting or running: ``ray.init`` installs C-level handlers that
+        abort the process on SIGTERM, unseen by ``signal.getsignal``, so every signal is
+        set again. Cheap enough to call every update."""
+        if self._previous and threading.current_thread() is threading.main_thread():
+            for sig in SIGNALS:
+                signal.signal(sig, self._handle)
 
     def _handle(self, signum, frame) -> None:
         if self.requested:

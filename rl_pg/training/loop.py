@@ -157,6 +157,7 @@ def train(
         interrupted = False  # the run stopped on a signal before its budget was spent
         try:
             for batch in run.collection:
+                interrupt.reclaim()  # Ray's workers and evaluators set handlers of their own
                 batch = run.collection.join(batch, segments_per_update(cfg, run.state.frames))
                 hooks.on_batch(run, batch)
                 metrics = run.update(batch)
@@ -179,6 +180,7 @@ def train(
                     metrics if run.logs_update() else None,
                     run.state.last_eval,
                     evaluated=evaluated,
+                    updates=run.state.updates,
                 )
                 if stop or run.checkpoint_due() or hooks.checkpoint_due(run):
                     run.checkpoint()
@@ -248,7 +250,10 @@ class Run:
             resume_at=self.state.frames if saved is not None else None,
         )  # fmt: skip
         self.console = Console(
-            total_frames=cfg.total_frames, initial_frames=self.state.frames, enabled=cfg.progress
+            total_frames=cfg.total_frames,
+            initial_frames=self.state.frames,
+            enabled=cfg.progress,
+            total_updates=cfg.total_updates,
         )
         self.episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
         if saved is not None:  # the environments and counters where the run left them
@@ -377,7 +382,7 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
     if cfg.confirm_episodes is not None:
         callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold))
     if cfg.stop_when_solved and cfg.threshold is not None:
-        callbacks.append(StopWhenSolved(cfg.threshold))
+        callbacks.append(StopWhenSolved(cfg.threshold, confirmed=cfg.confirm_episodes is not None))
     if cfg.keep_every is not None:
         callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:
