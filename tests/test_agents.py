@@ -3,6 +3,7 @@ agents shipped with rl_pg, played and evaluated without training."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 
@@ -209,3 +210,39 @@ def test_hub_sharing_without_its_extra_or_with_two_sources_says_so(tmp_path, cap
                  ("export", str(tmp_path), "--out", "a.pt", "--push-to-hub", "me/x")):  # fmt: skip
         status, _, err = in_process(*args, capsys=capsys)
         assert status == 1 and "rl_pg[hub]" in err and err.count("\n") == 1, (args, err)
+
+
+# Quick enough to replay in the suite (seconds); highway, MetaDrive and Pong take minutes.
+REPLAYED = ("bandit", "gridworld", "cartpole", "pendulum", "lunarlander")
+
+
+@pytest.mark.parametrize("name", REPLAYED)
+def test_a_shipped_agents_advertised_figures_are_what_evaluate_gives(name):
+    """The play page and the model card show the results an agent file carries: they must
+    be what `rl-pg evaluate NAME --pretrained [--sample]` gives, episode for episode."""
+    from rl_pg.recipes import load
+
+    agent = load_checkpoint(shipped_agent(name))
+    for mode in ("greedy", "sampled"):
+        advertised = agent["agent"][mode]
+        measured = load(name).evaluate_checkpoint(
+            agent, episodes=advertised["episodes"], sample=mode == "sampled",
+            seed=advertised["seed"],
+        )  # fmt: skip
+        assert measured["mean_return"] == pytest.approx(advertised["mean_return"], abs=1e-3)
+        assert measured["std_return"] == pytest.approx(advertised["std_return"], abs=1e-3)
+
+
+@pytest.mark.parametrize("path", sorted(SHIPPED.glob("*.pt")), ids=lambda p: p.stem)
+def test_a_shipped_agents_figures_were_measured_under_todays_protocol(path):
+    """An evaluation setting a recipe has (Pong's sticky actions) is stored in the agent
+    file with the value its figures were measured under, and it is what `rl-pg evaluate
+    --pretrained` uses: a default changed later cannot re-label them."""
+    agent = load_checkpoint(path)
+    config = load(path.stem).config
+    protocol = {
+        f.name for f in dataclasses.fields(config)
+        if f.name.startswith("eval_") and f.name not in ("eval_interval", "eval_episodes")
+    }  # fmt: skip
+    for name in protocol:
+        assert name in agent["config"], f"{path.name} does not say its {name}"

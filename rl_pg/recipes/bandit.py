@@ -31,8 +31,7 @@ from rl_pg.training.curves import plot_curves, read_curve
 from rl_pg.training.recipe import Recipe
 
 # The tutorial's experiments: REINFORCE without an entropy bonus.
-# They train every update, to show where the running reward settles.
-TUTORIAL = {"entropy_coeff": 0.0, "confirm_episodes": None, "stop_when_solved": False}
+TUTORIAL = {"entropy_coeff": 0.0, "confirm_episodes": None}
 BASELINE_VARIANTS = {
     "no baseline": {"baseline": "none", **TUTORIAL},
     "running-average baseline": {"baseline": "running_mean", **TUTORIAL},
@@ -56,8 +55,9 @@ class Config(
     eval_interval=1_000,
     eval_episodes=1,  # the bandit is deterministic for a greedy policy: one pull tells its arm
     threshold=0.99,  # the 1.0 arm
-    # stop_when_solved (the default): once a checkpoint holds 0.99 greedily and by
-    # sampling on the confirmation's pulls, the run is done.
+    # Trains on past the first checkpoint confirmed at 0.99 both ways: stopped there,
+    # 8 of 10 seeds hold 0.99 on 1 000 fresh sampled pulls, trained on 10 of 10 (docs).
+    stop_when_solved=False,
     checkpoint_interval=5_000,
     log_interval=10,
 ):
