@@ -204,6 +204,12 @@ class TestTrain:
         assert logged.data.tags["mlflow.runName"] == "run"
         assert logged.data.metrics["eval/mean_return"] == summary["eval_mean_return"]
         assert mlflow.active_run() is None  # ended with the run
+        # held back and sent in batches, every update's metrics reach the store
+        frames, values = read_curve(run, "loss/actor")
+        history = client.get_metric_history(logged.info.run_id, "loss/actor")
+        assert [m.step for m in history] == list(frames)
+        assert [m.value for m in history] == pytest.approx(list(values))
+        assert len(history) == summary["updates"] == 2
 
     def test_a_missing_logger_package_names_its_extra(self, tmp_path, monkeypatch):
         hide_module(monkeypatch, "wandb")

@@ -303,9 +303,8 @@ class Run:
         if not self.logs_update():
             return metrics
         metrics["train/episode_return"] = self.episode_returns.pop_mean()
-        for name, value in metrics.items():
-            if math.isfinite(value):
-                self.logger.log_scalar(name, value, step=state.frames)
+        finite = {name: value for name, value in metrics.items() if math.isfinite(value)}
+        self.logger.log_metrics(finite, step=state.frames)  # one call per backend
         return metrics
 
     def budget_spent(self) -> bool:

@@ -9,6 +9,7 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +28,13 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.functional import discounted_return
 from rl_pg.training.config import TrainConfig, config_dict
 
-__all__ = ["BufferedCSVLogger", "EpisodeReturns", "Loggers", "scalar_log_rows"]
+__all__ = [
+    "BufferedCSVLogger",
+    "BufferedMLFlowLogger",
+    "EpisodeReturns",
+    "Loggers",
+    "scalar_log_rows",
+]
 
 
 class EpisodeReturns:
@@ -151,16 +158,26 @@ class Loggers:
         for logger in self.loggers:
             logger.log_scalar(name, value, step=step)
 
+    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """Logs an update's scalars together: one call per backend (W&B writes them as
+        one row, at a seventh of the cost of one call per scalar)."""
+        for logger in self.loggers:
+            logger.log_metrics(metrics, step=step)
+
     def flush(self) -> None:
-        """Writes the CSV rows held back to their files (the loop calls it before each
-        evaluation and checkpoint, and at the end)."""
-        self.csv.flush()
+        """Writes the CSV rows and MLflow metrics held back (the loop calls it before
+        each evaluation and checkpoint, and at the end)."""
+        for logger in self.loggers:
+            if isinstance(logger, BufferedCSVLogger | BufferedMLFlowLogger):
+                logger.flush()
 
     def close(self) -> None:
-        """Writes the CSV rows held back and ends the W&B and MLflow runs (their files
-        are complete afterwards)."""
-        self.csv.flush()
+        """Writes what is held back and ends the W&B and MLflow runs (their files are
+        complete afterwards)."""
+        self.flush()
         for logger in self.loggers:
+            if isinstance(logger, BufferedMLFlowLogger):
+                logger.wait()
             if isinstance(logger, WandbLogger):
                 logger.experiment.finish()
             elif isinstance(logger, MLFlowLogger):
@@ -260,12 +277,64 @@ def _wandb(cfg: TrainConfig, run_dir: Path) -> Logger:
     )
 
 
+class BufferedMLFlowLogger(MLFlowLogger):
+    """TorchRL's [`MLFlowLogger`](https://docs.pytorch.org/rl/stable/reference/generated/torchrl.record.loggers.MLFlowLogger.html)
+    (same experiment, run and metrics) whose scalars reach the tracking store in
+    batches, one ``log_batch`` call at least every ``flush_every`` seconds and at every
+    ``flush()``, handed to MLflow's asynchronous logging, instead of two synchronous
+    calls to the store per scalar (TorchRL's sets the experiment and logs the metric
+    each time). Each metric keeps the time it was logged at; ``wait()`` returns once
+    the store holds them all (the run's end calls it).
+    """
+
+    def __init__(self, exp_name: str, tracking_uri: str, *, flush_every: float = 5.0) -> None:
+        super().__init__(exp_name=exp_name, tracking_uri=tracking_uri)
+        from mlflow.tracking import MlflowClient
+
+        self.flush_every = flush_every
+        self._client = MlflowClient(tracking_uri)
+        self._run_id = self.experiment.info.run_id
+        self._pending: list = []
+        self._operations: list = []  # MLflow's futures of the batches handed over
+        self._due = time.monotonic() + flush_every
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        from mlflow.entities import Metric
+
+        self._pending.append(Metric(name, float(value), int(time.time() * 1000), step or 0))
+        if time.monotonic() >= self._due:
+            self.flush()
+
+    def log_metrics(self, metrics: dict[str, Any], step: int | None = None, **kwargs) -> Any:
+        """Each scalar held back as ``log_scalar`` holds it (TorchRL's sends them to the
+        store at once, one synchronous call per update)."""
+        return Logger.log_metrics(self, metrics, step, **kwargs)
+
+    def flush(self) -> None:
+        """Hands the metrics held back to MLflow's asynchronous logging (1 000 a batch,
+        MLflow's limit), which writes them to the store on a thread of its own."""
+        for start in range(0, len(self._pending), 1000):
+            batch = self._pending[start : start + 1000]
+            self._operations.append(
+                self._client.log_batch(self._run_id, metrics=batch, synchronous=False)
+            )
+        self._pending.clear()
+        self._due = time.monotonic() + self.flush_every
+
+    def wait(self) -> None:
+        """Flushes, then waits until the store holds every metric logged (at the end)."""
+        self.flush()
+        for operation in self._operations:
+            operation.wait()
+        self._operations.clear()
+
+
 def _mlflow(cfg: TrainConfig, run_dir: Path, name: str) -> Logger:
     import mlflow
 
     uri = cfg.mlflow_uri or mlflow.get_tracking_uri()
     _check_tracking_server(uri)
-    logger = MLFlowLogger(exp_name=name, tracking_uri=uri)  # starts an MLflow run
+    logger = BufferedMLFlowLogger(exp_name=name, tracking_uri=uri)  # starts an MLflow run
     mlflow.set_tags({"mlflow.runName": run_dir.name, "run_dir": str(run_dir.resolve())})
     return logger
 
