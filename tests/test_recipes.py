@@ -15,10 +15,12 @@ from rl_pg.recipes import evaluate, load, play
 from rl_pg.training import load_models, read_run
 from rl_pg.training.seeds import evaluation_seed, fresh_seed
 
-bandit, cartpole, gridworld, highway, lunarlander, pendulum, pong = (
+bandit, cartpole, gridworld, gym, highway, lunarlander, pendulum, pong = (
     load(name)
-    for name in ("bandit", "cartpole", "gridworld", "highway", "lunarlander", "pendulum", "pong")
-)
+    for name in (
+        "bandit", "cartpole", "gridworld", "gym", "highway", "lunarlander", "pendulum", "pong"
+    )
+)  # fmt: skip
 
 TINY = {"eval_episodes": 1, "checkpoint_interval": 1, "progress": False}
 RECIPES = {
@@ -45,6 +47,12 @@ RECIPES = {
         {"total_frames": 1_500, "eval_interval": 1_500, "continuous": True, "backend": "envpool"},
     ),
     "highway": (highway, {"total_frames": 60, "eval_interval": 60, "episodes_per_batch": 1}),
+    # The generic recipe on ids it has no recipe for: discrete and box actions.
+    "gym-discrete": (gym, {"env_id": "Acrobot-v1", "total_frames": 512, "eval_interval": 512}),
+    "gym-box": (
+        gym,
+        {"env_id": "MountainCarContinuous-v0", "total_frames": 512, "eval_interval": 512},
+    ),
     "pong": (
         pong,
         {"total_frames": 400, "eval_interval": 400, "num_envs": 2, "segment_length": 20},
@@ -481,3 +489,24 @@ def test_lunarlander_runs_stored_before_its_kl_set_rate_resume_at_the_plain_rate
         del stored[field]  # as a version without the field wrote it
     old = lunarlander.config.from_stored(stored)
     assert (old.lr_control, old.target_kl) == ("none", 0.01)
+
+
+def test_the_generic_recipe_takes_any_gymnasium_id_and_its_threshold(tmp_path):
+    with pytest.raises(ValueError, match="rl-pg train gym needs --env-id"):
+        gym.config()
+    with pytest.raises(ValueError, match="'Nope-v0' is not a registered gymnasium id"):
+        gym.config(env_id="Nope-v0")
+    # the registry's own target, unless the user sets one
+    assert gym.config(env_id="Acrobot-v1").threshold == -100.0
+    assert gym.config(env_id="Acrobot-v1", threshold=-150.0).threshold == -150.0
+    assert gym.config(env_id="Pendulum-v1").threshold is None  # the registry has none
+
+
+def test_the_generic_recipe_learns_an_environment_it_was_not_written_for(tmp_path):
+    # MountainCarContinuous: box actions, a reward only for reaching the flag; the
+    # defaults find it (a greedy 90, the registry's threshold) within 50k steps.
+    cfg = gym.config(env_id="MountainCarContinuous-v0", run_dir=tmp_path / "run",
+                     total_frames=50_000, progress=False)  # fmt: skip
+    summary = gym.train(cfg)
+    assert summary["recipe"] == "gym" and summary["threshold"] == 90.0
+    assert summary["best_eval_mean_return"] >= 90.0

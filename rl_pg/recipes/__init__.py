@@ -7,8 +7,8 @@ line, deployment, the tests, the benchmarks and the docs all use it.
 
 Examples:
     >>> from rl_pg.recipes import NAMES, load
-    >>> NAMES
-    ('bandit', 'gridworld', 'cartpole', 'pendulum', 'lunarlander', 'highway', 'pong', 'metadrive')
+    >>> NAMES[:3], NAMES[-1]
+    (('bandit', 'gridworld', 'cartpole'), 'gym')
     >>> recipe = load("cartpole")
     >>> recipe.config().threshold
     475.0
@@ -24,8 +24,9 @@ __all__ = ["NAMES", "load", "recipe_of"]
 
 NAMES = (
     "bandit", "gridworld", "cartpole", "pendulum", "lunarlander", "highway", "pong", "metadrive",
+    "gym",
 )  # fmt: skip
-"""The built-in recipes, simplest first."""
+"""The built-in recipes, simplest first; ``gym`` takes any gymnasium id (``--env-id``)."""
 
 
 def load(name: str, module: str | None = None) -> Recipe:

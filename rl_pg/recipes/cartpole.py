@@ -40,7 +40,8 @@ class Config(
     """REINFORCE with reward-to-go and a learned value baseline on CartPole-v1."""
 
     env_id: str = "CartPole-v1"
-    """Gymnasium environment id."""
+    """Gymnasium environment id: a CartPole's (v0 or v1). Another id trains with rl-pg
+    train gym --env-id ID, under its own name and threshold."""
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
     num_envs: Count = 32
@@ -48,6 +49,15 @@ class Config(
     backend: Literal["gymnasium", "envpool"] = "gymnasium"
     """What steps the training CartPoles. Gymnasium in this process, or EnvPool's C++
     threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.env_id.startswith("CartPole-"):
+            raise ValueError(
+                f"rl-pg train cartpole trains CartPole (its threshold of 475 and its "
+                f"defaults are CartPole's), not {self.env_id}: train it with rl-pg train "
+                f"gym --env-id {self.env_id}, under its own name and threshold."
+            )
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
