@@ -212,6 +212,22 @@ def test_hub_sharing_without_its_extra_or_with_two_sources_says_so(tmp_path, cap
         assert status == 1 and "rl_pg[hub]" in err and err.count("\n") == 1, (args, err)
 
 
+def test_a_push_to_an_unreachable_hub_says_so_in_one_line_and_keeps_the_file(
+    tmp_path, capsys, monkeypatch
+):
+    pytest.importorskip("huggingface_hub")
+    monkeypatch.setenv("HF_ENDPOINT", "http://127.0.0.1:9")  # nothing listens: refused
+    monkeypatch.setenv("HF_TOKEN", "hf_not_a_real_token")
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    run = tmp_path / "run"
+    assert in_process("train", "gridworld", "--run-dir", str(run), *QUICK, capsys=capsys)[0] == 0
+    out = tmp_path / "agent.pt"
+    status, _, err = in_process("export", str(run), "--out", str(out), "--push-to-hub",
+                                "me/agent", capsys=capsys)  # fmt: skip
+    assert status == 1 and "Cannot push to me/agent" in err, err
+    assert "Traceback" not in err and err.count("\n") == 1 and out.is_file()
+
+
 # Quick enough to replay in the suite (seconds); highway, MetaDrive and Pong take minutes.
 REPLAYED = ("bandit", "gridworld", "cartpole", "pendulum", "lunarlander")
 
@@ -220,8 +236,6 @@ REPLAYED = ("bandit", "gridworld", "cartpole", "pendulum", "lunarlander")
 def test_a_shipped_agents_advertised_figures_are_what_evaluate_gives(name):
     """The play page and the model card show the results an agent file carries: they must
     be what `rl-pg evaluate NAME --pretrained [--sample]` gives, episode for episode."""
-    from rl_pg.recipes import load
-
     agent = load_checkpoint(shipped_agent(name))
     for mode in ("greedy", "sampled"):
         advertised = agent["agent"][mode]

@@ -208,10 +208,16 @@ def push_agent(agent_file: str | Path, repo_id: str, *, private: bool = False) -
                 f"Cannot push to {repo_id}: HF_HUB_OFFLINE is set. The agent file "
                 f"{agent_file} is written; push it later with --push-to-hub."
             ) from err
-        except (HfHubHTTPError, OSError) as err:
+        except HfHubHTTPError as err:
             raise ValueError(
                 f"Cannot push to {repo_id} ({type(err).__name__}: {err}); log in with "
                 f"`hf auth login` (or set HF_TOKEN). The agent file {agent_file} is written."
+            ) from err
+        except Exception as err:  # no network, DNS, a proxy: whatever the HTTP client raises
+            raise ValueError(
+                f"Cannot push to {repo_id}: the Hub cannot be reached ({type(err).__name__}: "
+                f"{err}). The agent file {agent_file} is written; push it once the Hub "
+                f"answers (rl-pg export again, with --push-to-hub)."
             ) from err
     return str(commit.commit_url)
 
