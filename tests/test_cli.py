@@ -975,3 +975,20 @@ def test_a_report_over_runs_star_counts_the_newest_run_once(tmp_path, capsys, mo
     assert status == 0, err
     rows = [line for line in out.splitlines() if line.startswith("| gridworld-seed")]
     assert len(rows) == 2 and "latest" not in out, out
+
+
+def test_a_report_of_several_runs_gives_their_interquartile_mean_and_its_interval(capsys):
+    from scipy.stats import trim_mean
+
+    store = REPO / "results" / "cartpole-seeds.json"
+    status, out, _ = in_process("report", "--stored", str(store), capsys=capsys)
+    assert status == 0
+    (line,) = [line for line in out.splitlines() if "interquartile mean" in line]
+    runs = json.loads(store.read_text())["runs"]
+    for mode in ("greedy", "sampled"):
+        scores = [run["report"][mode]["mean_return"] for run in runs]
+        iqm = trim_mean(scores, 0.25)
+        match = re.search(rf"{mode} ([-\d.]+) \[([-\d.]+), ([-\d.]+)\]", line)
+        assert match and float(match[1]) == pytest.approx(iqm, abs=0.01), line
+        assert float(match[2]) <= iqm <= float(match[3])
+    assert f"of {len(runs)} runs" in line

@@ -62,6 +62,7 @@ from rl_pg.training.curves import (
     plot_solved,
     plot_solved_settings,
     read_curve,
+    seed_aggregate,
 )
 from rl_pg.training.run_dir import CONFIG, SUMMARY, claim_output
 from rl_pg.training.seeds import fresh_seed
@@ -965,7 +966,32 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
                 f"{held}/{len(with_threshold)} best checkpoints score at least their "
                 "threshold both greedily and by sampling."
             )
+    aggregate = _aggregate(reports)
+    if aggregate:
+        if not with_threshold:
+            lines.append("")  # not a row of the table
+        lines.append(aggregate)
     return "\n".join(lines)
+
+
+def _aggregate(reports: list[dict[str, Any]]) -> str | None:
+    """The best checkpoints' interquartile mean over the runs, greedy and sampled, with
+    its 95 % percentile-bootstrap interval (Agarwal et al. 2021's aggregate); None for
+    fewer than two runs evaluated that way."""
+    parts = []
+    for mode in ("greedy", "sampled"):
+        scores = [r[mode]["mean_return"] for r in reports if r.get(mode)]
+        if len(scores) >= 2:
+            iqm, low, high = seed_aggregate(np.asarray(scores)[:, None])
+            parts.append(f"{mode} {iqm[0]:.2f} [{low[0]:.2f}, {high[0]:.2f}]")
+    if not parts:
+        return None
+    runs = max(sum(bool(r.get(mode)) for r in reports) for mode in ("greedy", "sampled"))
+    return (
+        f"Best checkpoints, interquartile mean of {runs} runs [95 % bootstrap interval]: "
+        + ", ".join(parts)
+        + "."
+    )
 
 
 def holds(report: dict[str, Any]) -> bool | None:
