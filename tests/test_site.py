@@ -1,7 +1,8 @@
 """The documentation site in a real browser: every page of a fresh build loads in
 headless Chromium with no console error, no failed request and no broken image, every
-link inside the site reaches a page (and its anchor), no maths is left as LaTeX, and no
-inline formula stands outside its paragraph.
+link inside the site reaches a page (and its anchor), no maths is left as LaTeX, no
+inline formula stands outside its paragraph, no page marker shows as text, and every
+table or code block wider than the text column scrolls with a drawn scrollbar.
 
 Chromium is Debian's package (``apt-get install chromium``), driven by playwright through
 ``executable_path``. Without it the test is skipped, except under CI, where .ci/run
@@ -35,6 +36,33 @@ MAIN_PAGES = {  # screenshot name: page
 }
 # Text that is LaTeX the build did not render: $$ blocks, or $...$ inside a line.
 RAW_MATHS = re.compile(r"\$\$|(?<![\w$])\$(?=\S)[^$\n]*\\[a-zA-Z]+[^$\n]*(?<=\S)\$(?![\w$])")
+
+# The project's page markers (tables, values, figures generated from stored results).
+RAW_MARKER = re.compile(r"<!--\s*(?:/?value|rl-pg report|end of (?:report|table))[^>]{0,40}")
+# Tables and code wider than the text column must sit in a box that scrolls sideways with
+# a scrollbar (docs/stylesheets/extra.css draws it plainly), not cut off by overflow:hidden.
+HIDDEN_OVERFLOW = r"""(() => {
+  const article = document.querySelector('article'); if (!article) return [];
+  const problems = [];
+  article.querySelectorAll('table, pre').forEach(element => {
+    const wide = element.scrollWidth > article.clientWidth + 1;
+    if (!wide && element.scrollWidth <= element.clientWidth + 1) return;
+    let box = element, scrolls = false;
+    while (box && box !== article.parentElement) {
+      const style = getComputedStyle(box);
+      if (['auto', 'scroll'].includes(style.overflowX) && box.scrollWidth > box.clientWidth) {
+        scrolls = true;  // (headless Chromium draws no scrollbar to measure: the CSS does)
+        break;
+      }
+      if (style.overflowX === 'hidden' || style.overflowX === 'clip') break;
+      box = box.parentElement;
+    }
+    const what = element.textContent.trim().slice(0, 50);
+    if (!scrolls) problems.push(`a ${element.tagName.toLowerCase()} ${element.scrollWidth}px `
+      + `wide, its column ${article.clientWidth}px, is cut off: ${what}`);
+  });
+  return problems;
+})()"""
 
 if CHROMIUM is None and os.environ.get("CI"):
     pytest.fail("CI runs the browser test: install Debian's chromium (.ci/run does).")
@@ -136,6 +164,9 @@ def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
             )
             if torn:
                 problems.append(f"{name}: {torn} inline formulas stand outside any paragraph")
+            raw = RAW_MARKER.findall(text)  # a page marker Markdown showed as text
+            problems += [f"{name}: a page marker shows as text: {m!r}" for m in raw]
+            problems += [f"{name}: {what}" for what in page.evaluate(HIDDEN_OVERFLOW)]
             hrefs = page.evaluate(
                 "Array.from(document.querySelectorAll('article a[href]')).map(a => a.href)"
             )
