@@ -90,8 +90,12 @@ def main(cfg: Config) -> dict:
         ])  # fmt: skip
     print(table(rows, ["backend", "training (s)", "× csv only", "90 % interval",
                        "command (s)", "command − csv only (s)"]))  # fmt: skip
-    return write_json(cfg.out, vars(cfg) | {"out": str(cfg.out)}, training_s=train,
-                      command_s=wall, ratios=ratios)  # fmt: skip
+    return write_json(
+        cfg.out, vars(cfg) | {"out": str(cfg.out)}, training_s=train, command_s=wall,
+        ratios=ratios,
+        training_over_csv_only={name: r["training"] for name, r in ratios.items()},
+        command_extra_s={name: r["command_extra_s"] for name, r in ratios.items()},
+    )  # fmt: skip
 
 
 if __name__ == "__main__":

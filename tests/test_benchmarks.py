@@ -456,3 +456,16 @@ def test_natural_gradient(tmp_path):
     assert set(out["ms_per_update"]) == set(natural.CONTENDERS)
     assert all(value > 0 for value in out["over_adam"].values())
     assert all(low <= high for low, high in out["over_adam_intervals"].values())
+
+
+def test_loggers_times_each_backend_beside_the_csv_logs(tmp_path, monkeypatch):
+    loggers = _script("loggers")
+    short = ["--total-updates", "2", "--eval-interval", "100", "--eval-episodes", "1"]
+    monkeypatch.setattr(loggers, "BACKENDS", {
+        "csv only": short, "tensorboard": ["--tensorboard", *short],
+    })  # fmt: skip
+    out = loggers.main(loggers.Config(repeats=1, recipe="gridworld", out=tmp_path / "l.json"))
+    assert set(out["training_over_csv_only"]) == {"csv only", "tensorboard"}
+    assert out["training_over_csv_only"]["csv only"] == 1.0
+    assert all(len(times) == 1 and times[0] > 0 for times in out["training_s"].values())
+    assert json.loads((tmp_path / "l.json").read_text())["command_extra_s"]["csv only"] == 0
