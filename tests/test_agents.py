@@ -52,7 +52,7 @@ def test_an_exported_agent_plays_and_evaluates_as_its_run_does(tmp_path, capsys)
     assert outputs["play"][0] == outputs["play"][1]  # the same episodes, the same returns
     assert outputs["evaluate"][0] == outputs["evaluate"][1]
     status, _, err = in_process("export", str(run), "--out", str(tmp_path), capsys=capsys)
-    assert status == 1 and "is a directory: name the agent file" in err
+    assert status == 1 and "is a directory: name the file to write there (an agent file)" in err
     # the last checkpoint's export carries no results: rl-pg evaluate's are the best one's
     last = export_agent(run, tmp_path / "last.pt", which="last")
     assert "greedy" not in last["agent"]

@@ -89,14 +89,17 @@ class TestKLStepSize:
         optimizer = torch.optim.Adam(loss.parameters(), lr=0.1)
         step_size = KLStepSize(optimizer, actor, target_kl=0.01)
         collector = EpisodeCollector(SegmentCollector(env, actor, frames_per_batch=8 * 16), 8)
-        kls = []
+        kls, rates = [], []
         for _ in range(20):
             batch = collector.next()
             step_size.before(batch)
             _update(loss, optimizer, batch)
             kls.append(step_size.after(batch)["kl"])
+            rates.append(optimizer.param_groups[0]["lr"])
         collector.shutdown()
-        assert optimizer.param_groups[0]["lr"] < 0.05
+        # the rate came down (it may rise again once the KL is below target: CPUs differ
+        # in where it settles), and the updates move the policy by about the target
+        assert min(rates) < 0.05
         assert kls[0] > 0.1 and 0.002 < sorted(kls[-10:])[5] < 0.03  # the last 10's median
 
     def test_an_infinite_kl_lowers_the_rate_and_a_nan_one_is_an_error(self, categorical_actor):

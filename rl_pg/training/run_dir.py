@@ -298,7 +298,11 @@ def claim_output(
     """
     path = Path(path)
     if path.is_dir():
-        raise ValueError(f"{flag} {path} is a directory: name the file for {writes}.")
+        example = {"--out": "agent.pt", "--store": "table.json"}.get(flag, "figure.png")
+        raise ValueError(
+            f"{flag} {path} is a directory: name the file to write there ({writes}), e.g. "
+            f"{path / example}."
+        )
     if not (path.exists() or path.is_symlink()):
         return path
     run = run_directory_of(path)
