@@ -77,7 +77,9 @@ def test_comparisons_with_sb3(script, tmp_path):
             repeats=1,
             probe_frames=512,
             cartpole_envs=[32],  # the recipe's default: the stock-collector ratio reads it
-            lunarlander_envs=[4],
+            # LunarLander's contenders (the same code, another task) doubled this test's
+            # time, to 2.5 min of the suite's 10: CartPole's alone are timed here.
+            lunarlander_envs=[],
             json_path=tmp_path / "t.json",
         )
         out = module.main(cfg)
@@ -85,14 +87,14 @@ def test_comparisons_with_sb3(script, tmp_path):
         loop, floor = "rl_pg training loop (gymnasium)", "floor: gymnasium + MLP, no learning"
         assert f"CartPole x32 {loop} / CartPole x32 {floor}" in out["ratios"]
         plain = "the same algorithm in plain PyTorch (gymnasium)"
-        assert f"LunarLander x4 {loop} / LunarLander x4 {plain}" in out["ratios"]
+        assert f"CartPole x32 {loop} / CartPole x32 {plain}" in out["ratios"]
         kept = "the same in plain PyTorch, CleanRL's bookkeeping (gymnasium)"
         assert f"CartPole x32 {loop} / CartPole x32 {kept}" in out["ratios"]
         # The learning loops of a task and number of environments: the same frames.
         sized = out["frames_per_repeat"]
         assert len(set(sized.values())) > 2  # sized apart, or this would prove nothing
-        for task in ("CartPole x32", "LunarLander x4"):
-            assert sized[f"{task} {loop}"] == sized[f"{task} {plain}"] == sized[f"{task} {kept}"]
+        task = "CartPole x32"
+        assert sized[f"{task} {loop}"] == sized[f"{task} {plain}"] == sized[f"{task} {kept}"]
         assert out["rl_pg_over_stock_collector"] > 0
         assert out["ratio_intervals"].keys() == out["ratios"].keys()
         for name, (low, high) in out["ratio_intervals"].items():
