@@ -20,7 +20,7 @@ import importlib
 
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["NAMES", "load", "recipe_of"]
+__all__ = ["NAMES", "Agent", "load", "recipe_of"]
 
 NAMES = (
     "bandit", "gridworld", "cartpole", "pendulum", "lunarlander", "highway", "pong", "metadrive",
@@ -95,3 +95,12 @@ def recipe_of(saved: dict, run) -> Recipe:
             f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
             f"and critic; rl_pg.training.load_models(saved, actor, critic)."
         ) from None
+
+
+def __getattr__(name: str):
+    # Agent (rl_pg.recipes.acting) imports this module: loaded on first use.
+    if name == "Agent":
+        from rl_pg.recipes.acting import Agent
+
+        return Agent
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

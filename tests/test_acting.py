@@ -1,0 +1,87 @@
+"""The two-line load-and-act API: ``Agent.load(...)`` then ``agent.act(observation)`` on
+the environment's own observations and actions (gymnasium's), one or a batch."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from rl_pg.envs.gym import DRIVING_ACTIONS
+from rl_pg.frame_difference import FrameDifference
+from rl_pg.recipes import Agent
+
+
+@pytest.fixture(scope="module")
+def cartpole():
+    return Agent.load("cartpole", pretrained=True)
+
+
+def _greedy_index(agent: Agent, observation: torch.Tensor, batch=()) -> torch.Tensor:
+    """The policy's own greedy action on an observation entry (the TorchRL way)."""
+    data = TensorDict({"observation": observation}, batch_size=batch)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        return agent.policy(data)["action"]
+
+
+def test_a_batch_of_observations_gets_one_action_each(cartpole):
+    envs = gym.make_vec("CartPole-v1", num_envs=3, vectorization_mode="sync")
+    observations, _ = envs.reset(seed=3)
+    actions = cartpole.act(observations)
+    assert isinstance(actions, np.ndarray) and actions.shape == (3,)
+    assert list(actions) == [cartpole.act(o) for o in observations]  # the same one by one
+    envs.step(actions)  # what the vector environment takes
+
+
+def test_the_action_is_the_policys_and_sampling_draws_from_it(cartpole):
+    observation = np.array([0.02, 0.3, -0.05, -0.6], dtype=np.float32)
+    greedy = _greedy_index(cartpole, torch.as_tensor(observation)).item()
+    assert cartpole.act(observation) == greedy
+    # Near balance the policy hesitates: over many draws both actions show up.
+    torch.manual_seed(0)
+    draws = {cartpole.act(np.zeros(4, dtype=np.float32), sample=True) for _ in range(200)}
+    assert draws == {0, 1}
+
+
+def test_a_tensordict_is_acted_on_the_torchrl_way(cartpole):
+    env = cartpole.make_env()
+    data = cartpole.act(env.reset())
+    assert data["action"].item() == _greedy_index(cartpole, data["observation"]).item()
+    env.close()
+
+
+def test_an_observation_of_the_wrong_shape_is_refused_naming_the_expected_one(cartpole):
+    with pytest.raises(ValueError, match=r"shape \(4,\).*'observation'.*got \(3,\)"):
+        cartpole.act(np.zeros(3, dtype=np.float32))
+
+
+def test_a_driving_agent_gives_the_action_vector_its_environment_takes():
+    pytest.importorskip("highway_env")
+    agent = Agent.load("highway", pretrained=True)
+    observation = np.random.default_rng(0).uniform(-1, 1, (5, 5)).astype(np.float32)
+    action = agent.act(observation)
+    index = _greedy_index(agent, torch.as_tensor(observation)).item()
+    assert action.shape == (2,) and list(action) == pytest.approx(DRIVING_ACTIONS[index])
+
+
+def test_a_frame_difference_agent_remembers_the_frame_before_until_reset():
+    pytest.importorskip("ale_py")
+    agent = Agent.load("pong", pretrained=True)
+    rng = np.random.default_rng(0)
+    frames = [rng.choice([144, 236], size=(210, 160, 3)).astype(np.uint8) for _ in range(3)]
+    processed = [FrameDifference.process(torch.as_tensor(f)) for f in frames]
+    expected = [torch.zeros(6400)] + [(b - a).flatten() for a, b in zip(processed, processed[1:])]
+    for frame, difference in zip(frames, expected):
+        assert agent.act(frame) == _greedy_index(agent, difference).item()
+    agent.reset()  # a new episode: its first frame has no frame before it
+    assert agent.act(frames[2]) == _greedy_index(agent, torch.zeros(6400)).item()
+
+
+def test_loading_nothing_says_what_to_give(tmp_path):
+    with pytest.raises(Exception, match="does not exist"):
+        Agent.load(tmp_path / "missing")
+    with pytest.raises(ValueError, match="No agent is shipped"):
+        Agent.load("nothing", pretrained=True)
