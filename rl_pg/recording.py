@@ -89,8 +89,9 @@ def play(
                 continue
             rollout = env.rollout(max_steps, policy, break_when_any_done=True)
             returns.append(rollout["next", "reward"].sum().item())
-            if record is not None:
+            if record is not None:  # every step's frame, and where the episode ended
                 frames.extend(rollout["pixels"].numpy())
+                frames.append(rollout["next", "pixels"][-1].numpy())
     returns = returns[:episodes]
     if record is not None:
         _write_video(record, frames, fps)

@@ -5,12 +5,15 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
+import sys
 
+import numpy as np
 import pytest
 import torch
 from conftest import assert_same_run, averaged_weights
-from PIL import Image
+from PIL import Image, ImageSequence
 
+from rl_pg.envs import GridWorldEnv
 from rl_pg.recipes import evaluate, load, play
 from rl_pg.training import load_models, read_run
 from rl_pg.training.seeds import evaluation_seed, fresh_seed
@@ -419,10 +422,29 @@ def test_play_says_what_it_needs_for_a_run_of_other_code(tmp_path):
         play.main(play.Args(run=tmp_path / "api"))
 
 
-def test_play_refuses_to_record_what_does_not_render(tmp_path):
+def test_play_refuses_to_record_what_does_not_render(tmp_path, monkeypatch):
     gridworld.train(gridworld.config(run_dir=tmp_path, total_updates=1, **TINY))
-    with pytest.raises(ValueError, match="Recording needs frames under 'pixels'"):
+    module = sys.modules[gridworld.make_env.__module__]  # a recipe that draws nothing
+    blind = dataclasses.replace(module.RECIPE, make_env=lambda cfg, render=False: GridWorldEnv())
+    monkeypatch.setattr(module, "RECIPE", blind)
+    with pytest.raises(ValueError, match="gridworld recipe draws no frames.*without --gif"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
+    assert not (tmp_path / "x.gif").exists()
+
+
+@pytest.mark.parametrize("name", ["bandit", "gridworld"])
+def test_the_torch_native_recipes_record_what_their_agent_does(name, tmp_path):
+    recipe = load(name)
+    recipe.train(recipe.config(run_dir=tmp_path, total_updates=1, **TINY))
+    gif = tmp_path / "play.gif"
+    play.main(play.Args(run=tmp_path, episodes=2, gif=gif))
+    with Image.open(gif) as image:
+        frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(image)]
+    env = recipe.make_env(recipe.config(), render=True)
+    start = env.reset()["pixels"].numpy()
+    assert (frames[0] == start).all()  # the environment's own drawing of its start
+    if name == "bandit":  # each pull: the arms, then the pulled one coloured
+        assert len(frames) >= 2 and (frames[1] != start).any()
 
 
 def test_a_run_shorter_than_its_log_interval_ends_with_its_summary(tmp_path):

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from rl_pg._checks import check_batch_size, check_int, check_real
+from rl_pg._checks import check_batch_size, check_bool, check_int, check_real
 
 __all__ = ["GridWorldEnv"]
 
@@ -35,6 +35,9 @@ class GridWorldEnv(EnvBase):
         max_steps (int): truncation horizon. Defaults to ``100``.
         batch_size (int or tuple of int): copies stepped together. Defaults to ``()``.
         device (torch.device, optional): where tensors live. Defaults to ``"cpu"``.
+        render (bool): also give the grid as an image under ``"pixels"`` (``uint8``,
+            48 pixels a cell: the goal green, the pit red, the agent a blue disc), for
+            recordings. Defaults to ``False``.
 
     Raises:
         ValueError: for cells outside the grid, start/goal/pit that coincide, or
@@ -66,8 +69,10 @@ class GridWorldEnv(EnvBase):
         max_steps: int = 100,
         batch_size: int | tuple[int, ...] = (),
         device: torch.device | str | None = "cpu",
+        render: bool = False,
     ) -> None:
         size = check_int("size", size, low=2)
+        render = check_bool("render", render)
         cells = {}
         for name, cell in (("start", start), ("goal", goal), ("pit", pit)):
             if not hasattr(cell, "__len__") or len(cell) != 2:
@@ -111,6 +116,13 @@ class GridWorldEnv(EnvBase):
             step_count=Unbounded(batch_size, dtype=torch.int64, device=self.device),
             shape=batch_size,
         )
+        self.render = render
+        if render:  # one image per cell the agent can stand on
+            self.register_buffer("cell_frames", _grid_frames(size, self.goal, self.pit).to(self.device))
+            self.observation_spec["pixels"] = Bounded(
+                0, 255, (*batch_size, *self.cell_frames.shape[1:]), dtype=torch.uint8,
+                device=self.device,
+            )  # fmt: skip
         self.action_spec = Categorical(len(_MOVES), shape=batch_size, device=self.device)
         self.reward_spec = Unbounded((*batch_size, 1), device=self.device)
         self.done_spec = Composite(
@@ -145,10 +157,14 @@ class GridWorldEnv(EnvBase):
                 "cell": cell,
                 "step_count": torch.zeros(shape, dtype=torch.long, device=self.device),
                 **self.full_done_spec.zero(),
+                **self._pixels(cell),
             },
             batch_size=shape,
             device=self.device,
         )
+
+    def _pixels(self, cell: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"pixels": self.cell_frames[cell]} if self.render else {}
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cell = self.next_cell[tensordict["cell"], tensordict["action"]]
@@ -164,6 +180,7 @@ class GridWorldEnv(EnvBase):
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,
+                **self._pixels(cell),
             },
             batch_size=self.batch_size,
             device=self.device,
@@ -171,3 +188,28 @@ class GridWorldEnv(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         """The gridworld is deterministic: seeding has nothing to do."""
+
+
+_CELL = 48  # pixels a side
+_FLOOR, _LINE, _GOAL, _PIT, _AGENT = (236, 236, 228), (190, 190, 190), (70, 170, 90), (
+    200, 70, 60), (50, 100, 220)  # fmt: skip
+
+
+def _grid_frames(size: int, goal: int, pit: int) -> torch.Tensor:
+    """``[size * size, H, W, 3]`` uint8: the grid with the agent on each cell."""
+    side = size * _CELL
+    grid = torch.tensor(_FLOOR, dtype=torch.uint8).expand(side, side, 3).clone()
+    for cell, colour in ((goal, _GOAL), (pit, _PIT)):
+        row, col = divmod(cell, size)
+        grid[row * _CELL : (row + 1) * _CELL, col * _CELL : (col + 1) * _CELL] = torch.tensor(colour)
+    lines = torch.arange(side) % _CELL == 0
+    grid[lines, :] = grid[:, lines] = torch.tensor(_LINE, dtype=torch.uint8)
+    grid[-1, :] = grid[:, -1] = torch.tensor(_LINE, dtype=torch.uint8)
+    y, x = torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij")
+    frames = grid.expand(size * size, side, side, 3).clone()
+    for cell in range(size * size):
+        row, col = divmod(cell, size)
+        centre_y, centre_x = (row + 0.5) * _CELL, (col + 0.5) * _CELL
+        disc = (y + 0.5 - centre_y) ** 2 + (x + 0.5 - centre_x) ** 2 <= (0.3 * _CELL) ** 2
+        frames[cell][disc] = torch.tensor(_AGENT, dtype=torch.uint8)
+    return frames

@@ -78,6 +78,8 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    if render:  # one bandit, drawn
+        return BanditEnv(num_arms=cfg.arms, render=True)
     return BanditEnv(num_arms=cfg.arms, batch_size=cfg.samples_per_update)
 
 

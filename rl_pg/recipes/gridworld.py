@@ -58,6 +58,8 @@ class Config(
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
+    if render:  # one grid, drawn
+        return GridWorldEnv(max_steps=cfg.max_steps, render=True)
     return GridWorldEnv(batch_size=cfg.num_envs, max_steps=cfg.max_steps)
 
 

@@ -65,6 +65,12 @@ def main(args: Args) -> list[float]:
         make_env = recipe.make_play_env or recipe.make_env
         env = make_env(cfg, render=args.gif is not None)
         try:
+            if args.gif is not None and "pixels" not in env.observation_spec.keys():
+                raise ValueError(
+                    f"The {recipe.name} recipe draws no frames (its make_env(cfg, "
+                    f"render=True) gives no 'pixels'), so --gif has nothing to record: "
+                    f"play it without --gif."
+                )
             actor, critic = recipe.make_models(env, cfg)
             load_models(saved, actor, critic)
             torch.manual_seed(args.seed)
