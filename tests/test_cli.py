@@ -49,6 +49,9 @@ def test_list_names_every_recipe_with_what_it_trains(capsys):
     lines = out.splitlines()
     assert [line.split()[0] for line in lines] == list(NAMES)
     assert "CartPole-v1" in lines[NAMES.index("cartpole")]
+    # each description whole: a sentence that ends, however many lines its docstring takes
+    assert all(line.rstrip().endswith((".", ")")) for line in lines), out
+    assert "held-out scenarios" in lines[NAMES.index("metadrive")]
 
 
 def test_train_resume_and_play_a_run_by_its_directory_alone(tmp_path, capsys, monkeypatch):

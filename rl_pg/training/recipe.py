@@ -201,8 +201,9 @@ class Recipe:
 
     @property
     def description(self) -> str:
-        """The first line of the config's docstring."""
-        return (self.config.__doc__ or self.name).strip().splitlines()[0]
+        """The first paragraph of the config's docstring, as one line."""
+        paragraph = (self.config.__doc__ or self.name).strip().split("\n\n")[0]
+        return " ".join(line.strip() for line in paragraph.splitlines())
 
     def train(
         self, cfg: TrainConfig | None = None, *, callbacks: Sequence[Callback] = ()
