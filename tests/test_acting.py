@@ -3,6 +3,8 @@ the environment's own observations and actions (gymnasium's), one or a batch."""
 
 from __future__ import annotations
 
+import itertools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -73,8 +75,8 @@ def test_a_frame_difference_agent_remembers_the_frame_before_until_reset():
     rng = np.random.default_rng(0)
     frames = [rng.choice([144, 236], size=(210, 160, 3)).astype(np.uint8) for _ in range(3)]
     processed = [FrameDifference.process(torch.as_tensor(f)) for f in frames]
-    expected = [torch.zeros(6400)] + [(b - a).flatten() for a, b in zip(processed, processed[1:])]
-    for frame, difference in zip(frames, expected):
+    expected = [torch.zeros(6400)] + [(b - a).flatten() for a, b in itertools.pairwise(processed)]
+    for frame, difference in zip(frames, expected, strict=True):
         assert agent.act(frame) == _greedy_index(agent, difference).item()
     agent.reset()  # a new episode: its first frame has no frame before it
     assert agent.act(frames[2]) == _greedy_index(agent, torch.zeros(6400)).item()

@@ -448,6 +448,15 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     # what both share is said once, below; the row of those flags alone is no default
     assert first.startswith("| only the flags below | 0 1 |")
     assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
+    # runs of one file that differ in more than their seed are not seeds of one setting
+    from rl_pg.recipes.report import _by_setting
+
+    groups = _by_setting(saved_runs["runs"])
+    assert {label: len(runs) for label, runs in groups.items()} == {
+        "--gamma 1.0": 1, "--gamma 0.9": 1}  # fmt: skip
+    status, out, err = in_process("report", "--stored", str(other), "--plot",
+                                  str(tmp_path / "mixed.png"), capsys=capsys)  # fmt: skip
+    assert status == 1 and "the setting 'other: --gamma 1.0' has 1 run" in err, err
     assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
     assert "--target-kl" not in second
     reports = [run["report"] for run in saved_runs["runs"]]

@@ -427,7 +427,7 @@ def test_play_refuses_to_record_what_does_not_render(tmp_path, monkeypatch):
     module = sys.modules[gridworld.make_env.__module__]  # a recipe that draws nothing
     blind = dataclasses.replace(module.RECIPE, make_env=lambda cfg, render=False: GridWorldEnv())
     monkeypatch.setattr(module, "RECIPE", blind)
-    with pytest.raises(ValueError, match="gridworld recipe draws no frames.*without --gif"):
+    with pytest.raises(ValueError, match=r"gridworld recipe draws no frames.*without --gif"):
         play.main(play.Args(run=tmp_path, episodes=1, gif=tmp_path / "x.gif"))
     assert not (tmp_path / "x.gif").exists()
 

@@ -118,7 +118,8 @@ class GridWorldEnv(EnvBase):
         )
         self.render = render
         if render:  # one image per cell the agent can stand on
-            self.register_buffer("cell_frames", _grid_frames(size, self.goal, self.pit).to(self.device))
+            frames = _grid_frames(size, self.goal, self.pit)
+            self.register_buffer("cell_frames", frames.to(self.device))
             self.observation_spec["pixels"] = Bounded(
                 0, 255, (*batch_size, *self.cell_frames.shape[1:]), dtype=torch.uint8,
                 device=self.device,
@@ -201,7 +202,8 @@ def _grid_frames(size: int, goal: int, pit: int) -> torch.Tensor:
     grid = torch.tensor(_FLOOR, dtype=torch.uint8).expand(side, side, 3).clone()
     for cell, colour in ((goal, _GOAL), (pit, _PIT)):
         row, col = divmod(cell, size)
-        grid[row * _CELL : (row + 1) * _CELL, col * _CELL : (col + 1) * _CELL] = torch.tensor(colour)
+        square = (slice(row * _CELL, (row + 1) * _CELL), slice(col * _CELL, (col + 1) * _CELL))
+        grid[square] = torch.tensor(colour, dtype=torch.uint8)
     lines = torch.arange(side) % _CELL == 0
     grid[lines, :] = grid[:, lines] = torch.tensor(_LINE, dtype=torch.uint8)
     grid[-1, :] = grid[:, -1] = torch.tensor(_LINE, dtype=torch.uint8)

@@ -22,7 +22,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -43,7 +42,7 @@ class Agent:
     Attributes:
         recipe (Recipe): the recipe that trained it.
         config (TrainConfig): the run's config (one environment).
-        policy (TensorDictModuleBase): the actor, with the deployed weights (a
+        policy (TensorDictModule): the actor, with the deployed weights (a
             ``--policy-ema`` run's average, as its evaluations played).
         frames (int or None): the frames it was trained on.
 

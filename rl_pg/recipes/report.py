@@ -327,8 +327,22 @@ def plot_stored(
     stems = [path.stem for path in paths]
     if len(set(stems)) != len(stems):
         raise ValueError(f"--plot names each file's runs by its stem; these repeat one: {paths}.")
-    settings = dict(zip(_setting_names(stems), map(_stored_runs, paths), strict=True))
+    settings = {}
+    for stem, runs in zip(_setting_names(stems), map(_stored_runs, paths), strict=True):
+        groups = _by_setting(runs)  # runs of one file that differ in more than the seed
+        if len(groups) == 1:
+            settings[stem] = runs
+        else:
+            settings.update({f"{stem}: {label}": group for label, group in groups.items()})
+    for name, group in settings.items():
+        if len(group) < 2:
+            raise ValueError(
+                f"--plot draws the seeds of each setting with their spread, and the setting "
+                f"{name!r} has {len(group)} run: store two or more seeds of it (a file "
+                f"whose runs differ in more than the seed holds one setting per difference)."
+            )
     stems = list(settings)
+    paths = stems  # one figure per setting from here
     runs = [run for group in settings.values() for run in group]
     title = ", ".join(sorted({run["report"]["recipe"] for run in runs}))
     if all(run["config"].get("stop_when_solved") for run in runs):
@@ -361,6 +375,33 @@ def plot_stored(
     if len(paths) == 1:
         return plot_seeds(curves[stems[0]], Path(figure), **draw)
     return plot_settings(curves, Path(figure), **draw)
+
+
+def _by_setting(runs: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """A stored file's runs by setting: seeds of one setting are one group; runs whose
+    configs differ in more than the seed (a file written from mixed runs) are not
+    seeds of each other, and each setting is named by the flags that set it apart."""
+    recipes = [run["report"]["recipe"] for run in runs]
+    if len(set(recipes)) > 1:
+        return {
+            name: [r for r, of in zip(runs, recipes, strict=True) if of == name] for name in recipes
+        }
+    if len({tuple(_setting([run])) for run in runs}) == 1:
+        return {"": runs}
+    from rl_pg.recipes.cli import _flag
+
+    configs = [config for config, _ in _as_run(runs)]
+    quiet = _quiet_fields()
+    varying = [
+        name
+        for name in configs[0]
+        if name not in quiet and len({json.dumps(c.get(name)) for c in configs}) > 1
+    ]
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for run, config in zip(runs, configs, strict=True):
+        label = " ".join(_flag(name, config.get(name)) for name in varying)
+        groups.setdefault(label, []).append(run)
+    return groups
 
 
 def _setting_names(stems: list[str]) -> list[str]:
@@ -732,11 +773,9 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     if len(recipes) != 1:
         raise ValueError(f"a setting's runs come from one recipe, got {sorted(recipes)}.")
     recipe = load(recipes.pop())
-    config = recipe.config() if recipe.prepare is None else recipe.prepare(recipe.config())
-    defaults = json.loads(json.dumps(vars(config), default=str))
-    quiet = NOT_SETTINGS | set(TrainConfig.groups["logging"][1])
-    # each run's config as it ran: a field newer than the run at the value it had then
-    configs = [{**defaults, **recipe.config.as_run(run["config"])} for run in runs]
+    defaults = _defaults(recipe)
+    quiet = _quiet_fields()
+    configs = [config for config, _ in _as_run(runs)]
     resolved = [
         field.name
         for field in dataclasses.fields(recipe.config)
@@ -757,6 +796,30 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
             shown = [_flag(name, v) for v in distinct]
             flags.append(shown[0] if len(shown) == 1 else " / ".join(shown))
     return flags
+
+
+def _defaults(recipe) -> dict[str, Any]:
+    config = recipe.config() if recipe.prepare is None else recipe.prepare(recipe.config())
+    return json.loads(json.dumps(vars(config), default=str))
+
+
+def _quiet_fields() -> set[str]:
+    """Fields that say nothing about a setting: the seed, where and how it logged."""
+    from rl_pg.training import TrainConfig
+
+    return NOT_SETTINGS | set(TrainConfig.groups["logging"][1])
+
+
+def _as_run(runs: list[dict[str, Any]]) -> list[tuple[dict[str, Any], Any]]:
+    """Each stored run's config as it ran (a field newer than the run at the value it
+    had then, the rest at the recipe's defaults), with its recipe."""
+    from rl_pg.recipes import load
+
+    out = []
+    for run in runs:
+        recipe = load(run["report"]["recipe"])
+        out.append(({**_defaults(recipe), **recipe.config.as_run(run["config"])}, recipe))
+    return out
 
 
 def _resolved(recipe, config: dict[str, Any], name: str) -> Any:
