@@ -454,8 +454,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     groups = _by_setting(saved_runs["runs"])
     assert {label: len(runs) for label, runs in groups.items()} == {
         "--gamma 1.0": 1, "--gamma 0.9": 1}  # fmt: skip
-    status, out, err = in_process("report", "--stored", str(other), "--plot",
-                                  str(tmp_path / "mixed.png"), capsys=capsys)  # fmt: skip
+    status, _, err = in_process("report", "--stored", str(other), "--plot",
+                                str(tmp_path / "mixed.png"), capsys=capsys)  # fmt: skip
     assert status == 1 and "the setting 'other: --gamma 1.0' has 1 run" in err, err
     assert "`--gamma 1.0 / --gamma 0.9`" in second and "`--lr 0.5`" in second
     assert "--target-kl" not in second
