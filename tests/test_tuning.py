@@ -23,7 +23,8 @@ gridworld = load("gridworld")
 
 
 def _base(**overrides):
-    return gridworld.config(total_updates=2, episodes_per_batch=4, progress=False, **overrides)
+    settings = {"total_updates": 2, "episodes_per_batch": 4, "progress": False, **overrides}
+    return gridworld.config(**settings)
 
 
 def _study(study_dir):
@@ -78,9 +79,41 @@ def test_the_first_trial_runs_the_given_settings(tmp_path):
     assert first.user_attrs["reference"] and first.user_attrs["settings"] == {"lr": 3e-3}
     assert second.params["lr"] != 3e-3 and "reference" not in second.user_attrs
     assert result["reference_score"] == first.value
-    # Settings outside the search space have no trial that could run them.
-    tune(gridworld, _base(lr=0.5), params=["lr"], trials=1, study_dir=tmp_path / "outside")
+    # Settings outside the search space have no trial that could run them: said once.
+    said = []
+    tune(gridworld, _base(lr=0.5), params=["lr"], trials=1, study_dir=tmp_path / "outside",
+         report=said.append)  # fmt: skip
     assert "reference" not in _study(tmp_path / "outside").trials[0].user_attrs
+    assert said[0].startswith("No reference trial: lr is 0.5, outside the searched range")
+
+
+def test_a_trial_below_the_median_is_pruned_at_the_evaluation_it_falls_behind(tmp_path):
+    # Five earlier trials whose every evaluation scored 1.0: a gridworld run of a few
+    # updates (stuck at -10) falls below their median, and stops after its third.
+    base = _base(total_updates=6, eval_interval=1)
+    tune(gridworld, base, params=["lr"], trials=1, study_dir=tmp_path, report=None)
+    study = _study(tmp_path)
+    reference = study.trials[0]
+    for lr in (1e-3, 2e-3, 3e-3, 4e-3, 5e-3):
+        study.add_trial(optuna.trial.create_trial(
+            params={"lr": lr}, distributions=reference.distributions, value=1.0,
+            intermediate_values=dict.fromkeys(range(6), 1.0), user_attrs={"settings": {"lr": lr}},
+        ))  # fmt: skip
+    said = []
+    result = tune(gridworld, base, params=["lr"], trials=8, study_dir=tmp_path, report=said.append)
+    trials = _study(tmp_path).trials
+    assert [t.state for t in trials[6:]] == [optuna.trial.TrialState.PRUNED] * 2
+    assert result["trials"] == 8 and result["pruned"] == 2  # pruned trials count as done
+    for trial in trials[6:]:
+        assert sorted(trial.intermediate_values) == [0, 1, 2]  # judged at the third only
+        summary = json.loads((tmp_path / f"trial{trial.number}/seed0/summary.json").read_text())
+        assert summary["updates"] == 3  # the run stopped there
+    assert "(7 of 8 done) pruned at " in said[0] and "below the median" in said[0]
+    assert reference.state == optuna.trial.TrialState.COMPLETE
+    # without a pruner, the same trials train whole
+    tune(gridworld, base, params=["lr"], trials=9, study_dir=tmp_path, pruner="none",
+         report=None)  # fmt: skip
+    assert _study(tmp_path).trials[8].state == optuna.trial.TrialState.COMPLETE
 
 
 def _running_trial(study_dir):
@@ -124,6 +157,22 @@ def test_two_searches_share_one_study(tmp_path):
     lrs = [trial.params["lr"] for trial in _study(tmp_path).trials]
     assert len(set(lrs)) == len(lrs)  # neither repeats the other's settings
     assert json.loads((tmp_path / "best.json").read_text())["trials"] >= 4
+
+
+def test_jobs_run_searches_side_by_side_and_report_once(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "rl_pg.recipes", "tune", "gridworld", "--trials", "4",
+         "--jobs", "2", "--params", "lr", "--total-updates", "2", "--no-progress",
+         "--run-dir", str(tmp_path)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.count(" trials in ") == 1  # one summary, by the command itself
+    trials = _study(tmp_path).trials
+    assert len({t.number for t in trials}) == len(trials) >= 4
+    assert json.loads((tmp_path / "best.json").read_text())["trials"] == len(
+        [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
+    )
 
 
 def test_a_running_trial_without_a_lock_is_abandoned_once_it_is_old():
@@ -198,9 +247,9 @@ def test_the_command(tmp_path, capsys):
     main(args)
     out = capsys.readouterr().out
     # each trial is reported as it ends, before the search's summary
-    assert out.index("trial 0 (1 of 1 complete): score ") < out.index("1 trials in")
+    assert out.index("trial 0 (1 of 1 done): score ") < out.index("1 trials in")
     assert "with lr=0.003, normalize_advantage=False; best so far: trial 0" in out
-    assert f"1 trials in {tmp_path}; best: trial 0" in out
+    assert f"1 trials in {tmp_path} (0 pruned); best: trial 0" in out
     assert "The settings as given (trial 0) scored" in out
     assert "--lr 0.003 --no-normalize-advantage" in out  # as flags of rl-pg train
     assert json.loads((tmp_path / "best.json").read_text())["objective"] == "best"

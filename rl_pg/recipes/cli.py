@@ -22,7 +22,9 @@ import dataclasses
 import inspect
 import itertools
 import multiprocessing
+import os
 import re
+import subprocess
 import sys
 import textwrap
 import typing
@@ -391,22 +393,48 @@ def _tune(name: str, args: list[str]) -> None:
     from rl_pg.training.tuning import TuneArgs, tune
 
     recipe, tuning, base, study_dir = _command_over_runs("tune", name, args, TuneArgs, "tune")
-    try:
-        result = tune(
+
+    def search():
+        return tune(
             recipe, base, params=tuning.params, trials=tuning.trials, seeds=tuning.tune_seeds,
             objective=tuning.objective, held_out_episodes=tuning.held_out_episodes,
-            seed_score=tuning.seed_score, study_dir=study_dir,
+            seed_score=tuning.seed_score, study_dir=study_dir, pruner=tuning.pruner,
         )  # fmt: skip
+
+    # --jobs N: N-1 more searches on the same study, each a process of its own (the
+    # study's locks let searches share it); this one reports the result once all ended.
+    own = [a for i, a in enumerate(args) if a != "--jobs" and not a.startswith("--jobs=")
+           and (i == 0 or args[i - 1] != "--jobs")]  # fmt: skip
+    command = [sys.executable, "-m", "rl_pg.recipes", "tune", name, *own, "--jobs", "1"]
+    jobs = [
+        subprocess.Popen(command, env={**os.environ, _TUNE_JOB: "1"})
+        for _ in range(tuning.jobs - 1)
+    ]
+    try:
+        result = search()
     except ValueError as err:
         sys.exit(f"rl-pg tune: {err}")
+    finally:
+        failed = [job.args for job in jobs if job.wait() != 0]
+    if failed:
+        sys.exit(f"rl-pg tune: {len(failed)} of the {tuning.jobs} searches failed (their "
+                 f"messages are above); the study keeps every trial that completed.")  # fmt: skip
+    if os.environ.get(_TUNE_JOB):
+        return  # one search of several: the command that started it reports
+    if jobs:
+        result = search()  # every search's trials counted: none left to run
     flags = " ".join(_flag(k, v) for k, v in result["best_settings"].items())
     print(
-        f"{result['trials']} trials in {study_dir}; best: trial {result['best_trial']}, "
+        f"{result['trials']} trials in {study_dir} ({result['pruned']} pruned); best: trial "
+        f"{result['best_trial']}, "
         f"score {result['best_score']:.2f} ({result['objective']} evaluation, "
         f"{result['seed_score']} over seeds {result['seeds']}). Its flags: {flags}"
     )
     if result["reference_score"] is not None:
         print(f"The settings as given (trial 0) scored {result['reference_score']:.2f}.")
+
+
+_TUNE_JOB = "RL_PG_TUNE_JOB"  # set in the extra searches of rl-pg tune --jobs N
 
 
 def _lab_variance(name: str, args: list[str]) -> None:

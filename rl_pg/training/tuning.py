@@ -25,6 +25,7 @@ from typing import Any, Literal
 
 from rl_pg._checks import require_extra
 from rl_pg.checkpoint import write_atomically
+from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig, config_dict
 from rl_pg.training.recipe import Recipe
@@ -75,7 +76,7 @@ class TuneArgs:
     params: list[str]
     """The settings searched (names of SEARCH_SPACE that the recipe's config has)."""
     trials: int = 20
-    """Completed trials the study should hold."""
+    """Trials the study should hold, completed or pruned."""
     tune_seeds: list[int] = dataclasses.field(default_factory=lambda: [0])
     """Seeds each trial trains on."""
     objective: Literal["final", "best", "held_out"] = "final"
@@ -87,6 +88,10 @@ class TuneArgs:
     seed_score: Literal["mean", "worst"] = "mean"
     """A trial's score: the mean of its runs' scores, or the worst. The worst favours
     settings that work on every seed."""
+    pruner: Literal["median", "none"] = "median"
+    """Stop trials whose evaluations fall below the earlier trials' median; none: never."""
+    jobs: Count = 1
+    """Trials trained at once, each search a process of its own on the same study."""
 
 
 def tune(
@@ -101,6 +106,7 @@ def tune(
     seed_score: Literal["mean", "worst"] = "mean",
     study_dir: Path,
     sampler_seed: int = 0,
+    pruner: Literal["median", "none"] = "median",
     report: Callable[[str], None] | None = print,
 ) -> dict[str, Any]:
     """Searches ``params`` for the settings whose runs score highest.
@@ -112,8 +118,8 @@ def tune(
 
     Keyword Args:
         params (sequence of str): the settings searched, names of ``SEARCH_SPACE``.
-        trials (int): completed trials the study should hold; a study that already
-            holds some runs only the rest.
+        trials (int): trials the study should hold, completed or pruned; a study
+            that already holds some runs only the rest.
         seeds (sequence of int): seeds each trial trains on. Defaults to ``(0,)``.
         objective (str): ``"final"`` (each run's last evaluation, which rewards settings
             that stay good), ``"best"`` (its best evaluation) or ``"held_out"`` (its best
@@ -128,6 +134,12 @@ def tune(
             (``trial<N>/seed<S>``) and ``best.json`` go.
         sampler_seed (int): seed of Optuna's TPE sampler in the study's first search;
             the study's n-th search uses ``sampler_seed + n``. Defaults to ``0``.
+        pruner (str): ``"median"`` stops a trial whose evaluation falls below the
+            median of the earlier trials' at the same point (Optuna's ``MedianPruner``,
+            from the 6th trial on, after each run's second evaluation; runs of one
+            trial are compared seed by seed); the reference trial trains whole.
+            ``"none"`` trains every trial whole. Pruned trials do not count among
+            ``trials``. Defaults to ``"median"``.
         report (callable, optional): called with one line as each trial ends (its
             score, its settings and the best so far); ``None`` is silent. Defaults to
             ``print``.
@@ -164,6 +176,8 @@ def tune(
         raise ValueError(f"seed_score must be 'mean' or 'worst', got {seed_score!r}.")
     if held_out_episodes < 1:
         raise ValueError(f"held_out_episodes must be at least 1, got {held_out_episodes}.")
+    if pruner not in ("median", "none"):
+        raise ValueError(f"pruner must be 'median' or 'none', got {pruner!r}.")
 
     study_dir = Path(study_dir)
     study_dir.mkdir(parents=True, exist_ok=True)
@@ -180,11 +194,22 @@ def tune(
         searches = study.user_attrs.get("searches", 0)
         study.set_user_attr("searches", searches + 1)
         study.sampler = optuna.samplers.TPESampler(seed=sampler_seed + searches)
-        reference = _reference_params(base, params)
+        study.pruner = (
+            optuna.pruners.MedianPruner(n_startup_trials=5)
+            if pruner == "median"
+            else optuna.pruners.NopPruner()
+        )
+        reference, outside = _reference_params(base, params)
         if not study.trials and reference is not None:
             # The first trial runs the settings as given (the recipe's defaults, or the
             # flags): the yardstick every sampled trial is compared with.
             study.enqueue_trial(reference, user_attrs={"reference": True})
+        elif not study.trials and report is not None:
+            report(
+                f"No reference trial: {outside}, outside the searched range, so no trial "
+                f"can run the settings as given; the sampled trials compare among "
+                f"themselves (set it inside the range to have one)."
+            )
         for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
             if _abandoned(running, study_dir):  # not a live search's: a killed one's
                 study.tell(running.number, state=optuna.trial.TrialState.FAIL)
@@ -214,22 +239,28 @@ def tune(
         settings = _settings(trial, params, base)
         trial.set_user_attr("settings", settings)
         scores, runs = [], {}
-        for seed in seeds:
+        for position, seed in enumerate(seeds):
             run_dir = trial_dir / f"seed{seed}"
             cfg = dataclasses.replace(
                 base, **settings, seed=seed, run_dir=run_dir, resume=False, progress=False
             )
-            runs[str(seed)] = score(recipe.train(cfg), run_dir)
+            judge = _Pruning(trial, position)
+            summary = recipe.train(cfg, callbacks=[] if _is_reference(trial) else [judge])
+            if judge.pruned:
+                trial.set_user_attr("pruned_at", {"seed": seed, "frames": summary["frames"]})
+                raise optuna.TrialPruned()
+            runs[str(seed)] = score(summary, run_dir)
             scores.append(runs[str(seed)]["score"])
             trial.set_user_attr("scores", scores)
             trial.set_user_attr("runs", runs)  # with held_out, the greedy and sampled means
         return min(scores) if seed_score == "worst" else statistics.fmean(scores)
 
     complete = (optuna.trial.TrialState.COMPLETE,)
-    if len(study.get_trials(states=complete)) < trials:
-        # Until the study holds `trials` complete ones, counting those of any other
+    finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+    if len(study.get_trials(states=finished)) < trials:
+        # Until the study holds `trials` finished ones, counting those of any other
         # search running on the same directory (each finishes the trial it is in).
-        done = [optuna.study.MaxTrialsCallback(trials, complete)]
+        done = [optuna.study.MaxTrialsCallback(trials, finished)]
         if report is not None:
             done.append(lambda study, trial: report(_trial_line(study, trial, trials)))
         study.optimize(run_trial, callbacks=done)
@@ -239,7 +270,8 @@ def tune(
         "objective": objective,
         "seed_score": seed_score,
         "seeds": list(seeds),
-        "trials": len(study.get_trials(states=[optuna.trial.TrialState.COMPLETE])),
+        "trials": len(study.get_trials(states=finished)),
+        "pruned": len(study.get_trials(states=[optuna.trial.TrialState.PRUNED])),
         "best_trial": best.number,
         "best_score": best.value,
         "best_scores": best.user_attrs.get("scores"),
@@ -306,14 +338,22 @@ def _trial_line(study, trial, trials: int) -> str:
     """One line when a trial ends: its score and settings, and the best so far."""
     import optuna
 
-    finished = len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,)))
+    states = optuna.trial.TrialState
+    finished = len(study.get_trials(states=(states.COMPLETE, states.PRUNED)))
     settings = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                          for k, v in trial.user_attrs.get("settings", {}).items())  # fmt: skip
-    if trial.state != optuna.trial.TrialState.COMPLETE:
+    if trial.state == states.PRUNED:
+        at = trial.user_attrs.get("pruned_at", {})
+        return (
+            f"trial {trial.number} ({finished} of {trials} done) pruned at "
+            f"{at.get('frames', 0):,} frames of seed {at.get('seed')}: below the median "
+            f"of the trials before it ({settings})"
+        )
+    if trial.state != states.COMPLETE:
         return f"trial {trial.number} {trial.state.name.lower()} ({settings})"
     best = study.best_trial
     return (
-        f"trial {trial.number} ({finished} of {trials} complete): score {trial.value:.2f} "
+        f"trial {trial.number} ({finished} of {trials} done): score {trial.value:.2f} "
         f"with {settings}; best so far: trial {best.number}, {best.value:.2f}"
     )
 
@@ -353,22 +393,56 @@ def _settings(trial, params: Sequence[str], base: TrainConfig) -> dict[str, Any]
     return settings
 
 
-def _reference_params(base: TrainConfig, params: Sequence[str]) -> dict[str, Any] | None:
-    """``base``'s own values of ``params`` as Optuna's parameters, or ``None`` when one
-    lies outside the search space (no trial can run it then)."""
+def _reference_params(
+    base: TrainConfig, params: Sequence[str]
+) -> tuple[dict[str, Any] | None, str | None]:
+    """``base``'s own values of ``params`` as Optuna's parameters, or ``None`` and the
+    first setting that lies outside the search space (no trial can run it then)."""
     import optuna
 
     values = {}
     for name in params:
         key, to_param = _SEARCHED_AS.get(name, (name, lambda value: value))
         values[key] = to_param(getattr(base, name))
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # a float out of its range only warns
-            _settings(optuna.trial.FixedTrial(values), params, base)
-    except (ValueError, UserWarning):
-        return None
-    return values
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # a float out of its range only warns
+                _settings(optuna.trial.FixedTrial(values), params[: params.index(name) + 1], base)
+        except (ValueError, UserWarning):
+            return None, f"{name} is {getattr(base, name)!r}"
+    return values, None
+
+
+WARMUP_EVALUATIONS = 2
+"""A run's first evaluations, which the pruner never judges (early curves cross)."""
+_SEED_STEPS = 1_000_000
+"""Evaluations one run may report before the next seed's: run k's i-th is step k*this+i."""
+
+
+class _Pruning(Callback):
+    """Reports each evaluation of a trial's run to Optuna and stops the run when its
+    pruner says so. A trial's runs report one after the other, seed by seed, so each is
+    compared with the other trials' runs of the same seed at the same evaluation."""
+
+    key = "tune_pruning"
+
+    def __init__(self, trial, position: int) -> None:
+        self.trial, self.offset = trial, position * _SEED_STEPS
+        self.evaluations, self.pruned = 0, False
+
+    def on_evaluation(self, run, result: dict[str, float]) -> None:
+        self.trial.report(float(result["eval/mean_return"]), self.offset + self.evaluations)
+        self.evaluations += 1
+        if self.evaluations > WARMUP_EVALUATIONS:
+            self.pruned = self.trial.should_prune()
+
+    def stop_training(self, run) -> bool:
+        return self.pruned
+
+
+def _is_reference(trial) -> bool:
+    """Whether a trial runs the settings as given (enqueued first, never pruned)."""
+    return bool(trial.user_attrs.get("reference"))
 
 
 def _abandoned(trial, study_dir: Path) -> bool:
