@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +133,24 @@ class TestLabCommand:
         )
         assert status != 0 and match in err
 
+    def test_a_folder_of_another_setting_is_refused_before_any_training(self, tmp_path, capsys):
+        root = tmp_path / "lab"
+        args = ["lab", "variance", "gridworld", "--seeds", "0", "--every", "1", "--run-dir",
+                str(root), *QUICK]  # fmt: skip
+        assert in_process(*args, capsys=capsys)[0] == 0
+        status, _, err = in_process(*args[:-len(QUICK)], "--seeds", "0", "1", *QUICK, "--lr",
+                                    "0.5", capsys=capsys)  # fmt: skip
+        assert status == 1 and re.search(r"seed0 was trained with --lr [\d.]+ \(now 0.5\):", err)
+        assert err.count("\n") == 1 and not (root / "seed1").exists()
+
+    def test_runs_too_short_to_be_measured_say_what_to_change(self, tmp_path, capsys):
+        status, _, err = in_process(
+            "lab", "variance", "gridworld", "--seeds", "0", "--every", "1000", "--run-dir",
+            str(tmp_path / "lab"), *QUICK, capsys=capsys,
+        )  # fmt: skip
+        assert status == 1 and re.search(r"measured nothing: seed 0 trained \d+ updates", err)
+        assert "Lower --every" in err
+
     def test_runs_without_statistics_are_refused(self, tmp_path, capsys):
         root = tmp_path / "lab"
         status, _, err = in_process(
@@ -142,7 +161,7 @@ class TestLabCommand:
             "lab", "variance", "gridworld", "--seeds", "0", "--run-dir", str(root), *QUICK,
             capsys=capsys,
         )  # fmt: skip
-        assert status != 0 and "--grad-stats" in err
+        assert status != 0 and "trained without --grad-stats, not by rl-pg lab" in err
 
 
 @pytest.mark.parametrize("stored", sorted(RESULTS.glob("variance_*.json")), ids=lambda p: p.stem)

@@ -35,7 +35,7 @@ from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.curves import png_figure, read_curve
-from rl_pg.training.run_dir import SUMMARY
+from rl_pg.training.run_dir import SUMMARY, changed_settings
 
 __all__ = ["LabArgs", "measurements", "noise_scale_curve", "summarise", "variance_lab"]
 
@@ -71,10 +71,11 @@ def variance_lab(recipe, cfg: TrainConfig, *, seeds: Sequence[int], every: int, 
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"--every must be a positive number of updates, got {every!r}.")
     root = Path(root)
-    runs = {}
-    for seed in seeds:
-        run_dir = root / f"seed{seed}"
-        runs[seed] = run_dir
+    runs = {seed: root / f"seed{seed}" for seed in seeds}
+    for seed, run_dir in runs.items():  # before any training: one setting per folder
+        own = dataclasses.replace(cfg, seed=seed, run_dir=run_dir, grad_stats=every)
+        _same_setting(own if recipe.prepare is None else recipe.prepare(own), run_dir)
+    for seed, run_dir in runs.items():
         if _finished(run_dir):
             continue
         resume = (run_dir / CHECKPOINT).exists()
@@ -82,6 +83,44 @@ def variance_lab(recipe, cfg: TrainConfig, *, seeds: Sequence[int], every: int, 
             dataclasses.replace(cfg, seed=seed, run_dir=run_dir, grad_stats=every, resume=resume)
         )
     return summarise(runs, root, title=f"{recipe.name}: gradient noise of each return estimator")
+
+
+def _same_setting(cfg: TrainConfig, run_dir: Path) -> None:
+    """Refuses a lab folder whose seed ``run_dir`` was trained with other settings than
+    ``cfg``'s: its seeds would be measured under two settings and pooled as one."""
+    path = run_dir / "config.json"
+    if not path.is_file():
+        return
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(
+            f"{path} cannot be read ({err}): remove {run_dir} to train it anew."
+        ) from None
+    keep = frozenset({"resume", "run_dir", "progress", "threads", "workers", "ray"})
+    changed = changed_settings(cfg, stored, may_change=keep | _LOGGING)
+    if changed:
+        details = ", ".join(
+            f"--{k.replace('_', '-')} {_shown(old)} (now {_shown(new)})"
+            for k, (old, new) in changed.items()
+        )
+        raise ValueError(
+            f"{run_dir} was trained with {details}: a lab folder holds the seeds of one "
+            f"setting. Give these flags another --run-dir, or repeat that seed's."
+        )
+
+
+_LOGGING = frozenset(TrainConfig.groups["logging"][1])
+
+
+def _shown(value: Any) -> str:
+    return (
+        "unset"
+        if value is None
+        else " ".join(map(str, value))
+        if isinstance(value, list)
+        else str(value)
+    )
 
 
 def _finished(run_dir: Path) -> bool:
@@ -152,9 +191,7 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
         )
     ]
     if not estimators:
-        raise FileNotFoundError(
-            f"No gradient statistics in the runs under {root}: train them with --grad-stats N."
-        )
+        raise FileNotFoundError(_nothing_measured(runs, root))
     table: dict[str, Any] = {"seeds": list(runs), **_units(runs), "estimators": {}}
     for estimator in estimators:
         measured = {seed: measurements(run_dir, estimator) for seed, run_dir in runs.items()}
@@ -193,6 +230,31 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
         runs, table["held"], root / "variance_by_seed.png", title=title, estimator=quietest
     )
     return table
+
+
+def _nothing_measured(runs: dict[int, Path], root: Path) -> str:
+    """Why no estimator's statistics are in every run, and what to change."""
+    short = []
+    for seed, run_dir in runs.items():
+        try:
+            every = json.loads((run_dir / "config.json").read_text()).get("grad_stats")
+            updates = json.loads((run_dir / SUMMARY).read_text())["updates"]
+        except (OSError, ValueError, KeyError):
+            continue
+        if not every:
+            return (
+                f"{run_dir} measured no gradient statistics (a run trained without "
+                f"--grad-stats, not by rl-pg lab): give the lab another --run-dir."
+            )
+        if updates < every:
+            short.append(f"seed {seed} trained {updates} updates")
+    if short:
+        return (
+            f"The runs under {root} measured nothing: {', '.join(short)}, and a measurement "
+            f"is taken every {every} updates (--every). Lower --every, or give each seed "
+            f"a larger budget (--total-frames / --total-updates)."
+        )
+    return f"No gradient statistics in every run under {root}: train them with --grad-stats N."
 
 
 def _units(runs: dict[int, Path]) -> dict[str, Any]:

@@ -35,6 +35,7 @@ __all__ = [
     "LOCK_FILE",
     "RunDirBusy",
     "RunDirectory",
+    "changed_settings",
     "claim_output",
     "link_latest",
     "locked",
@@ -330,6 +331,19 @@ LATEST = "latest"
 """The link beside the time-stamped run directories to the newest of them."""
 
 
+def changed_settings(
+    cfg: TrainConfig, stored: dict[str, Any], *, may_change: frozenset[str] = RESUMABLE_FIELDS
+) -> dict[str, tuple[Any, Any]]:
+    """The fields of ``cfg`` that differ from a run's stored config (``{name: (stored,
+    now)}``; a field newer than the run at the value it had then), but ``may_change``."""
+    stored = type(cfg).as_run(stored)
+    return {
+        key: (stored.get(key), value)
+        for key, value in config_dict(cfg).items()
+        if key not in may_change and stored.get(key) != value
+    }
+
+
 def link_latest(run_dir: Path) -> None:
     """Points ``run_dir.parent / "latest"`` at ``run_dir`` (a relative symbolic link,
     replaced atomically), so ``rl-pg play runs/latest`` finds the newest run. A real file
@@ -363,12 +377,7 @@ def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
                 f"{checkpoint_path} was written by recipe {saved.get('recipe')!r}, not "
                 f"{recipe!r}; resume it with that recipe."
             )
-        stored = type(cfg).as_run(saved["config"])  # fields newer than the run filled in
-        changed = {
-            key: (stored.get(key), value)
-            for key, value in config_dict(cfg).items()
-            if key not in RESUMABLE_FIELDS and stored.get(key) != value
-        }
+        changed = changed_settings(cfg, saved["config"])
         if changed:
             details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
             raise CheckpointError(
