@@ -980,7 +980,7 @@ def test_a_report_over_runs_star_counts_the_newest_run_once(tmp_path, capsys, mo
     for seed in ("0", "1"):  # default run directories: runs/gridworld-seedS-TIME, runs/latest
         status, _, err = in_process("train", "gridworld", "--seed", seed, *QUICK, capsys=capsys)
         assert status == 0, err
-    assert Path("runs/latest").is_symlink()
+    assert Path("runs/latest").is_file()
     runs = sorted(str(p) for p in Path("runs").iterdir())
     assert len(runs) == 3
     status, out, err = in_process("report", *runs, capsys=capsys)

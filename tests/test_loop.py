@@ -47,6 +47,7 @@ from rl_pg.training import (
     read_run,
     train,
 )
+from rl_pg.training.checkpoints import resolve_latest
 from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
 from rl_pg.training.metrics import BufferedCSVLogger, EpisodeReturns
@@ -1199,22 +1200,36 @@ class TestNothingIsLost:
         summary = json.loads((tmp_path / "run" / "summary.json").read_text())
         assert summary["updates"] == 2 and summary["sessions"][0]["frames_at_end"] > 0
 
-    def test_runs_latest_points_at_the_newest_run(self, tmp_path, monkeypatch):
+    def test_runs_latest_names_the_newest_run(self, tmp_path, monkeypatch):
         monkeypatch.chdir(tmp_path)
         first = _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=1))
-        latest = tmp_path / "runs" / "latest"
-        assert latest.is_symlink() and latest.resolve() == Path(first["run_dir"]).resolve()
+        latest = Path("runs/latest")
+        assert latest.is_file() and resolve_latest(latest) == Path(first["run_dir"])
         second = _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=2))
-        assert latest.resolve() == Path(second["run_dir"]).resolve()
+        assert resolve_latest(latest) == Path(second["run_dir"])
         assert read_run(latest)["state"]["updates"] == 1  # commands take it as a run
-        # a run in a directory of its own choosing leaves the link alone
+        # a file, not a link: a walk of runs/ (TensorBoard's) meets each run once
+        walked = [Path(d).name for d, _, files in os.walk("runs", followlinks=True)
+                  if "checkpoint.pt" in files]  # fmt: skip
+        assert sorted(walked) == sorted(Path(r["run_dir"]).name for r in (first, second))
+        # a run in a directory of its own choosing leaves it alone
         _train(_cfg(tmp_path, run_dir=tmp_path / "runs" / "mine", total_updates=1))
-        assert latest.resolve() == Path(second["run_dir"]).resolve()
-        # and so does a real directory called latest
+        assert resolve_latest(latest) == Path(second["run_dir"])
+        # the symbolic link of earlier versions is replaced by the file
+        latest.unlink()
+        latest.symlink_to(Path(first["run_dir"]).name, target_is_directory=True)
+        third = _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=3))
+        assert not latest.is_symlink() and resolve_latest(latest) == Path(third["run_dir"])
+        # a real directory called latest is left alone
         latest.unlink()
         latest.mkdir()
-        _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=3))
-        assert latest.is_dir() and not latest.is_symlink() and not any(latest.iterdir())
+        _train(_cfg(tmp_path, run_dir=None, total_updates=1, seed=4))
+        assert latest.is_dir() and not any(latest.iterdir())
+        # a latest file that names no run says so
+        latest.rmdir()
+        latest.write_text("../../etc\n")
+        with pytest.raises(CheckpointError, match=r"holds '\.\./\.\./etc', which is none"):
+            read_run(latest)
 
     def test_stale_temporary_files_are_removed(self, tmp_path):
         _train(_cfg(tmp_path, total_updates=2))

@@ -34,7 +34,7 @@ import tyro
 from rl_pg._checks import require_extra
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training import read_run
-from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
+from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states, resolve_latest
 from rl_pg.training.run_dir import claim_output
 
 __all__ = [
@@ -127,7 +127,7 @@ def agent_path(run: str | Path, *, pretrained: bool = False, hub: bool = False) 
         return shipped_agent(str(run))
     if hub:
         return hub_agent(str(run))
-    return Path(run)
+    return resolve_latest(run)  # runs/latest: the newest run
 
 
 def model_card(agent: dict[str, Any], repo_id: str) -> str:
@@ -236,6 +236,7 @@ def export_agent(
         ValueError: ``out`` is a directory, or a file it may not replace.
     """
     claim_output(out, flag="--out", writes="an agent file", ours=is_agent_file, replace=replace)
+    run = resolve_latest(run)  # runs/latest: the newest run, recorded by its own name
     saved = read_run(run, which=which)
     weights = {
         key: value

@@ -38,7 +38,7 @@ import tyro
 from rl_pg._process import frozen_heap
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.recipes import NAMES, load, recipe_of
-from rl_pg.training.checkpoints import read_run
+from rl_pg.training.checkpoints import LATEST, read_run, resolve_latest
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.console import format_comparison, format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
@@ -255,7 +255,7 @@ COMMAND_USAGE = {
     "train": """usage: rl-pg train RECIPE [FLAGS]
 
 Train a recipe: its run goes to --run-dir (default runs/RECIPE-seedS-TIME, with
-runs/latest pointing at it). `rl-pg train RECIPE --help` lists the recipe's flags.
+runs/latest naming it). `rl-pg train RECIPE --help` lists the recipe's flags.
 """,
     "resume": """usage: rl-pg resume RUN_DIR [FLAGS]
 
@@ -332,7 +332,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         elif command == "train" and rest and not rest[0].startswith("-"):
             _train(rest[0], rest[1:])
         elif command == "resume" and rest and not rest[0].startswith("-"):
-            _resume(Path(rest[0]), rest[1:])
+            _resume(resolve_latest(rest[0]), rest[1:])
         elif command == "evaluate":
             _evaluate(rest)
         elif command == "play":
@@ -340,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         elif command == "export":
             _export(rest)
         elif command == "report":
-            _report_runs(rest)
+            _report_runs([str(resolve_latest(a)) if Path(a).name == LATEST else a for a in rest])
         elif command == "tune" and rest and not rest[0].startswith("-"):
             _tune(rest[0], rest[1:])
         elif command == "lab" and rest[:1] == ["variance"] and len(rest) > 1:

@@ -1165,8 +1165,9 @@ def main(args: Args) -> str:
 
 
 def _distinct(runs: list[Path]) -> list[Path]:
-    """Each run once: ``runs/*`` also matches ``runs/latest``, a link to the newest run,
-    which would count it twice (a link to a run not named is kept, as is its name)."""
+    """Each run once: ``runs/*`` also matches ``runs/latest``, which names the newest run
+    (the command reads it as that run; earlier versions made it a link), and would count
+    it twice (a link to a run not named is kept, as is its name)."""
     kept, seen = [], {}
     for run in runs:
         real = Path(run).resolve()

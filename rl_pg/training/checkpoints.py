@@ -20,11 +20,13 @@ from rl_pg.training.seeds import run_streams
 __all__ = [
     "BEST",
     "CHECKPOINT",
+    "LATEST",
     "POLICY_AVERAGE",
     "RunState",
     "callback_states",
     "load_models",
     "read_run",
+    "resolve_latest",
     "restore",
     "restore_rng",
     "save",
@@ -160,6 +162,35 @@ def _numpy_state_of(saved) -> dict[str, Any] | tuple:
     return {**saved, "state": {**saved["state"], "key": key}}
 
 
+LATEST = "latest"
+"""The file beside the time-stamped run directories that names the newest of them."""
+
+
+def resolve_latest(path: str | Path) -> Path:
+    """The run directory a ``latest`` file names (see
+    [`link_latest`][rl_pg.training.run_dir.link_latest]), or ``path`` itself when it is
+    not such a file.
+
+    Raises:
+        CheckpointError: the file names no run directory beside it (the message says
+            what it holds).
+    """
+    path = Path(path)
+    if path.name != LATEST or path.is_symlink() or not path.is_file():
+        return path
+    try:
+        name = path.read_text(encoding="utf-8").strip() if path.stat().st_size < 4096 else ""
+    except (OSError, UnicodeDecodeError):
+        name = ""
+    target = path.parent / name
+    if not name or Path(name).name != name or name in (".", "..") or not target.is_dir():
+        raise CheckpointError(
+            f"{path} should name the newest run directory beside it, and holds "
+            f"{name[:80]!r}, which is none: give the run directory itself."
+        )
+    return target
+
+
 def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
     """A checkpoint of a run directory (or a checkpoint file itself).
 
@@ -187,7 +218,7 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
     files = {"last": CHECKPOINT, "best": BEST}
     if which not in files:
         raise ValueError(f"which must be 'last' or 'best', got {which!r}.")
-    path = Path(run)
+    path = resolve_latest(run)  # runs/latest: the newest run
     if not path.exists():
         raise CheckpointError(f"{path} does not exist: give a run directory or a checkpoint file.")
     if not path.is_dir():

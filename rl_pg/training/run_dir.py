@@ -9,6 +9,7 @@ the holder's process id, instead of both writing the same checkpoint and logs.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -25,7 +26,7 @@ from rl_pg.checkpoint import (
     load_checkpoint,
     write_atomically,
 )
-from rl_pg.training.checkpoints import BEST, CHECKPOINT, RunState, save
+from rl_pg.training.checkpoints import BEST, CHECKPOINT, LATEST, RunState, save
 from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
 from rl_pg.training.curves import CURVE, plot_run
 from rl_pg.training.provenance import session_record
@@ -327,10 +328,6 @@ def new_run_dir(recipe: str, seed: int) -> Path:
     return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-LATEST = "latest"
-"""The link beside the time-stamped run directories to the newest of them."""
-
-
 def changed_settings(
     cfg: TrainConfig, stored: dict[str, Any], *, may_change: frozenset[str] = RESUMABLE_FIELDS
 ) -> dict[str, tuple[Any, Any]]:
@@ -345,20 +342,15 @@ def changed_settings(
 
 
 def link_latest(run_dir: Path) -> None:
-    """Points ``run_dir.parent / "latest"`` at ``run_dir`` (a relative symbolic link,
-    replaced atomically), so ``rl-pg play runs/latest`` finds the newest run. A real file
-    or directory named ``latest`` is left alone, and so is a system without symbolic
-    links."""
+    """Writes ``run_dir.parent / "latest"``, a one-line file naming ``run_dir``, so
+    ``rl-pg play runs/latest`` finds the newest run. A file, not a symbolic link: tools
+    that walk the folder (``tensorboard --logdir runs``) see each run once. A directory
+    named ``latest`` is left alone; the symbolic link of earlier versions is replaced."""
     link = run_dir.parent / LATEST
-    if link.exists() and not link.is_symlink():
+    if link.is_dir() and not link.is_symlink():
         return
-    staged = run_dir.parent / f".{LATEST}.{os.getpid()}"
-    try:
-        staged.unlink(missing_ok=True)
-        staged.symlink_to(run_dir.name, target_is_directory=True)
-        os.replace(staged, link)
-    except OSError:
-        staged.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # a read-only folder: the run is what matters
+        write_atomically(link, f"{run_dir.name}\n")
 
 
 def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
