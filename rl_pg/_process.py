@@ -34,6 +34,11 @@ def frozen_heap() -> Iterator[None]:
     try:
         yield
     finally:
+        # What the run left in cycles (a closed simulator's bindings among them) is
+        # collected first: frozen, the bindings would report it as leaked at exit.
+        # Only what the run made is walked, the imports being frozen.
+        # (14 ms after rl-pg play, 64 ms after rl-pg train cartpole on the CI machine.)
+        gc.collect()
         gc.freeze()
 
 

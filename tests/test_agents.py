@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -260,3 +262,22 @@ def test_a_shipped_agents_figures_were_measured_under_todays_protocol(path):
     }  # fmt: skip
     for name in protocol:
         assert name in agent["config"], f"{path.name} does not say its {name}"
+
+
+@pytest.mark.parametrize(
+    ("args", "extra"),
+    [
+        (["play", "cartpole", "--pretrained", "--episodes", "1", "--gif", "x.gif"], "pygame"),
+        (["play", "pong", "--pretrained", "--episodes", "1"], "ale_py"),
+    ],
+    ids=["rendered", "atari"],
+)
+def test_a_played_agent_leaves_only_its_own_words_on_the_console(args, extra, tmp_path):
+    # No display probing (SDL's "XDG_RUNTIME_DIR is invalid"), no leak report at exit
+    # (a simulator's bindings, which TorchRL's kept import error held alive).
+    pytest.importorskip(extra)
+    env = {k: v for k, v in os.environ.items() if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER")}
+    done = subprocess.run([sys.executable, "-m", "rl_pg.recipes", *args], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0 and done.stderr == "", done.stderr[-2000:]
+    assert done.stdout.splitlines()[-1].startswith(("mean return", "recorded"))

@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
+
+# TorchRL imports this module the first time an environment renders, and it keeps the
+# error of its failed `import gym` as a module global: that error's frames hold every
+# frame that called the import, and with them the caller's environments, alive to the
+# end of the process (a simulator's bindings then report them leaked at exit). Imported
+# here, the frames it keeps are imports'.
+import torchrl.envs.libs.utils  # noqa: F401
 from torchrl.envs import EnvBase, GymEnv, TransformedEnv
 
 from rl_pg._checks import check_int
@@ -73,6 +81,9 @@ def gym_env(
     if num_envs is None:
         if render:
             kwargs.update(from_pixels=True, pixels_only=False)
+            # Frames are drawn off screen: SDL (pygame) needs no display, and probing
+            # for one prints errors on a machine without ("XDG_RUNTIME_DIR is invalid").
+            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
         if "frameskip" in kwargs:
             # TorchRL's GymEnv overwrites gymnasium's `frameskip` with its own
             # `frame_skip` (default 1): pass it under TorchRL's name, which reaches
