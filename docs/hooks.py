@@ -15,17 +15,23 @@ the same in their Markdown cells, and their links to other pages (written as rel
 The build is where the tutorials run (mkdocs-jupyter executes each one in a Jupyter
 kernel, and an error in a cell fails it): a tutorial that also prints to stderr (a
 warning a learner would take for a fault) or draws no figure is a warning here, which
-the strict build turns into a failure.
+the strict build turns into a failure. Their kernels log errors only: each would
+otherwise warn, as it starts, that it talks to the build over unencrypted TCP (the
+loopback, here).
 """
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import html
 import importlib
 import logging
+import os
 import posixpath
 import re
+import shutil
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -167,6 +173,19 @@ def notebook_faults(content: str) -> list[str]:
     if not FIGURE.search(content):
         faults.append("draws no figure")
     return faults
+
+
+def on_config(config, **kwargs):
+    """Before the build: the tutorials' kernels get an IPython directory of their own,
+    whose kernel config keeps their log to errors (see the module's description)."""
+    directory = Path(tempfile.mkdtemp(prefix="rl_pg-docs-ipython-"))
+    atexit.register(shutil.rmtree, directory, ignore_errors=True)
+    (directory / "profile_default").mkdir()
+    (directory / "profile_default" / "ipython_kernel_config.py").write_text(
+        'c.IPKernelApp.log_level = "ERROR"\n'
+    )
+    os.environ["IPYTHONDIR"] = str(directory)
+    return config
 
 
 def on_page_content(html_text: str, page, config, **kwargs) -> str:
