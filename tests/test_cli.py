@@ -609,6 +609,13 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         run["report"].pop("last")  # as files stored before final checkpoints were
     never_evaluated.write_text(json.dumps(unevaluated))
     namesake = shutil.copy(stored, tmp_path / stored.name)  # another file of the same stem
+    broken_value, short_curve = tmp_path / "broken_value.json", tmp_path / "short_curve.json"
+    broken = json.loads(stored.read_text())
+    broken["runs"][1]["report"]["frames"] = "many"
+    broken_value.write_text(json.dumps(broken))
+    broken = json.loads(stored.read_text())
+    broken["runs"][0]["curve"]["frames"], broken["runs"][0]["curve"]["values"] = [1, 2], [1, 2, 3]
+    short_curve.write_text(json.dumps(broken))
     # what cannot be done says so
     for args, message in [
         (("report",), "one of the three"),
@@ -629,6 +636,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         (("report", "--stored", str(stored), str(namesake), "--plot", "x.png"), "repeat one"),
         (("report", "--stored", str(tmp_path / "none.json")), "does not exist"),
         (("report", "--stored", str(page)), "is not a stored report"),
+        (("report", "--stored", str(broken_value)), 'run 1, report: "frames" should be a whole'),
+        (("report", "--stored", str(short_curve)), "run 0, curve: 2 frames for 3 values"),
         (("report", "--stored", str(stored), "--store", "x.json"), "leave it out"),
         # these two runs were evaluated at different frames, and did not stop when solved
         (
@@ -763,6 +772,26 @@ def test_torn_or_bad_records_cost_only_themselves(tmp_path, capsys):
     (run / "summary.json").write_text("{torn")
     status, _, err = in_process("report", str(run), capsys=capsys)
     assert status == 1 and "is not a run summary" in err
+    # values, not only keys: each wrong one named with its file and field, in one line
+    summary = json.loads(json.dumps({"recipe": "gridworld", "seed": 0, "frames": 10,
+                                     "train_wall_s": 1.0, "best_at_frames": None}))  # fmt: skip
+    for field, value, said in [
+        ("frames", "ten", "\"frames\" should be a whole number ≥ 0, got 'ten'"),
+        ("seed", -1, '"seed" should be a whole number ≥ 0, got -1'),
+        ("train_wall_s", None, '"train_wall_s" should be a number, got None'),
+        ("best_at_frames", 1.5, '"best_at_frames" should be a whole number ≥ 0, got 1.5'),
+        ("recipe", 3, '"recipe" should be text, got 3'),
+        ("interrupted", "no", "\"interrupted\" should be true or false, got 'no'"),
+    ]:
+        (run / "summary.json").write_text(json.dumps({**summary, field: value}))
+        status, _, err = in_process("report", str(run), capsys=capsys)
+        assert status == 1 and said in err and err.count("\n") == 1, (field, err)
+    (run / "summary.json").write_text(json.dumps(summary))
+    with open(evaluations, "a") as file:
+        file.write('{"checkpoint": "best", "frames": 0, "mode": "both", "seed": 1, '
+                   '"mean_return": 1}\n')  # fmt: skip
+    status, _, err = in_process("report", str(run), capsys=capsys)
+    assert status == 0 and 'line 6, is not an evaluation record ("mode" should be ' in err
 
 
 @pytest.mark.parametrize(

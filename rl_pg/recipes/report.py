@@ -64,6 +64,7 @@ from rl_pg.training.curves import (
     read_curve,
     seed_aggregate,
 )
+from rl_pg.training.records import EVALUATION_RECORD, RUN_SUMMARY, check_values
 from rl_pg.training.run_dir import CONFIG, SUMMARY, claim_output
 from rl_pg.training.seeds import fresh_seed
 
@@ -89,8 +90,6 @@ __all__ = [
 ]
 
 STORED_POINTS = 200  # a stored curve's most points: longer ones are stored smoothed
-SUMMARY_KEYS = frozenset({"recipe", "seed", "frames", "train_wall_s", "best_at_frames"})
-RECORD_KEYS = frozenset({"checkpoint", "frames", "mode", "seed", "mean_return"})
 STORED_FIGURE = re.compile(
     r"^<!-- rl-pg report --stored (?P<files>\S+(?: \S+)*?) --(?P<kind>plot|profile) "
     r"(?P<figure>\S+)(?: --ylim (?P<low>\S+) (?P<high>\S+))? -->$",
@@ -178,14 +177,13 @@ def read_report(run_dir: Path) -> dict[str, Any]:
             "going (a run writes its summary when it ends or is interrupted)."
         )
     try:
-        report = json.loads(path.read_text())
-    except ValueError:
-        report = None
-    if not isinstance(report, dict) or not report.keys() >= SUMMARY_KEYS:
+        report = check_values(json.loads(path.read_text()), RUN_SUMMARY, str(path))
+    except ValueError as err:  # not JSON, or a field missing or wrong
+        why = str(err).removeprefix(f"{path}: ")
         raise ValueError(
-            f"{path} is not a run summary (not JSON, or without {sorted(SUMMARY_KEYS)}); "
-            f"rl-pg resume {run_dir} writes it again when the run ends or is stopped."
-        )
+            f"{path} is not a run summary ({why}); rl-pg resume {run_dir} writes it again "
+            f"when the run ends or is stopped."
+        ) from None
     report["greedy"] = report["sampled"] = None
     report["last"] = {"greedy": None, "sampled": None}
     # the training's speed over all its sessions (train_wall_s leaves evaluations out)
@@ -200,15 +198,14 @@ def read_report(run_dir: Path) -> dict[str, Any]:
         # the last checkpoint, at the frames the run ended on.
         fresh = fresh_seed(report["seed"])
         for number, line in enumerate(evaluations.read_text().splitlines(), start=1):
+            where = f"{evaluations}, line {number}"
             try:
-                record = json.loads(line)
-            except ValueError:
-                record = None
-            if not isinstance(record, dict) or not record.keys() >= RECORD_KEYS:
+                record = check_values(json.loads(line), EVALUATION_RECORD, where)
+            except ValueError as err:
                 if line.strip():  # a write killed half-way, or an edit: say so, skip it
+                    why = str(err).removeprefix(f"{where}: ")
                     print(
-                        f"rl-pg report: {evaluations}, line {number}, is not an evaluation "
-                        "record; skipped.",
+                        f"rl-pg report: {where}, is not an evaluation record ({why}); skipped.",
                         file=sys.stderr,
                     )
                 continue
@@ -291,22 +288,46 @@ def read_stored(path: Path) -> tuple[list[dict[str, Any]], list[str]]:
 
 
 def _stored_runs(path: Path) -> list[dict[str, Any]]:
-    """The runs a file written by ``--store`` holds (each with its name, report and
-    curve), or a ValueError naming the file."""
+    """The runs a file written by ``--store`` holds (each with its name, report, config
+    and curve), every value checked, or a ValueError naming the file and the field."""
     try:
-        runs = json.loads(Path(path).read_text())["runs"]
-        if not all({"name", "report"} <= run.keys() and "values" in run["curve"] for run in runs):
-            raise KeyError("a run without its name, report or curve")
-        return runs
+        data = json.loads(Path(path).read_text())
     except FileNotFoundError as err:
         raise ValueError(
             f"{path} does not exist: write it with rl-pg report RUN... --store."
         ) from err
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as err:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ValueError(
             f"{path} is not a stored report ({type(err).__name__}: {err}); write it with "
             f"rl-pg report RUN... --store {path}."
         ) from err
+    try:
+        if not isinstance(data, dict) or not isinstance(data.get("runs"), list):
+            raise ValueError(f'{path}: should hold {{"runs": [...]}}.')
+        for number, run in enumerate(data["runs"]):
+            where = f"{path}, run {number}"
+            check_values(run, STORED_RUN, where)
+            check_values(run["report"], RUN_SUMMARY, f"{where}, report")
+            for mode in ("greedy", "sampled"):
+                if run["report"].get(mode) is not None:
+                    check_values(run["report"][mode], EVALUATION_RECORD, f"{where}, {mode}")
+            curve = check_values(run["curve"], STORED_CURVE, f"{where}, curve")
+            if len(curve["frames"]) != len(curve["values"]):
+                raise ValueError(
+                    f"{where}, curve: {len(curve['frames'])} frames for "
+                    f"{len(curve['values'])} values."
+                )
+    except ValueError as err:
+        raise ValueError(
+            f"{err} It is not a stored report as rl-pg report writes one: write it again "
+            f"with rl-pg report RUN... --store {path}."
+        ) from None
+    return data["runs"]
+
+
+STORED_RUN = {"name": "text", "report": "object", "config": "object", "curve": "object"}
+STORED_CURVE = {"metric": "text", "frames": "list of numbers", "values": "list of numbers",
+                "window?": "count"}  # fmt: skip
 
 
 def plot_stored(
