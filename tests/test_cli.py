@@ -13,6 +13,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import hide_module
 
 from rl_pg.recipes import NAMES, load
@@ -1033,3 +1034,44 @@ def test_a_report_of_several_runs_gives_their_interquartile_mean_and_its_interva
         assert match and float(match[1]) == pytest.approx(iqm, abs=0.01), line
         assert float(match[2]) <= iqm <= float(match[3])
     assert f"of {len(runs)} runs" in line
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (lambda d: d.__setitem__("config", [1, 2]), '"config" should be a mapping'),
+        (lambda d: d["state"].__setitem__("frames", "x"), 'state: "frames" should be a whole'),
+        (lambda d: d.__setitem__("recipe", 5), '"recipe" should be text, got 5'),
+        (lambda d: d.pop("loss"), '"loss" is missing'),
+        (lambda d: d["loss"].__setitem__("x", [1.0]), "\"loss\" should hold tensors, and 'x'"),
+        (lambda d: d["config"].__setitem__("lr", "fast"), "config does not fit the gridworld"),
+        (lambda d: d["config"].__setitem__("hidden", -3), "hidden (--hidden) must be an integer"),
+        (lambda d: d["loss"].__setitem__(next(iter(d["loss"])), torch.zeros(1)), "size mismatch"),
+    ],
+    ids=["config", "frames", "recipe", "loss", "tensor", "lr", "hidden", "shape"],
+)
+@pytest.mark.parametrize("command", ["play", "evaluate", "resume"])
+def test_a_checkpoint_with_a_wrong_value_is_named_in_one_line(
+    command, edit, said, tmp_path, capsys, trained_gridworld
+):
+    from rl_pg.checkpoint import load_checkpoint, save_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_gridworld, run)
+    for name in ("best.pt", "checkpoint.pt"):
+        saved = load_checkpoint(run / name)
+        edit(saved)
+        save_checkpoint(saved, run / name)  # whole and checksummed: only the value is wrong
+    args = {"play": ("--episodes", "1"), "evaluate": ("--episodes", "1"),
+            "resume": ("--total-updates", "4")}  # fmt: skip
+    status, _, err = in_process(command, str(run), *args[command], capsys=capsys)
+    assert status == 1 and said in err and err.count("\n") == 1, err
+    assert str(run) in err or said == "size mismatch", err  # the file is named
+
+
+@pytest.fixture(scope="module")
+def trained_gridworld(tmp_path_factory):
+    run = tmp_path_factory.mktemp("trained") / "run"
+    cfg = load("gridworld").config(run_dir=run, total_updates=2, eval_episodes=1, progress=False)
+    load("gridworld").train(cfg)
+    return run

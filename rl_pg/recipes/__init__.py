@@ -82,19 +82,28 @@ def _find(name: str, module: str) -> Recipe | None:
 
 
 def recipe_of(saved: dict, run) -> Recipe:
-    """The recipe that trained ``run``, whose checkpoint is ``saved`` (``read_run``).
+    """The recipe that trained ``run``, whose checkpoint is ``saved`` (``read_run``),
+    once its stored config is one the recipe's config class takes.
 
     Raises:
-        ValueError: the run cannot be rebuilt; the message says how to load its weights.
+        ValueError: the run cannot be rebuilt, or its config holds a value the recipe
+            refuses; the message names the run (and the field).
     """
     try:
-        return load(saved["recipe"], saved.get("recipe_module"))
+        recipe = load(saved["recipe"], saved.get("recipe_module"))
     except ValueError as err:
         raise ValueError(
             f"{run} cannot be rebuilt: {err} Its weights load from Python: "
             f"saved = rl_pg.training.read_run(run_dir, which='best'); build the same actor "
             f"and critic; rl_pg.training.load_models(saved, actor, critic)."
         ) from None
+    try:
+        recipe.config.from_stored(saved["config"])
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"{run}: its stored config does not fit the {recipe.name} recipe: {err}"
+        ) from None
+    return recipe
 
 
 def __getattr__(name: str):

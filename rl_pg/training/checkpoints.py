@@ -15,6 +15,7 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.normalization import popart_output
 from rl_pg.training.config import config_dict
+from rl_pg.training.records import check_values
 from rl_pg.training.seeds import run_streams
 
 __all__ = [
@@ -123,8 +124,9 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
         optimizer.load_state_dict(saved["optimizer"])
     except (RuntimeError, ValueError, KeyError) as err:
         raise CheckpointError(
-            f"{path} does not fit the models this configuration builds ({err}). It was "
-            f"left as it is; resume it with the configuration that wrote it."
+            f"{path} does not fit the models this configuration builds "
+            f"({_first_line(err)}). It was left as it is; resume it with the configuration "
+            f"that wrote it."
         ) from err
     # Checkpoints of earlier versions also carried the curve, now read from the logs.
     fields = {f.name for f in dataclasses.fields(RunState)}
@@ -222,13 +224,43 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
     if not path.exists():
         raise CheckpointError(f"{path} does not exist: give a run directory or a checkpoint file.")
     if not path.is_dir():
-        return load_checkpoint(path)
+        return _checked(load_checkpoint(path), path)
     if which == "best" and not (path / BEST).is_file() and (path / CHECKPOINT).is_file():
         raise CheckpointError(
             f"{path} has no {BEST} (the run never evaluated, or predates best "
             f"checkpoints); deploy its last checkpoint with which='last'."
         )
-    return load_checkpoint(path / files[which])
+    return _checked(load_checkpoint(path / files[which]), path / files[which])
+
+
+RUN_CHECKPOINT = {"recipe": "text", "recipe_module?": "text?", "config": "object",
+                  "loss": "object", "state?": "object"}  # fmt: skip
+"""What every checkpoint and agent file of a run holds (the rest is checked by what reads
+it: the config by the recipe's config class, the weights by the models)."""
+CHECKPOINT_STATE = {"frames?": "count?", "updates?": "count?", "best_mean_return?": "number?"}
+
+
+def _first_line(err: BaseException) -> str:
+    """Of torch's "Error(s) in loading state_dict" (a line per mismatch), the first
+    mismatch; any other error as it is."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if len(lines) > 1 and lines[0].startswith("Error(s) in loading state_dict"):
+        return lines[1].rstrip(".")
+    return " ".join(lines)
+
+
+def _checked(saved: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``saved`` when its fields hold values of their kinds; else a CheckpointError that
+    names the file and the field."""
+    try:
+        check_values(saved, RUN_CHECKPOINT, str(path))
+        check_values(saved.get("state", {}), CHECKPOINT_STATE, f"{path}, state")
+        bad = [k for k, v in saved["loss"].items() if not isinstance(v, torch.Tensor)]
+        if bad:
+            raise ValueError(f'{path}: "loss" should hold tensors, and {bad[0]!r} is not one.')
+    except ValueError as err:
+        raise CheckpointError(f"{err} It is not a checkpoint rl_pg wrote, or was edited.") from None
+    return saved
 
 
 def callback_states(saved: dict[str, Any]) -> dict[str, dict[str, Any]]:
@@ -326,5 +358,6 @@ def load_models(
             module.load_state_dict(weights)
         except RuntimeError as err:
             raise CheckpointError(
-                f"The checkpoint's {name} does not fit the model built from its config ({err})."
+                f"The checkpoint's {name} does not fit the model built from its config "
+                f"({_first_line(err)}): its weights were edited, or come from another model."
             ) from err

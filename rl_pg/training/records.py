@@ -57,7 +57,7 @@ _SAID = {
     "text": "text",
     "flag": "true or false",
     "list of numbers": "a list of numbers",
-    "object": "a JSON object",
+    "object": "a mapping of names to values",
 }
 
 
