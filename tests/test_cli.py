@@ -6,10 +6,12 @@ import dataclasses
 import json
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import sysconfig
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -1075,3 +1077,20 @@ def trained_gridworld(tmp_path_factory):
     cfg = load("gridworld").config(run_dir=run, total_updates=2, eval_episodes=1, progress=False)
     load("gridworld").train(cfg)
     return run
+
+
+@pytest.mark.parametrize("after", [0.2, 1.0])
+def test_a_ctrl_c_while_the_command_starts_ends_it_without_a_traceback(after, tmp_path):
+    # torch and TorchRL take seconds to import: a Ctrl-C then is a Ctrl-C, not a fault
+    script = Path(sys.executable).parent / "rl-pg"
+    if not script.is_file():
+        pytest.skip("rl-pg is not installed beside this interpreter")
+    start = subprocess.Popen(
+        [str(script), "train", "cartpole", "--run-dir", str(tmp_path / "run")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    time.sleep(after)
+    start.send_signal(signal.SIGINT)
+    _, err = start.communicate(timeout=120)
+    assert start.returncode == 130 and "Traceback" not in err, err
