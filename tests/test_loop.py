@@ -827,6 +827,57 @@ class TestTrain:
             collection.shutdown()
         assert "New workers" not in capfd.readouterr().err
 
+    def test_workers_gone_with_their_killed_fork_server_are_replaced(self, tmp_path, capfd):
+        from multiprocessing import forkserver
+
+        from rl_pg.training import collection as module
+
+        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
+        collection = module.Collection(cfg, env, make_grid, actor, updates=0)
+        try:
+            batches = iter(collection)
+            next(batches)
+            # as `pkill -9 -f multiprocessing.forkserver` would: the server and its workers
+            server = forkserver._forkserver._forkserver_pid
+            for pid in (server, *(proc.pid for proc in collection._workers.procs)):
+                os.kill(pid, signal.SIGKILL)
+            batch = next(batches)  # new workers, from a new fork server
+        finally:
+            collection.shutdown()
+        err = capfd.readouterr().err
+        assert err.count("is gone with the fork server that started it (killed)") == 2, err
+        assert "New workers take over" in err and batch.numel() > 0
+
+    def test_a_hung_worker_is_ended_and_replaced_within_the_stated_time(
+        self, tmp_path, capfd, monkeypatch
+    ):
+        from rl_pg.training import collection as module
+
+        # As a worker stopped by a signal, deadlocked or stuck in its simulator: it sends
+        # nothing. Past the limit, the workers are ended and new ones take over.
+        monkeypatch.setattr(module, "STALL_LIMIT_S", 2.0)
+        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+        env = make_grid()
+        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
+        collection = module.Collection(cfg, env, make_grid, actor, updates=0)
+        try:
+            batches = iter(collection)
+            next(batches)
+            next(batches)
+            stopped = collection._workers.procs[1].pid
+            os.kill(stopped, signal.SIGSTOP)
+            start = time.monotonic()
+            batch = next(batches)  # from the new workers
+            waited = time.monotonic() - start
+        finally:
+            collection.shutdown()
+        err = capfd.readouterr().err
+        assert f"(pid {stopped}) sent no batch in 2 s (stopped), so rl-pg ended it" in err, err
+        assert "New workers take over" in err and batch.numel() > 0
+        assert 2.0 <= waited < 60  # the limit, then the new workers' start
+
     @pytest.mark.parametrize("workers", [1, 2])
     def test_whole_episode_batches_are_new_episodes_of_each_environment(self, tmp_path, workers):
         # Every batch holds exactly the episodes asked for, each environment's share

@@ -23,6 +23,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 
@@ -40,11 +41,18 @@ from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.seeds import training_seed
 
-__all__ = ["REPLACEMENTS", "Collection", "segments_per_update"]
+__all__ = ["REPLACEMENTS", "STALL_LIMIT_S", "STARTUP_LIMIT_S", "Collection", "segments_per_update"]
 
 REPLACEMENTS = 3
 """Times in a row a run replaces its workers after losing one (a worker process killed,
 a Ray node gone, a simulator crashed) before it stops."""
+
+STARTUP_LIMIT_S = 600.0
+"""Seconds new workers may take for their first batch (a simulator's start included)
+before they count as hung."""
+STALL_LIMIT_S = 300.0
+"""Seconds without a batch after which the workers count as hung: this, or 20 times the
+slowest batch so far if longer. Hung workers are ended and replaced like lost ones."""
 
 _WHERE_WORKERS_LOG = {
     True: "A Ray worker's own output, its error included, is in the Ray session's logs "
@@ -132,6 +140,8 @@ class Collection:
         self._make_env, self._actor, self._updates = make_env, actor, updates
         self._kwargs = kwargs
         self._replaced = 0  # workers lost since the last batch
+        self._slowest = 0.0  # seconds of the slowest batch so far (the stall limit's base)
+        self._ended: dict[int, str] = {}  # pids of workers ended as stalled: why
         self.collector = self._remote_collector()
         self._batches = self._remote_batches()
 
@@ -194,6 +204,12 @@ class Collection:
         while True:
             if collector is not self.collector:  # new workers (replaced in after_update too)
                 collector, batches = self.collector, iter(self.collector)
+                first = True
+            limit = STARTUP_LIMIT_S if first else max(STALL_LIMIT_S, 20 * self._slowest)
+            watchdog = threading.Timer(limit, self._end_stalled_workers, args=(limit,))
+            watchdog.daemon = True
+            watchdog.start()
+            start = time.monotonic()
             try:
                 batch = next(batches)
             except StopIteration:
@@ -201,8 +217,29 @@ class Collection:
             except Exception as err:
                 self._replace_if_lost(err)
                 continue
+            finally:
+                watchdog.cancel()
+            if not first:  # a first batch includes the workers' start
+                self._slowest = max(self._slowest, time.monotonic() - start)
+            first = False
             self._replaced = 0
             yield batch
+
+    def _end_stalled_workers(self, limit: float) -> None:
+        """Called by the watchdog when no batch came within ``limit`` seconds: a worker
+        hangs (stopped, deadlocked, stuck in its simulator). Its process and the others
+        are killed, which the waiting collector sees as lost workers: they are replaced
+        like any lost worker, and named with why they were ended."""
+        if self.cfg.ray:
+            return  # Ray's actors answer ray.get with a timeout (see _lost_worker)
+        for proc in self._workers.procs:
+            if proc.is_alive():
+                self._ended[proc.pid] = (
+                    f"sent no batch in {limit:.0f} s ({_process_state(proc.pid)}), so rl-pg "
+                    f"ended it"
+                )
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, signal.SIGKILL)
 
     def _replace_if_lost(self, err: Exception) -> None:
         """Re-raises ``err`` unless a worker is gone; otherwise starts new workers, with
@@ -243,8 +280,11 @@ class Collection:
 
         thread = threading.Thread(target=sync, name="rl-pg weight sync", daemon=True)
         thread.start()
+        start = time.monotonic()
         while thread.is_alive():
             thread.join(0.05)
+            if not self._ended and time.monotonic() - start > STALL_LIMIT_S:
+                self._end_stalled_workers(STALL_LIMIT_S)  # one never acknowledges
             if thread.is_alive() and self._lost_worker(None):
                 raise ChildProcessError("a worker process is gone")
         if failed:
@@ -268,10 +308,15 @@ class Collection:
         # Killed by a signal (the OOM killer's SIGKILL, a simulator's SIGSEGV): lost. One
         # that exited by itself (an exception in the environment: its traceback is
         # printed) would only exit again: TorchRL's error stands.
+        # Workers forked by a fork server that was killed report exit code 255 (their
+        # status died with it): lost with it, not failed by themselves.
+        server_gone = _fork_server_gone()
         killed = [
-            _process_lost(i, proc.pid, proc.exitcode)
+            _process_lost(i, proc.pid, proc.exitcode, server_gone, self._ended.get(proc.pid))
             for i, proc in enumerate(self._workers.procs)
-            if not proc.is_alive() and proc.exitcode is not None and proc.exitcode < 0
+            if not proc.is_alive()
+            and proc.exitcode is not None
+            and (proc.exitcode < 0 or (server_gone and proc.exitcode == 255))
         ]
         return "; ".join(killed) or None
 
@@ -398,13 +443,56 @@ class _ReplayingPolicy(TensorDictModuleBase):
         return tensordict
 
 
-def _process_lost(index: int, pid: int, code: int) -> str:
-    """A worker process killed by signal ``-code``, in one line."""
+def _process_lost(
+    index: int, pid: int, code: int, server_gone: bool = False, ended: str | None = None
+) -> str:
+    """A worker process killed by signal ``-code`` (or gone with its fork server, or
+    ended by the watchdog: ``ended`` says why), in one line."""
+    if ended is not None:
+        return f"worker process {index} (pid {pid}) {ended}"
+    if code == 255 and server_gone:
+        return (
+            f"worker process {index} (pid {pid}) is gone with the fork server that started "
+            f"it (killed)"
+        )
     try:
         name = signal.Signals(-code).name
     except ValueError:
         name = f"signal {-code}"
     return f"worker process {index} (pid {pid}) was killed by {name}"
+
+
+def _process_state(pid: int) -> str:
+    """What a live process is doing, as the kernel says (Linux), for a message."""
+    states = {"T": "stopped", "t": "stopped by a debugger", "D": "waiting on a device",
+              "S": "waiting", "R": "running"}  # fmt: skip
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            state = stat.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "state unknown"
+    return states.get(state, f"state {state}")
+
+
+def _fork_server_gone() -> bool:
+    """Whether the fork server that starts this process's workers was started and has
+    died since (multiprocessing starts a new one for the next workers)."""
+    from multiprocessing import forkserver
+
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)
+    if pid is None:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as stat:  # a dead child is a zombie until reaped
+            return stat.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+    except OSError:  # no /proc (not Linux): whether the process can still be signalled
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        return False
 
 
 def _actor_lost(err: Exception) -> str:
