@@ -878,7 +878,11 @@ def test_every_way_of_starting_the_command_freezes_its_heap():
     import tomllib
 
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["rl-pg"] == "rl_pg.recipes.cli:run"
+    assert scripts["rl-pg"] == "rl_pg_launcher:main"  # which starts at run
+    assert (
+        "from rl_pg.recipes.cli import run\n\n        run()"
+        in (REPO / "rl_pg_launcher.py").read_text()
+    )
     assert "cli import run\n\nrun()" in (REPO / "rl_pg/recipes/__main__.py").read_text()
     source = (REPO / "rl_pg/recipes/cli.py").read_text()
     checkout = source[source.index("def run_checkout_script") :]

@@ -64,7 +64,7 @@ from rl_pg.training.curves import (
     read_curve,
     seed_aggregate,
 )
-from rl_pg.training.records import EVALUATION_RECORD, RUN_SUMMARY, check_values
+from rl_pg.training.records import EVALUATION_RECORD, RUN_SUMMARY, check_values, optional
 from rl_pg.training.run_dir import CONFIG, SUMMARY, claim_output
 from rl_pg.training.seeds import fresh_seed
 
@@ -307,12 +307,14 @@ def _stored_runs(path: Path) -> list[dict[str, Any]]:
         for number, run in enumerate(data["runs"]):
             where = f"{path}, run {number}"
             check_values(run, STORED_RUN, where)
-            check_values(run["report"], RUN_SUMMARY, f"{where}, report")
+            check_values(run["report"], optional(RUN_SUMMARY), f"{where}, report")
             for mode in ("greedy", "sampled"):
                 if run["report"].get(mode) is not None:
-                    check_values(run["report"][mode], EVALUATION_RECORD, f"{where}, {mode}")
+                    check_values(
+                        run["report"][mode], optional(EVALUATION_RECORD), f"{where}, {mode}"
+                    )
             curve = check_values(run["curve"], STORED_CURVE, f"{where}, curve")
-            if len(curve["frames"]) != len(curve["values"]):
+            if "frames" in curve and len(curve["frames"]) != len(curve["values"]):
                 raise ValueError(
                     f"{where}, curve: {len(curve['frames'])} frames for "
                     f"{len(curve['values'])} values."
@@ -325,8 +327,9 @@ def _stored_runs(path: Path) -> list[dict[str, Any]]:
     return data["runs"]
 
 
-STORED_RUN = {"name": "text", "report": "object", "config": "object", "curve": "object"}
-STORED_CURVE = {"metric": "text", "frames": "list of numbers", "values": "list of numbers",
+# What each reading of a store needs is there; whatever is there holds its kind.
+STORED_RUN = {"name": "text", "report": "object", "config?": "object", "curve": "object"}
+STORED_CURVE = {"metric?": "text", "frames?": "list of numbers", "values": "list of numbers",
                 "window?": "count"}  # fmt: skip
 
 

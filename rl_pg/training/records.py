@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["EVALUATION_RECORD", "RUN_SUMMARY", "check_values"]
+__all__ = ["EVALUATION_RECORD", "RUN_SUMMARY", "check_values", "optional"]
 
 RUN_SUMMARY = {
     "recipe": "text",
@@ -90,6 +90,12 @@ def check_values(record: Any, schema: Mapping[str, Any], where: str) -> dict[str
             said = _SAID.get(kind) if isinstance(kind, str) else " or ".join(map(repr, kind))
             raise ValueError(f'{where}: "{name}" should be {said}, got {_short(value)}.')
     return record
+
+
+def optional(schema: Mapping[str, Any]) -> dict[str, Any]:
+    """``schema`` with every field allowed to be absent (what is there still holds its
+    kind)."""
+    return {key if key.endswith("?") else f"{key}?": kind for key, kind in schema.items()}
 
 
 def _is(value: Any, kind: Any) -> bool:
