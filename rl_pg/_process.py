@@ -81,16 +81,29 @@ STOP_SIGNALS = tuple(
 terminal (POSIX only)."""
 
 
+_MASKS = hasattr(signal, "pthread_sigmask")
+
+
 @contextmanager
 def signal_handlers_kept() -> Iterator[None]:
     """Sets the Python handlers of the ``STOP_SIGNALS`` again after the block, over
     whatever its C code installed (``ray.init`` installs handlers of its own that abort
-    the process on SIGTERM, losing a run's stop: wrap it in this)."""
+    the process on SIGTERM, losing a run's stop: wrap it in this).
+
+    The processes the block starts (Ray's GCS, raylet, and the workers the raylet forks
+    later) are started with SIGTERM and SIGHUP blocked, as Ray itself blocks SIGINT in
+    them: a stop sent to the whole process group (a scheduler's ``kill -TERM -PGID``, a
+    closed terminal) reaches the run, which checkpoints and then shuts Ray down, rather
+    than Ray's processes, which would die under the run while it saves."""
     main = threading.current_thread() is threading.main_thread()
     before = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS} if main else {}
+    group = {getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, group) if _MASKS and main else None
     try:
         yield
     finally:
+        if mask is not None:  # a signal that came meanwhile is delivered here, handled
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for sig, handler in before.items():
             if handler is not None:  # None: set outside Python, nothing to restore
                 signal.signal(sig, handler)

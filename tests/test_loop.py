@@ -212,6 +212,52 @@ class TestTrain:
         assert [m.value for m in history] == pytest.approx(list(values))
         assert len(history) == summary["updates"] == 2
 
+    def test_a_slow_viewer_backend_gets_fewer_points_and_never_slows_the_run_much(self, tmp_path):
+        from torchrl.record.loggers import Logger
+
+        from rl_pg.training.metrics import VIEWER_SHARE, Loggers
+
+        class Slow(Logger):  # a backend whose every call costs 20 ms (a slow server)
+            def __init__(self):
+                self.steps = []
+
+            def _create_experiment(self):
+                return None
+
+            def log_metrics(self, metrics, step=None):
+                time.sleep(0.02)
+                self.steps.append(step)
+
+            def log_scalar(self, name, value, step=None):
+                self.steps.append(step)
+
+            def log_hparams(self, cfg):
+                pass
+
+            def log_video(self, *args, **kwargs):
+                pass
+
+            def log_histogram(self, *args, **kwargs):
+                pass
+
+            def __repr__(self):
+                return "Slow()"
+
+        loggers = Loggers(_cfg(tmp_path), tmp_path, "grid", resume_at=None)
+        slow = Slow()
+        loggers.loggers.append(slow)
+        start = time.perf_counter()
+        for number in range(200):  # updates of 2 ms each
+            time.sleep(0.002)
+            loggers.log_metrics({"loss/actor": float(number)}, step=number)
+        elapsed = time.perf_counter() - start
+        loggers.close()
+        # the CSV logs every update; the slow backend fewer, spread over the whole run,
+        # and its time stays near its share (one call of 20 ms may overshoot it)
+        assert list(read_curve(tmp_path, "loss/actor")[0]) == list(range(200))
+        assert 2 < len(slow.steps) < 100 and slow.steps[-1] > 150
+        assert len(slow.steps) * 0.02 <= VIEWER_SHARE * elapsed + 0.02
+
     def test_a_missing_logger_package_names_its_extra(self, tmp_path, monkeypatch):
         hide_module(monkeypatch, "wandb")
         with pytest.raises(ImportError, match=r'--wandb needs the wandb extra: .*"rl_pg\[wandb\]"'):

@@ -102,6 +102,11 @@ class EpisodeReturns:
         return ended.double().mean().item() if ended.numel() else float("nan")
 
 
+VIEWER_SHARE = 0.05
+"""The share of a run's time a viewer's logging backend may take for the training
+scalars (see [`Loggers.log_metrics`][rl_pg.training.metrics.Loggers.log_metrics])."""
+
+
 class Loggers:
     """Sends each scalar to every TorchRL logger of the run.
 
@@ -153,6 +158,8 @@ class Loggers:
         }
         for logger in self.loggers:
             logger.log_hparams(hyperparameters)
+        self._started = time.perf_counter()
+        self._spent: dict[int, float] = {}  # seconds each viewer's backend took, by id
 
     def log_scalar(self, name: str, value: float, step: int) -> None:
         for logger in self.loggers:
@@ -160,9 +167,23 @@ class Loggers:
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
         """Logs an update's scalars together: one call per backend (W&B writes them as
-        one row, at a seventh of the cost of one call per scalar)."""
+        one row, at a seventh of the cost of one call per scalar). The CSV logs get
+        every update's; a viewer's backend (TensorBoard, W&B, MLflow) gets an update's
+        unless it has used more than ``VIEWER_SHARE`` of the time since the run
+        started, so that no backend slows the training by more than that share (a
+        cheap one gets every update, an expensive one fewer points of the same curves;
+        the evaluations always reach every backend)."""
+        now = time.perf_counter()
+        elapsed = now - self._started
         for logger in self.loggers:
+            if logger is not self.csv:
+                spent = self._spent.get(id(logger), 0.0)
+                if spent > VIEWER_SHARE * elapsed:
+                    continue
+            start = time.perf_counter()
             logger.log_metrics(metrics, step=step)
+            if logger is not self.csv:
+                self._spent[id(logger)] = spent + time.perf_counter() - start
 
     def flush(self) -> None:
         """Writes the CSV rows and MLflow metrics held back (the loop calls it before
