@@ -10,6 +10,7 @@ import itertools
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -1823,3 +1824,27 @@ class TestSessions:
         assert summary["sessions"][-1]["changed"] == {"total_updates": [2, 3], "threads": [1, 2]}
         _train(_cfg(tmp_path, total_updates=4, resume=True, threads=2))
         assert "Resuming with" not in capsys.readouterr().err  # nothing changed this time
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc (Linux)")
+def test_processes_started_for_ray_leave_a_group_stop_to_the_run():
+    # Ray's GCS, raylet and workers start inside signal_handlers_kept(): with SIGTERM and
+    # SIGHUP blocked, a `kill -TERM -PGID` reaches the run (which saves, then shuts Ray
+    # down) and not them; this process's own mask and handlers are as they were.
+    from rl_pg._process import signal_handlers_kept
+
+    def blocked(status: str) -> set[int]:
+        mask = int(re.search(r"^SigBlk:\s*(\w+)$", status, re.MULTILINE)[1], 16)
+        return {sig for sig in range(1, 64) if mask >> (sig - 1) & 1}
+
+    handler = signal.getsignal(signal.SIGTERM)
+    with signal_handlers_kept():
+        child = subprocess.Popen(["sleep", "5"])
+    try:
+        status = Path(f"/proc/{child.pid}/status").read_text()
+        assert {signal.SIGTERM, signal.SIGHUP} <= blocked(status)
+    finally:
+        child.kill()
+        child.wait()
+    assert signal.SIGTERM not in blocked(Path("/proc/self/status").read_text())
+    assert signal.getsignal(signal.SIGTERM) is handler
