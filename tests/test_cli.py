@@ -1098,3 +1098,19 @@ def test_a_ctrl_c_while_the_command_starts_ends_it_without_a_traceback(after, tm
     start.send_signal(signal.SIGINT)
     _, err = start.communicate(timeout=120)
     assert start.returncode == 130 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(("content", "said"), [("{bad", "Expecting property name"),
+                                               ("[1]", "should hold a JSON object")])  # fmt: skip
+def test_a_run_config_that_is_not_one_is_named_by_report_and_lab(
+    content, said, tmp_path, capsys, trained_gridworld
+):
+    run = tmp_path / "lab" / "seed0"
+    shutil.copytree(trained_gridworld, run)
+    (run / "config.json").write_text(content)
+    for args in (("report", str(run), "--store", str(tmp_path / "s.json")),
+                 ("lab", "variance", "gridworld", "--seeds", "0", "--run-dir",
+                  str(tmp_path / "lab"), *QUICK)):  # fmt: skip
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status == 1 and f"{run / 'config.json'} is not a run's config" in err, err
+        assert said in err and err.count("\n") == 1

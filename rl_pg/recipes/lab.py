@@ -35,6 +35,7 @@ from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.curves import png_figure, read_curve
+from rl_pg.training.records import read_json
 from rl_pg.training.run_dir import SUMMARY, changed_settings
 
 __all__ = ["LabArgs", "measurements", "noise_scale_curve", "summarise", "variance_lab"]
@@ -88,15 +89,9 @@ def variance_lab(recipe, cfg: TrainConfig, *, seeds: Sequence[int], every: int, 
 def _same_setting(cfg: TrainConfig, run_dir: Path) -> None:
     """Refuses a lab folder whose seed ``run_dir`` was trained with other settings than
     ``cfg``'s: its seeds would be measured under two settings and pooled as one."""
-    path = run_dir / "config.json"
-    if not path.is_file():
+    if not (run_dir / "config.json").is_file():
         return
-    try:
-        stored = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise ValueError(
-            f"{path} cannot be read ({err}): remove {run_dir} to train it anew."
-        ) from None
+    stored = _config(run_dir)
     keep = frozenset({"resume", "run_dir", "progress", "threads", "workers", "ray"})
     changed = changed_settings(cfg, stored, may_change=keep | _LOGGING)
     if changed:
@@ -232,6 +227,12 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
     return table
 
 
+def _config(run_dir: Path) -> dict[str, Any]:
+    """A seed's stored config, or a ValueError naming the file."""
+    return read_json(run_dir / "config.json", what="a run's config", schema={},
+                     fix=f"remove {run_dir} to train that seed anew")  # fmt: skip
+
+
 def _nothing_measured(runs: dict[int, Path], root: Path) -> str:
     """Why no estimator's statistics are in every run, and what to change."""
     short = []
@@ -261,7 +262,7 @@ def _units(runs: dict[int, Path]) -> dict[str, Any]:
     """The unit the runs were measured by: ``{"unit": "episode"}``, or for runs
     collected in groups ``{"unit": "group", "group_size": K}`` (K sampled episodes each,
     so a noise scale of B groups is about K·B episodes)."""
-    configs = [json.loads((r / "config.json").read_text()) for r in runs.values()]
+    configs = [_config(run_dir) for run_dir in runs.values()]
     grouped = {c.get("baseline") in GROUP_BASELINES for c in configs}
     if grouped == {True}:
         sizes = {c["group_size"] for c in configs}
@@ -435,7 +436,7 @@ def _comparable(estimator: str, runs: dict[int, Path]) -> bool:
         return False
     if estimator != "loss":
         return True
-    configs = [json.loads((r / "config.json").read_text()) for r in runs.values()]
+    configs = [_config(run_dir) for run_dir in runs.values()]
     return not any(c.get("normalize_advantage", False) for c in configs)
 
 

@@ -64,7 +64,13 @@ from rl_pg.training.curves import (
     read_curve,
     seed_aggregate,
 )
-from rl_pg.training.records import EVALUATION_RECORD, RUN_SUMMARY, check_values, optional
+from rl_pg.training.records import (
+    EVALUATION_RECORD,
+    RUN_SUMMARY,
+    check_values,
+    optional,
+    read_json,
+)
 from rl_pg.training.run_dir import CONFIG, SUMMARY, claim_output
 from rl_pg.training.seeds import fresh_seed
 
@@ -241,15 +247,11 @@ def store_report(runs: list[Path], path: Path, *, metric: str = "eval/mean_retur
     stored = []
     for name, run in zip(names, runs, strict=True):
         frames, values, window = smoothed(*read_curve(run, metric))
-        stored.append({
-            "name": name,
-            "report": read_report(run),
-            "config": json.loads((Path(run) / CONFIG).read_text()),
-            "curve": {
-                "metric": metric, "window": window, "frames": frames.tolist(),
-                "values": values.tolist(),
-            },
-        })  # fmt: skip
+        fix = "it is written as the run starts: restore it from a copy"
+        config = read_json(Path(run) / CONFIG, what="a run's config", schema={}, fix=fix)
+        curve = {"metric": metric, "window": window, "frames": frames.tolist(),
+                 "values": values.tolist()}  # fmt: skip
+        stored.append({"name": name, "report": read_report(run), "config": config, "curve": curve})
     write_atomically(Path(path), json.dumps({"runs": stored}, indent=1) + "\n")
 
 

@@ -19,10 +19,12 @@ Examples:
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
-__all__ = ["EVALUATION_RECORD", "RUN_SUMMARY", "check_values", "optional"]
+__all__ = ["EVALUATION_RECORD", "RUN_SUMMARY", "check_values", "optional", "read_json"]
 
 RUN_SUMMARY = {
     "recipe": "text",
@@ -90,6 +92,23 @@ def check_values(record: Any, schema: Mapping[str, Any], where: str) -> dict[str
             said = _SAID.get(kind) if isinstance(kind, str) else " or ".join(map(repr, kind))
             raise ValueError(f'{where}: "{name}" should be {said}, got {_short(value)}.')
     return record
+
+
+def read_json(path: str | Path, *, what: str, fix: str, schema: Mapping[str, Any] | None = None):
+    """The JSON content of the file ``path`` (checked against ``schema`` if given).
+
+    Raises:
+        ValueError: the file is missing, unreadable, not JSON or not of the schema, in
+            one line: ``"PATH is not WHAT (why); FIX."``.
+    """
+    try:
+        value = json.loads(Path(path).read_text(encoding="utf-8"))
+        if schema is not None:
+            check_values(value, schema, str(path))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        why = str(err).removeprefix(f"{path}: ").rstrip(".")
+        raise ValueError(f"{path} is not {what} ({why}); {fix}.") from None
+    return value
 
 
 def optional(schema: Mapping[str, Any]) -> dict[str, Any]:
