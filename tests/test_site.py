@@ -64,6 +64,12 @@ HIDDEN_OVERFLOW = r"""(() => {
   return problems;
 })()"""
 
+STRAY_TAGS = r"""(() => {
+  const article = document.querySelector('article'); if (!article) return [];
+  return Array.from(article.querySelectorAll('s, strike, del, u, ins, blink, font'))
+    .map(e => `<${e.tagName.toLowerCase()}> around "${e.textContent.trim().slice(0, 40)}"`);
+})()"""
+
 if CHROMIUM is None and os.environ.get("CI"):
     pytest.fail("CI runs the browser test: install Debian's chromium (.ci/run does).")
 pytestmark = pytest.mark.skipif(
@@ -167,6 +173,10 @@ def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
             raw = RAW_MARKER.findall(text)  # a page marker Markdown showed as text
             problems += [f"{name}: a page marker shows as text: {m!r}" for m in raw]
             problems += [f"{name}: {what}" for what in page.evaluate(HIDDEN_OVERFLOW)]
+            # prose that HTML read as a tag (a docstring's `seed<S>` opened an <s>: the
+            # rest of the page struck through): elements no page's source writes
+            stray = page.evaluate(STRAY_TAGS)
+            problems += [f"{name}: prose read as an HTML tag: {what}" for what in stray]
             hrefs = page.evaluate(
                 "Array.from(document.querySelectorAll('article a[href]')).map(a => a.href)"
             )

@@ -54,7 +54,8 @@ class Agent:
         >>> observation, _ = env.reset(seed=0)
         >>> total, done = 0.0, False
         >>> while not done:
-        ...     observation, reward, terminated, truncated, _ = env.step(agent.act(observation))
+        ...     action = agent.act(observation)
+        ...     observation, reward, terminated, truncated, _ = env.step(action)
         ...     total, done = total + reward, terminated or truncated
         >>> total
         500.0

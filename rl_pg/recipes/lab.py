@@ -49,8 +49,8 @@ class LabArgs:
     is ROOT (default runs/lab-variance-RECIPE)."""
 
     seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1, 2])
-    """Seeds trained, each in ROOT/seed<S>. A finished one is kept, a stopped one
-    resumes."""
+    """Seeds trained, each in ROOT/seedS (S the seed). A finished one is kept, a stopped
+    one resumes."""
     every: int = 20
     """Updates between measurements. Measuring every estimator on one batch costs about
     one to two updates of the recipes' small networks."""
