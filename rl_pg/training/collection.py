@@ -231,7 +231,7 @@ class Collection:
         are killed, which the waiting collector sees as lost workers: they are replaced
         like any lost worker, and named with why they were ended."""
         if self.cfg.ray:
-            return  # Ray's actors answer ray.get with a timeout (see _lost_worker)
+            return  # a Ray actor is not a process of ours to end: not handled yet
         for proc in self._workers.procs:
             if proc.is_alive():
                 self._ended[proc.pid] = (
