@@ -35,6 +35,8 @@ class Config:
     """Frames per CartPole repetition."""
     lunarlander_frames: int = 50_000
     """Frames per LunarLander repetition."""
+    tasks: list[str] = field(default_factory=lambda: ["CartPole", "LunarLander"])
+    """Tasks timed (CartPole, LunarLander)."""
     intervals: list[int] = field(default_factory=lambda: [20, 10])
     """Values of --grad-stats timed against no measurement."""
     repeats: int = 3
@@ -72,6 +74,8 @@ def main(cfg: Config) -> dict:
         ("CartPole", cartpole, cfg.cartpole_frames),
         ("LunarLander", lunarlander, cfg.lunarlander_frames),
     ):
+        if task not in cfg.tasks:
+            continue
         runs[task, None] = (training(recipe, None), frames)
         for every in cfg.intervals:
             runs[task, every] = (training(recipe, every), frames)

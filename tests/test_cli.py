@@ -1056,7 +1056,7 @@ def test_a_report_of_several_runs_gives_their_interquartile_mean_and_its_interva
     ],
     ids=["config", "frames", "recipe", "loss", "tensor", "lr", "hidden", "shape"],
 )
-@pytest.mark.parametrize("command", ["play", "evaluate", "resume"])
+@pytest.mark.parametrize("command", ["play", "resume"])  # evaluate reads as play does
 def test_a_checkpoint_with_a_wrong_value_is_named_in_one_line(
     command, edit, said, tmp_path, capsys, trained_gridworld
 ):

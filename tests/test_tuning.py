@@ -161,7 +161,7 @@ def test_two_searches_share_one_study(tmp_path):
 
 def test_jobs_run_searches_side_by_side_and_report_once(tmp_path):
     done = subprocess.run(
-        [sys.executable, "-m", "rl_pg.recipes", "tune", "gridworld", "--trials", "4",
+        [sys.executable, "-m", "rl_pg.recipes", "tune", "gridworld", "--trials", "2",
          "--jobs", "2", "--params", "lr", "--total-updates", "2", "--no-progress",
          "--run-dir", str(tmp_path)],
         capture_output=True, text=True, timeout=300,
@@ -169,7 +169,7 @@ def test_jobs_run_searches_side_by_side_and_report_once(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.count(" trials in ") == 1  # one summary, by the command itself
     trials = _study(tmp_path).trials
-    assert len({t.number for t in trials}) == len(trials) >= 4
+    assert len({t.number for t in trials}) == len(trials) >= 2
     assert json.loads((tmp_path / "best.json").read_text())["trials"] == len(
         [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
     )
