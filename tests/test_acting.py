@@ -87,3 +87,16 @@ def test_loading_nothing_says_what_to_give(tmp_path):
         Agent.load(tmp_path / "missing")
     with pytest.raises(ValueError, match="No agent is shipped"):
         Agent.load("nothing", pretrained=True)
+
+
+@pytest.mark.parametrize(
+    ("name", "observation"), [("bandit", [1.0]), ("gridworld", np.eye(16)[12])]
+)
+def test_agents_of_batched_torch_native_environments_act_on_one_observation(name, observation):
+    # Their environments step several copies at once: an observation is one copy's.
+    agent = Agent.load(name, pretrained=True)
+    action = agent.act(np.asarray(observation, dtype=np.float32))
+    assert isinstance(action, int)
+    assert agent.act(np.stack([observation] * 3).astype(np.float32)).tolist() == [action] * 3
+    if name == "gridworld":  # from the start, the trained agent heads up or right
+        assert action in (0, 3)

@@ -199,7 +199,9 @@ class Agent:
                     f"The {self.recipe.name} agent reads numbers under {key!r}, got "
                     f"{_describe(values[key])} ({err})."
                 ) from err
-            shape = tuple(spec.shape)
+            shape = tuple(spec.shape)[
+                self._base.batch_dims :
+            ]  # one copy's (the env may be batched)
             if value.ndim < len(shape) or tuple(value.shape[value.ndim - len(shape) :]) != shape:
                 raise ValueError(
                     f"The {self.recipe.name} agent expects observations of shape {shape} "
