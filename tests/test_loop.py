@@ -120,6 +120,14 @@ def _kill_a_worker(collection) -> None:
         time.sleep(0.05)
 
 
+def _two_workers(tmp_path, module):
+    """A collection over two worker processes of the gridworld, in segments."""
+    cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
+    env = make_grid()
+    actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
+    return module.Collection(cfg, env, make_grid, actor, updates=0)
+
+
 def _exited(pid: int) -> bool:
     try:  # a zombie until its parent reaps it: it runs no more
         return "zombie" in Path(f"/proc/{pid}/status").read_text()
@@ -881,10 +889,7 @@ class TestTrain:
 
         from rl_pg.training import collection as module
 
-        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
-        env = make_grid()
-        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-        collection = module.Collection(cfg, env, make_grid, actor, updates=0)
+        collection = _two_workers(tmp_path, module)
         try:
             batches = iter(collection)
             next(batches)
@@ -907,10 +912,7 @@ class TestTrain:
         # As a worker stopped by a signal, deadlocked or stuck in its simulator: it sends
         # nothing. Past the limit, the workers are ended and new ones take over.
         monkeypatch.setattr(module, "STALL_LIMIT_S", 2.0)
-        cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
-        env = make_grid()
-        actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-        collection = module.Collection(cfg, env, make_grid, actor, updates=0)
+        collection = _two_workers(tmp_path, module)
         try:
             batches = iter(collection)
             next(batches)
