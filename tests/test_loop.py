@@ -103,17 +103,21 @@ def _grid_with_a_bug():
     return _GridWithABug(batch_size=8, max_steps=30)
 
 
-def _kill_a_worker(collection) -> None:
-    """Kills the process of the collection's first worker (a process, or a Ray actor's)
-    as the kernel's OOM killer would, and waits until it is gone."""
+def _first_worker(collection) -> int:
+    """The pid of the collection's first worker (a process, or a Ray actor's)."""
     workers = collection._workers
     if collection.cfg.ray:
         import ray
 
         actor = workers.remote_collectors[0]
-        pid = ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
-    else:
-        pid = workers.procs[0].pid
+        return ray.get(actor.__ray_call__.remote(lambda self: os.getpid()))
+    return workers.procs[0].pid
+
+
+def _kill_a_worker(collection) -> None:
+    """Kills the collection's first worker as the kernel's OOM killer would, and waits
+    until it is gone."""
+    pid = _first_worker(collection)
     os.kill(pid, signal.SIGKILL)
     deadline = time.monotonic() + 30
     while not _exited(pid) and time.monotonic() < deadline:
@@ -775,8 +779,9 @@ class TestTrain:
         ],
     )
     def test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost(
-        self, tmp_path, ray, capfd
+        self, tmp_path, ray, capfd, monkeypatch
     ):
+        from rl_pg.training import collection as module
         from rl_pg.training.collection import Collection
 
         # Two worker processes; one Ray actor (each costs an import of torch and rl_pg;
@@ -804,18 +809,28 @@ class TestTrain:
             collection.after_update(1)
             next(batches)  # at most one batch in flight may predate the new weights
             batch = next(batches)
-            # A worker killed mid-run is replaced: new workers collect the batch again,
-            # with the learner's weights (the checks below read this batch).
-            _kill_a_worker(collection)
-            batch = next(batches)
-            if not ray:  # and between an update and the next (a Ray replacement costs more)
+            # A worker lost mid-run is replaced: new workers collect the batch again,
+            # with the learner's weights (the checks below read this batch). A worker
+            # process is killed (as by the OOM killer), twice; a Ray actor hangs
+            # (stopped), and is ended through Ray past the time limit, which its replacing
+            # then sees as a killed actor (a Ray replacement costs about 10 s).
+            if ray:
+                monkeypatch.setattr(module, "STALL_LIMIT_S", 5.0)
+                os.kill(_first_worker(collection), signal.SIGSTOP)
+                batch = next(batches)
+            else:  # and between an update and the next
+                _kill_a_worker(collection)
+                batch = next(batches)
                 _kill_a_worker(collection)
                 collection.after_update(2)
                 batch = next(batches)
         finally:
             collection.shutdown()
-        lost = capfd.readouterr().err.count("rl-pg: collection lost a worker")
-        assert lost == (1 if ray else 2)
+        err = capfd.readouterr().err
+        lost = err.count("rl-pg: collection lost a worker")
+        assert lost == (1 if ray else 2), err
+        if ray:
+            assert "sent no batch in 5 s, so rl-pg ended it" in err, err
         # Each worker froze its imports (torch, TorchRL, ...) before building its grid;
         # this process, which reads the specs from the factory too, froze nothing new
         # (frozen objects may die).
@@ -928,6 +943,31 @@ class TestTrain:
         assert f"(pid {stopped}) sent no batch in 2 s (stopped), so rl-pg ended it" in err, err
         assert "New workers take over" in err and batch.numel() > 0
         assert 2.0 <= waited < 60  # the limit, then the new workers' start
+
+    @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
+    def test_a_lost_ray_actor_is_named_with_where_it_ran_and_why(self):
+        from ray.core.generated.common_pb2 import ActorDiedErrorContext
+        from ray.exceptions import ActorDiedError
+
+        from rl_pg.training.collection import _actor_lost
+
+        # Ray's error for an actor whose process was killed (as by the OOM killer)
+        killed = ActorDiedError(ActorDiedErrorContext(
+            class_name="Collector", actor_id=bytes(16), pid=28803, node_ip_address="10.0.0.7",
+            error_message="The actor is dead because its worker process has died. Worker "
+            "exit type: SYSTEM_ERROR Worker exit detail: Worker unexpectedly exits with a "
+            "connection error code 2. End of file. Some common causes include: (1) ...",
+        ))  # fmt: skip
+        assert _actor_lost(killed) == (
+            "Ray actor Collector (pid 28803 on 10.0.0.7): Worker unexpectedly exits with a "
+            "connection error code 2"
+        )
+        ended = "sent no batch in 300 s, so rl-pg ended it"  # rl-pg's own reason prevails
+        assert _actor_lost(killed, ended).endswith(f"(pid 28803 on 10.0.0.7): {ended}")
+        unknown = ActorDiedError()  # no cause known
+        assert _actor_lost(unknown) == (
+            "Ray actor: The actor died unexpectedly before finishing this task"
+        )
 
     @pytest.mark.parametrize("workers", [1, 2])
     def test_whole_episode_batches_are_new_episodes_of_each_environment(self, tmp_path, workers):

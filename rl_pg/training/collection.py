@@ -54,6 +54,8 @@ STALL_LIMIT_S = 300.0
 """Seconds without a batch after which the workers count as hung: this, or 20 times the
 slowest batch so far if longer. Hung workers are ended and replaced like lost ones."""
 
+RAY_ACTORS = -1  # where the reason Ray actors were ended is kept, among pids
+
 _WHERE_WORKERS_LOG = {
     True: "A Ray worker's own output, its error included, is in the Ray session's logs "
     "on its node (/tmp/ray/session_latest/logs/worker-*.err by default).",
@@ -141,7 +143,8 @@ class Collection:
         self._kwargs = kwargs
         self._replaced = 0  # workers lost since the last batch
         self._slowest = 0.0  # seconds of the slowest batch so far (the stall limit's base)
-        self._ended: dict[int, str] = {}  # pids of workers ended as stalled: why
+        # Workers ended as stalled: why, by pid (Ray actors: under RAY_ACTORS)
+        self._ended: dict[int, str] = {}
         self.collector = self._remote_collector()
         self._batches = self._remote_batches()
 
@@ -231,7 +234,16 @@ class Collection:
         are killed, which the waiting collector sees as lost workers: they are replaced
         like any lost worker, and named with why they were ended."""
         if self.cfg.ray:
-            return  # a Ray actor is not a process of ours to end: not handled yet
+            import ray
+
+            # A Ray actor's process is its node's to end: Ray kills it on request, and
+            # the collector waiting on it sees the actor die. Which one hangs cannot be
+            # asked of a hung actor: all are ended, as worker processes are.
+            self._ended[RAY_ACTORS] = f"sent no batch in {limit:.0f} s, so rl-pg ended it"
+            for actor in self._workers.remote_collectors:
+                with contextlib.suppress(Exception):
+                    ray.kill(actor, no_restart=True)
+            return
         for proc in self._workers.procs:
             if proc.is_alive():
                 self._ended[proc.pid] = (
@@ -296,7 +308,7 @@ class Collection:
             import ray
 
             if isinstance(err, ray.exceptions.RayActorError):
-                return _actor_lost(err)
+                return _actor_lost(err, self._ended.pop(RAY_ACTORS, None))
             for actor in self._workers.remote_collectors:  # e.g. a failed weight transfer
                 try:
                     ray.get(actor.__ray_ready__.remote(), timeout=60)
@@ -495,14 +507,17 @@ def _fork_server_gone() -> bool:
         return False
 
 
-def _actor_lost(err: Exception) -> str:
-    """The Ray worker an error names, and why it is gone, in one line."""
+def _actor_lost(err: Exception, ended: str | None = None) -> str:
+    """The Ray worker an error names, and why it is gone (``ended``: why rl-pg ended
+    it), in one line."""
     text = str(err)
     found = dict(re.findall(r"^\s*(class_name|pid|ip): (\S+)", text, re.MULTILINE))
     detail = re.search(r"Worker exit detail: ([^.]*)", text)
     why = detail.group(1) if detail else text.strip().splitlines()[0] if text.strip() else ""
     where = f" (pid {found['pid']} on {found['ip']})" if {"pid", "ip"} <= found.keys() else ""
-    return f"Ray actor {found.get('class_name', '')}{where}: {why or type(err).__name__}"
+    why = ended or why.rstrip(".") or type(err).__name__
+    name = f" {found['class_name']}" if "class_name" in found else ""
+    return f"Ray actor{name}{where}: {why}"
 
 
 def _start_ray(workers: int) -> bool:
