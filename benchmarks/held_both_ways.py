@@ -106,14 +106,22 @@ class Config:
     """Where the results go (written after every finished run)."""
 
 
-def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
+def sb3_model(tool: str, seed: int):
+    """``tool``'s SB3 model on LunarLander with rl-zoo3's settings, untrained."""
     from sb3_contrib import TRPO
     from stable_baselines3 import A2C
+    from stable_baselines3.common.env_util import make_vec_env
+
+    zoo = ZOO[tool]
+    env = make_vec_env("LunarLander-v3", n_envs=zoo["n_envs"], seed=seed)
+    algorithm = {"sb3_a2c": A2C, "sb3_trpo": TRPO}[tool]
+    return algorithm("MlpPolicy", env, seed=seed, device="cpu", **zoo["kwargs"])
+
+
+def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
-
-    zoo = ZOO[tool]
 
     class KeepBest(BaseCallback):
         """Evaluates greedily every ``eval_interval`` frames and keeps the best weights."""
@@ -135,9 +143,7 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
                     self.weights = copy.deepcopy(self.model.policy.state_dict())
             return True
 
-    env = make_vec_env("LunarLander-v3", n_envs=zoo["n_envs"], seed=seed)
-    algorithm = {"sb3_a2c": A2C, "sb3_trpo": TRPO}[tool]
-    model = algorithm("MlpPolicy", env, seed=seed, device="cpu", **zoo["kwargs"])
+    model = sb3_model(tool, seed)
     keep = KeepBest()
     start = time.perf_counter()
     model.learn(total_timesteps=cfg.budget_frames, callback=keep)

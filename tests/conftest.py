@@ -7,6 +7,8 @@ import importlib.util
 import json
 import multiprocessing
 import os
+import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -78,6 +80,14 @@ SHARED_FIXTURES = {
             "TestCollectedEpisodes",
         )
     ),
+    # One local Ray instance (the local_ray fixture below): its start and stop cost
+    # 5-6 s of CPU each.
+    "ray": (
+        "tests/test_benchmarks.py::test_distributed",
+        "tests/test_loop.py::TestTrain::test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost[True]",
+        "tests/test_loop.py::TestTrain::test_ray_workers_that_cannot_join_the_weight_sync_say_why",
+        "tests/test_evaluation.py::test_episode_workers_on_ray_actors_play_each_share_in_order_and_report_a_failure",
+    ),
 }
 
 
@@ -88,11 +98,12 @@ def pytest_collection_modifyitems(items):
     root = Path(__file__).parents[1]
     unused = []
     for prefix in (prefix for prefixes in SHARED_FIXTURES.values() for prefix in prefixes):
-        file, name = prefix.split("::")[:2]
-        if f"\nclass {name}:" not in (root / file).read_text():
+        file, *names = prefix.rstrip(":").split("::")
+        name = names[-1].split("[")[0]  # a class, a test function or method
+        if not re.search(rf"^\s*(class|def) {name}\b", (root / file).read_text(), re.M):
             unused.append(prefix)
-    if unused:  # a renamed class would silently run apart again
-        raise pytest.UsageError(f"tests/conftest.py SHARED_FIXTURES names no test class: {unused}")
+    if unused:  # a renamed test would silently run apart again
+        raise pytest.UsageError(f"tests/conftest.py SHARED_FIXTURES names no test: {unused}")
     rank = {name: i for i, name in enumerate(RUN_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: files stay whole
 
@@ -114,6 +125,27 @@ def pytest_xdist_make_scheduler(config, log):
             return nodeid
 
     return SharedFixtureScheduling(config, log)
+
+
+@pytest.fixture
+def local_ray():
+    """A local Ray instance of 2 CPUs, as a training with --ray starts it (its actors
+    import what this process imports), shared by the tests of SHARED_FIXTURES["ray"] and
+    stopped after the last of them (pytest_runtest_teardown)."""
+    ray = pytest.importorskip("ray")
+    from rl_pg.training.collection import _start_ray
+
+    _start_ray(2)
+    return ray
+
+
+def pytest_runtest_teardown(item, nextitem):
+    ray_tests = SHARED_FIXTURES["ray"]
+    last = nextitem is None or not nextitem.nodeid.startswith(ray_tests)
+    if item.nodeid.startswith(ray_tests) and last:
+        ray = sys.modules.get("ray")
+        if ray is not None and ray.is_initialized():
+            ray.shutdown()
 
 
 def pytest_collection_finish(session):

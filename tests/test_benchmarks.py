@@ -158,24 +158,29 @@ def test_the_plain_loop_with_bookkeeping_writes_what_a_cleanrl_script_writes(tmp
     assert returns and all(r >= 1 for r in returns)  # CartPole pays 1 a step
 
 
-@pytest.mark.parametrize("tool", ["rl_pg", "sb3_a2c", "sb3_trpo"])
+# SB3's tools run the same code but for the model: TRPO's is trained here, A2C's built
+# (its short trainings hover to LunarLander's time limit: 15 s of evaluation here).
+@pytest.mark.parametrize("tool", ["rl_pg", "sb3_trpo"])
 def test_held_both_ways(tool, tmp_path, monkeypatch):
     pytest.importorskip("sb3_contrib" if tool == "sb3_trpo" else "stable_baselines3")
     module = _script("held_both_ways")
+    if tool != "rl_pg":
+        for other in module.ZOO:
+            assert type(module.sb3_model(other, seed=0)).__name__ == other[4:].upper()
     cfg = module.Config(
-        seeds=[0], tools=[tool], rl_pg_stored=[], budget_frames=2048, eval_interval=1024,
+        seeds=[0], tools=[tool], rl_pg_stored=[], budget_frames=1024, eval_interval=512,
         eval_episodes=2, final_episodes=10, json_path=tmp_path / "h.json",
     )  # fmt: skip
     out = module.main(cfg)
     (run,) = out["runs"][tool].values()
-    assert run["best_at_frames"] >= 1024 and out["held"] == {tool: "0/1"}
+    assert run["best_at_frames"] >= 512 and out["held"] == {tool: "0/1"}
     assert set(run["greedy"]) == {"mean_return", "std_return"} == set(run["sampled"])
     # A second call continues the file: nothing is trained again.
     monkeypatch.setattr(module, "run_sb3", None)
     monkeypatch.setattr(module, "run_rl_pg", None)
     assert module.main(cfg)["runs"][tool][0] == run
     with pytest.raises(SystemExit, match="continue them with that budget"):
-        module.main(module.Config(**{**vars(cfg), "budget_frames": 4096}))
+        module.main(module.Config(**{**vars(cfg), "budget_frames": 2048}))
 
 
 def test_held_both_ways_reads_rl_pg_from_the_stored_runs(tmp_path):
@@ -317,9 +322,8 @@ def test_grad_stats(tmp_path):
     assert all(0 < v < 1 for v in out["measurement_share_of_training"].values())
 
 
-def test_distributed(tmp_path):
+def test_distributed(tmp_path, local_ray):
     """Ray against worker processes, the measured costs and the model they make."""
-    pytest.importorskip("ray")
     module = _script("distributed")
     cfg = module.Config(
         recipe="cartpole", frames=1_024, repeats=1, cost_segments=2, predict=[8],

@@ -212,21 +212,21 @@ def test_episode_workers_keep_their_environments_and_report_a_worker_s_failure()
         EpisodeWorkers([])
 
 
-def test_episode_workers_on_ray_actors_play_each_share_in_order_and_report_a_failure():
+def test_episode_workers_on_ray_actors_play_each_share_in_order_and_report_a_failure(local_ray):
     """As worker processes do (the test above), on a local Ray instance as a training's
     --ray starts one; a failure in an actor names it, and closes the actors."""
     import sys
     from functools import partial
 
-    ray = pytest.importorskip("ray")
     from torchrl.envs.utils import RandomPolicy
+
+    ray = local_ray
 
     def fail(td):
         raise ValueError("no such scenario set")
 
     # The actors cannot import this test module: its environments travel by value.
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
     try:
         env = EpisodeWorkers([partial(_Scenarios, 0), partial(_Scenarios, 10)], backend="ray")
         out = evaluate(RandomPolicy(env.action_spec), env, episodes=5, flags=["odd"])
@@ -240,7 +240,6 @@ def test_episode_workers_on_ray_actors_play_each_share_in_order_and_report_a_fai
             evaluate(TensorDictModule(fail, ["observation"], ["action"]), env, episodes=2)
         assert env.is_closed and ray.is_initialized()  # Ray stays: these did not start it
     finally:
-        ray.shutdown()
         ray.cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     with pytest.raises(ValueError, match="backend must be 'process' or 'ray'"):
         EpisodeWorkers([partial(_Scenarios, 0)], backend="threads")

@@ -779,10 +779,13 @@ class TestTrain:
         ],
     )
     def test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost(
-        self, tmp_path, ray, capfd, monkeypatch
+        self, tmp_path, ray, capfd, monkeypatch, request
     ):
         from rl_pg.training import collection as module
         from rl_pg.training.collection import Collection
+
+        if ray:
+            request.getfixturevalue("local_ray")
 
         # Two worker processes; one Ray actor (each costs an import of torch and rl_pg;
         # the two-node test runs two).
@@ -848,11 +851,11 @@ class TestTrain:
             recomputed = actor(batch.exclude("logits", "action").clone())["logits"]
         torch.testing.assert_close(recomputed, batch["logits"])
 
-    @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
-    def test_ray_workers_that_cannot_join_the_weight_sync_say_why(self, tmp_path, monkeypatch):
+    def test_ray_workers_that_cannot_join_the_weight_sync_say_why(
+        self, tmp_path, monkeypatch, local_ray
+    ):
         from datetime import timedelta
 
-        import ray
         import torchrl.weight_update._ray as weight_sync
 
         from rl_pg.training.collection import Collection
@@ -863,11 +866,14 @@ class TestTrain:
         cfg = _cfg(tmp_path, workers=1, ray=True, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-        try:
-            with pytest.raises(RuntimeError, match="did not join the trainer's weight-sync"):
-                Collection(cfg, env, make_grid, actor, updates=0)
-        finally:
-            ray.shutdown()
+        cpus = local_ray.available_resources()["CPU"]
+        with pytest.raises(RuntimeError, match="did not join the trainer's weight-sync"):
+            Collection(cfg, env, make_grid, actor, updates=0)
+        # and its actors are gone, their CPUs free (on a cluster, for the next run)
+        deadline = time.monotonic() + 30
+        while local_ray.available_resources().get("CPU") != cpus:
+            assert time.monotonic() < deadline, local_ray.available_resources()
+            time.sleep(0.1)
 
     def test_a_worker_lost_again_and_again_stops_the_run_naming_it(
         self, tmp_path, capfd, monkeypatch
