@@ -80,9 +80,10 @@ SHARED_FIXTURES = {
             "TestCollectedEpisodes",
         )
     ),
-    # One local Ray instance (the local_ray fixture below): its start and stop cost
-    # 5-6 s of CPU each.
+    # One local Ray instance (pytest_runtest_setup below): its start and stop cost
+    # 5-6 s of CPU each. The docs' page on composing trains on Ray as a user would.
     "ray": (
+        "tests/test_docs.py::test_page_code_runs[composing.md]",
         "tests/test_benchmarks.py::test_distributed",
         "tests/test_loop.py::TestTrain::test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost[True]",
         "tests/test_loop.py::TestTrain::test_ray_workers_that_cannot_join_the_weight_sync_say_why",
@@ -127,16 +128,15 @@ def pytest_xdist_make_scheduler(config, log):
     return SharedFixtureScheduling(config, log)
 
 
-@pytest.fixture
-def local_ray():
-    """A local Ray instance of 2 CPUs, as a training with --ray starts it (its actors
-    import what this process imports), shared by the tests of SHARED_FIXTURES["ray"] and
-    stopped after the last of them (pytest_runtest_teardown)."""
-    ray = pytest.importorskip("ray")
-    from rl_pg.training.collection import _start_ray
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    """The tests of SHARED_FIXTURES["ray"] run on one local Ray instance of 2 CPUs,
+    started as a training with --ray starts it (its actors import what this process
+    imports) before the first of them and stopped after the last."""
+    if item.nodeid.startswith(SHARED_FIXTURES["ray"]) and importlib.util.find_spec("ray"):
+        from rl_pg.training.collection import _start_ray
 
-    _start_ray(2)
-    return ray
+        _start_ray(2)  # nothing if it runs
 
 
 def pytest_runtest_teardown(item, nextitem):
@@ -146,6 +146,14 @@ def pytest_runtest_teardown(item, nextitem):
         ray = sys.modules.get("ray")
         if ray is not None and ray.is_initialized():
             ray.shutdown()
+
+
+@pytest.fixture
+def local_ray():
+    """Ray, initialised (for the tests of SHARED_FIXTURES["ray"])."""
+    ray = pytest.importorskip("ray")
+    assert ray.is_initialized(), "a test that takes local_ray belongs to SHARED_FIXTURES['ray']"
+    return ray
 
 
 def pytest_collection_finish(session):
