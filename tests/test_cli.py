@@ -161,6 +161,28 @@ def test_a_mistake_in_a_subprocess_is_one_line_without_traceback(tmp_path):
     )
 
 
+def test_a_run_that_cannot_start_here_is_refused_in_one_line(tmp_path, capsys):
+    (tmp_path / "notes").write_text("mine")
+    quick = ["--total-updates", "1", "--no-progress"]
+    status, _, err = in_process(
+        "train", "gridworld", "--run-dir", str(tmp_path / "notes"), *quick, capsys=capsys
+    )
+    assert status == 1 and err == (
+        f"rl-pg: The run directory {tmp_path / 'notes'} is a file; choose another --run-dir.\n"
+    )
+    status, _, err = in_process(
+        "train", "gridworld", "--run-dir", str(tmp_path / "notes" / "run"), *quick, capsys=capsys
+    )
+    assert status == 1 and "as a run directory (Not a directory)" in err
+    assert err.count("\n") == 1 and (tmp_path / "notes").read_text() == "mine"
+    if not torch.cuda.is_available():  # a CPU build or machine
+        run = tmp_path / "cuda"
+        args = ["--run-dir", str(run), "--device", "cuda", *quick]
+        status, _, err = in_process("train", "gridworld", *args, capsys=capsys)
+        assert status == 1 and err.startswith("rl-pg: device (--device) is 'cuda' but torch")
+        assert err.count("\n") == 1 and not run.exists()
+
+
 @pytest.mark.parametrize("args", [[], ["frobnicate"], ["train"], ["resume", "--total-frames"]])
 def test_usage_for_anything_else(args, capsys):
     status, _, err = in_process(*args, capsys=capsys)

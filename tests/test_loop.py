@@ -42,6 +42,7 @@ from rl_pg.recipes import load
 from rl_pg.training import (
     Callback,
     RunDirBusy,
+    RunDirUnusable,
     TrainConfig,
     TrainingDiverged,
     load_models,
@@ -1444,7 +1445,7 @@ class TestNothingIsLost:
 class TestWhatTrainIsGiven:
     def test_run_dir_that_is_a_file(self, tmp_path):
         (tmp_path / "run").write_text("notes")
-        with pytest.raises(NotADirectoryError, match="is a file; choose another --run-dir"):
+        with pytest.raises(RunDirUnusable, match="is a file; choose another --run-dir"):
             _train(_cfg(tmp_path))
         assert (tmp_path / "run").read_text() == "notes"
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
+import re
 import sys
 
 import numpy as np
@@ -522,6 +523,20 @@ def test_the_generic_recipe_takes_any_gymnasium_id_and_its_threshold(tmp_path):
     assert gym.config(env_id="Acrobot-v1").threshold == -100.0
     assert gym.config(env_id="Acrobot-v1", threshold=-150.0).threshold == -150.0
     assert gym.config(env_id="Pendulum-v1").threshold is None  # the registry has none
+
+
+@pytest.mark.parametrize(
+    ("env_id", "observes"),
+    [
+        ("FrozenLake-v1", "observes Discrete(16)"),  # a cell's number
+        ("Blackjack-v1", "observes Tuple(Discrete(32)"),  # three numbers
+        ("CarRacing-v3", "observes Box(0, 255, (96, 96, 3), uint8)"),  # images
+    ],
+)
+def test_the_generic_recipe_refuses_observations_its_networks_cannot_read(env_id, observes):
+    # before anything is built, in one line that says what it reads and where to go
+    with pytest.raises(ValueError, match=rf"--env-id {env_id} {re.escape(observes)}.*flat vector"):
+        gym.config(env_id=env_id)
 
 
 def test_the_generic_recipe_learns_an_environment_it_was_not_written_for(tmp_path):

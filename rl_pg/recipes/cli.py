@@ -39,10 +39,10 @@ from rl_pg._process import frozen_heap
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.recipes import NAMES, load, recipe_of
 from rl_pg.training.checkpoints import LATEST, read_run, resolve_latest
-from rl_pg.training.config import TrainConfig
+from rl_pg.training.config import DeviceUnavailable, TrainConfig
 from rl_pg.training.console import format_comparison, format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
-from rl_pg.training.run_dir import RunDirBusy
+from rl_pg.training.run_dir import RunDirBusy, RunDirUnusable
 
 __all__ = ["field_docs", "first_sentence", "main", "parse_config", "run_checkout_script"]
 
@@ -365,12 +365,13 @@ def run_checkout_script(path: str) -> None:
 
 @contextmanager
 def _user_errors() -> Iterator[None]:
-    """Errors in what the user asked for (a busy or foreign run directory, a missing
-    package, a tracking server that does not answer): the message alone, and exit
-    status 1."""
+    """Errors in what the user asked for (a busy, foreign or unusable run directory, a
+    missing package or device, a tracking server that does not answer): the message
+    alone, and exit status 1."""
     try:
         yield
-    except (CheckpointError, RunDirBusy, ImportError, ConnectionError) as err:
+    except (CheckpointError, RunDirBusy, RunDirUnusable, DeviceUnavailable, ImportError,
+            ConnectionError) as err:  # fmt: skip
         sys.exit(f"rl-pg: {err}")
 
 

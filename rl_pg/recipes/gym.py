@@ -65,6 +65,7 @@ class Config(
             )
         if self.threshold is None:  # the registry's own target, when it has one
             self.threshold = _registered_threshold(self.env_id)
+        _check_spaces(self.env_id)
         super().__post_init__()
 
 
@@ -80,6 +81,33 @@ def _registered_threshold(env_id: str) -> float | None:
         ) from None
     threshold = spec.reward_threshold
     return None if threshold is None else float(threshold)
+
+
+def _check_spaces(env_id: str) -> None:
+    """Refuses, in one line, an id whose observations are not a flat vector or whose
+    actions are neither discrete nor a box: this recipe's models could not read them."""
+    import gymnasium
+    from gymnasium.spaces import Box, Discrete
+
+    try:
+        env = gymnasium.make(env_id)
+    except gymnasium.error.Error as err:  # e.g. a package it needs is not installed
+        raise ValueError(f"--env-id {env_id}: gymnasium cannot make it: {err}") from None
+    try:
+        observations, actions = env.observation_space, env.action_space
+    finally:
+        env.close()
+    if not (isinstance(observations, Box) and len(observations.shape) <= 1):
+        raise ValueError(
+            f"--env-id {env_id} observes {observations}, and this recipe's networks read a "
+            f"flat vector of numbers (a Box of one dimension). Images, dictionaries and "
+            f"discrete observations need models of their own (docs: Composing modules)."
+        )
+    if not isinstance(actions, (Discrete, Box)):
+        raise ValueError(
+            f"--env-id {env_id} acts in {actions}, and this recipe's policies choose one "
+            f"of n actions (Discrete) or a vector in bounds (Box)."
+        )
 
 
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:

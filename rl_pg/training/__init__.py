@@ -37,7 +37,7 @@ from rl_pg.training.loop import train
 from rl_pg.training.metrics import scalar_log_rows
 from rl_pg.training.optimisation import TrainingDiverged
 from rl_pg.training.recipe import Recipe
-from rl_pg.training.run_dir import RunDirBusy, RunDirectory
+from rl_pg.training.run_dir import RunDirBusy, RunDirectory, RunDirUnusable
 
 __all__ = [
     "Callback",
@@ -47,6 +47,7 @@ __all__ = [
     "Range",
     "Recipe",
     "RunDirBusy",
+    "RunDirUnusable",
     "RunDirectory",
     "TrainConfig",
     "TrainingDiverged",

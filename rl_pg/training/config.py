@@ -25,7 +25,15 @@ import torch
 
 from rl_pg._checks import Range, check_fields
 
-__all__ = ["RESUMABLE_FIELDS", "Count", "NonNegative", "Positive", "Range", "TrainConfig"]
+__all__ = [
+    "RESUMABLE_FIELDS",
+    "Count",
+    "DeviceUnavailable",
+    "NonNegative",
+    "Positive",
+    "Range",
+    "TrainConfig",
+]
 
 Count = Annotated[int, Range(low=1)]
 """An integer >= 1 (a config field type: the bound is checked when a config is made)."""
@@ -56,6 +64,11 @@ RESUMABLE_FIELDS = frozenset(
     }
 )
 """Config fields that may change when a run is resumed; any other change is refused."""
+
+
+class DeviceUnavailable(ValueError):
+    """The device asked for is not one torch can use here (``--device cuda`` on a build
+    or machine without CUDA)."""
 
 
 @dataclass
@@ -419,8 +432,8 @@ class TrainConfig:
         """``device`` as a ``torch.device`` ('auto' resolved).
 
         Raises:
-            ValueError: ``device='cuda'`` where torch sees no CUDA device, or a CUDA
-                device with worker processes.
+            DeviceUnavailable: ``device='cuda'`` where torch sees no CUDA device.
+            ValueError: a CUDA device with worker processes.
         """
         device = self.device
         if device == "auto":
@@ -431,7 +444,7 @@ class TrainConfig:
                 f"--workers / --ray, or use --device cpu with them."
             )
         if device == "cuda" and not torch.cuda.is_available():
-            raise ValueError(
+            raise DeviceUnavailable(
                 "device (--device) is 'cuda' but torch sees no CUDA device (torch "
                 f"{torch.__version__}, built for CUDA {torch.version.cuda}); use --device cpu, "
                 "or install a CUDA build of torch (README: Bring your own torch)."

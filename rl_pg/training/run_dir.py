@@ -35,6 +35,7 @@ __all__ = [
     "LATEST",
     "LOCK_FILE",
     "RunDirBusy",
+    "RunDirUnusable",
     "RunDirectory",
     "changed_settings",
     "claim_output",
@@ -62,6 +63,11 @@ class RunDirBusy(RuntimeError):
     """Another live process is using the run directory."""
 
 
+class RunDirUnusable(OSError):
+    """The run directory cannot be made or locked: a file, not writable, or its lock a
+    symbolic link."""
+
+
 class RunDirectory:
     """Creates (if needed) and locks a run directory; a context manager.
 
@@ -78,8 +84,8 @@ class RunDirectory:
     Raises:
         RunDirBusy: on entry, when another process holds the directory (the message
             gives its process id).
-        NotADirectoryError: when ``path`` is a file.
-        OSError: when the directory cannot be created or written.
+        RunDirUnusable: when ``path`` is a file, or cannot be made or locked (not
+            writable, its lock a symbolic link).
 
     Examples:
         >>> import tempfile
@@ -107,7 +113,7 @@ class RunDirectory:
 
     def __enter__(self) -> RunDirectory:
         if self.path.exists() and not self.path.is_dir():
-            raise NotADirectoryError(
+            raise RunDirUnusable(
                 f"The run directory {self.path} is a file; choose another --run-dir."
             )
         self._created = not self.path.exists()
@@ -115,7 +121,7 @@ class RunDirectory:
             self.path.mkdir(parents=True, exist_ok=True)
             fd = _open_lock(self.path / LOCK_FILE)
         except OSError as err:
-            raise OSError(
+            raise RunDirUnusable(
                 f"Cannot use {self.path} as a run directory ({err.strerror or err}); choose a "
                 f"writable --run-dir."
             ) from err
