@@ -171,6 +171,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise CheckpointError(f"No checkpoint at {path}.")
     data = path.read_bytes()
+    if not data:
+        _raise_corrupted(path, "the file is empty")
     if not data.startswith(_MAGIC):
         return _load_unverified(path)
     if len(data) < _HEADER:
@@ -238,7 +240,7 @@ def _unpickle(path: Path, source) -> dict[str, Any]:
             f"the agent again with rl_pg, or ask its author for one."
         ) from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, ValueError) as err:
-        _raise_corrupted(path, f"it cannot be read ({err})", err)
+        _raise_corrupted(path, f"it cannot be read ({_first_line(err) or type(err).__name__})", err)
     if not isinstance(state, dict) or "format" not in state:
         raise CheckpointError(f"{path} is not an rl_pg checkpoint.")
     return state

@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from rl_pg.checkpoint import CheckpointError
 from rl_pg.envs.gym import DRIVING_ACTIONS
 from rl_pg.frame_difference import FrameDifference
 from rl_pg.recipes import Agent
@@ -87,6 +88,33 @@ def test_loading_nothing_says_what_to_give(tmp_path):
         Agent.load(tmp_path / "missing")
     with pytest.raises(ValueError, match="No agent is shipped"):
         Agent.load("nothing", pretrained=True)
+    for source in (None, 3, ""):
+        with pytest.raises(TypeError, match="An agent's source is a run directory"):
+            Agent.load(source)
+    with pytest.raises(CheckpointError, match=r"holds no best.pt: not a run directory"):
+        Agent.load(tmp_path)
+    (tmp_path / "empty.pt").touch()
+    with pytest.raises(CheckpointError, match=r"empty.pt is corrupted: the file is empty"):
+        Agent.load(tmp_path / "empty.pt")
+
+
+def test_a_recipes_name_without_pretrained_points_to_its_shipped_agent(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # where no folder is called cartpole
+    with pytest.raises(CheckpointError, match=r"pretrained=True\)"):
+        Agent.load("cartpole")
+
+
+def test_what_an_agent_cannot_act_on_is_named(cartpole):
+    observation, info = gym.make("CartPole-v1").reset(seed=0)
+    with pytest.raises(ValueError, match=r"an \(observation, info\) pair.*obs, info = env"):
+        cartpole.act((observation, info))
+    for bad in (np.nan, np.inf):  # a meaningless action is not returned
+        with pytest.raises(ValueError, match="holds 1 NaN or infinite value"):
+            cartpole.act(np.array([0.0, bad, 0.0, 0.0], dtype=np.float32))
+    with pytest.raises(TypeError, match="sample must be True or False, got 'yes'"):
+        cartpole.act(observation, sample="yes")
+    with pytest.raises(ValueError, match=r"reads numbers under 'observation', got str \(can't"):
+        cartpole.act("left")
 
 
 @pytest.mark.parametrize(

@@ -149,6 +149,8 @@ class Agent:
             ValueError: the observation does not fit the agent's environment (the
                 message names the expected entries and shapes).
         """
+        if not isinstance(sample, (bool, np.bool_)):
+            raise TypeError(f"sample must be True or False, got {sample!r}.")
         exploration = ExplorationType.RANDOM if sample else ExplorationType.DETERMINISTIC
         device = next(self.policy.parameters()).device
         with set_exploration_type(exploration), torch.no_grad():
@@ -175,6 +177,15 @@ class Agent:
     def _observe(self, observation: Any) -> TensorDictBase:
         """``observation`` as a TensorDict of the base environment's entries."""
         specs = self._base.observation_spec
+        if (
+            isinstance(observation, tuple)
+            and len(observation) == 2
+            and isinstance(observation[1], dict)
+        ):
+            raise ValueError(
+                f"The {self.recipe.name} agent got an (observation, info) pair, what "
+                f"env.reset() returns: give it the observation (obs, info = env.reset())."
+            )
         if isinstance(observation, dict):
             values = dict(observation)
         elif len(self._reads) == 1:
@@ -197,8 +208,15 @@ class Agent:
             except (TypeError, ValueError) as err:
                 raise ValueError(
                     f"The {self.recipe.name} agent reads numbers under {key!r}, got "
-                    f"{_describe(values[key])} ({err})."
+                    f"{_describe(values[key])} ({str(err).split('. ')[0].rstrip('.')})."
                 ) from err
+            if value.is_floating_point() and not torch.isfinite(value).all():
+                bad = int((~torch.isfinite(value)).sum())
+                raise ValueError(
+                    f"The {self.recipe.name} agent's observation under {key!r} holds {bad} "
+                    f"NaN or infinite value(s): its action would be meaningless. Check "
+                    f"what the environment returned."
+                )
             shape = tuple(spec.shape)[
                 self._base.batch_dims :
             ]  # one copy's (the env may be batched)

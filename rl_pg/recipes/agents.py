@@ -23,6 +23,7 @@ cache (``HF_HUB_OFFLINE=1`` reads only that cache, as on a machine without a net
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -121,12 +122,24 @@ def agent_path(run: str | Path, *, pretrained: bool = False, hub: bool = False) 
     """What ``rl-pg play RUN`` and ``rl-pg evaluate RUN`` load: the run directory or
     file itself, the agent shipped for the recipe RUN names (``pretrained``), or the
     agent of the Hub repository RUN names (``hub``)."""
+    if not isinstance(run, (str, os.PathLike)) or not str(run):
+        raise TypeError(
+            f"An agent's source is a run directory, a checkpoint or agent file (a path), "
+            f"a recipe's name with --pretrained, or a Hub repository with --hub; got "
+            f"{run!r} ({type(run).__name__})."
+        )
     if pretrained and hub:
         raise ValueError("--pretrained and --hub name two sources of an agent: use one.")
     if pretrained:
         return shipped_agent(str(run))
     if hub:
         return hub_agent(str(run))
+    if not Path(run).exists() and (SHIPPED / f"{run}.pt").is_file():
+        raise CheckpointError(
+            f"{run} is no file or folder here, but a recipe's name: the agent rl-pg ships "
+            f"for it plays with --pretrained (rl-pg play {run} --pretrained; in Python, "
+            f"Agent.load({str(run)!r}, pretrained=True))."
+        )
     return resolve_latest(run)  # runs/latest: the newest run
 
 

@@ -211,7 +211,7 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
         >>> read_run(tempfile.mkdtemp())  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        rl_pg.checkpoint.CheckpointError: No checkpoint at .../checkpoint.pt.
+        rl_pg.checkpoint.CheckpointError: ... holds no checkpoint.pt: not a run directory, ...
         >>> read_run("runs/nothing-here")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
@@ -225,6 +225,11 @@ def read_run(run: str | Path, *, which: str = "last") -> dict[str, Any]:
         raise CheckpointError(f"{path} does not exist: give a run directory or a checkpoint file.")
     if not path.is_dir():
         return _checked(load_checkpoint(path), path)
+    if not (path / files[which]).is_file() and not (path / CHECKPOINT).is_file():
+        raise CheckpointError(
+            f"{path} holds no {files[which]}: not a run directory, or its run stopped "
+            f"before its first checkpoint; give a run directory or a checkpoint file."
+        )
     if which == "best" and not (path / BEST).is_file() and (path / CHECKPOINT).is_file():
         raise CheckpointError(
             f"{path} has no {BEST} (the run never evaluated, or predates best "
