@@ -394,8 +394,12 @@ class TrainConfig:
         """This config from a run's stored one (``config.json``, a checkpoint's
         ``"config"``) with ``changes``; fields this class lacks are ignored, fields the
         stored config lacks take the values the run had (``as_run``)."""
-        names = {field.name for field in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in {**cls.as_run(stored), **changes}.items() if k in names})
+        fields = {field.name: field for field in dataclasses.fields(cls)}
+        values = {k: v for k, v in {**cls.as_run(stored), **changes}.items() if k in fields}
+        for name, value in values.items():  # JSON gave back a list for a tuple
+            if isinstance(value, list) and isinstance(fields[name].default, tuple):
+                values[name] = tuple(value)
+        return cls(**values)
 
     @classmethod
     def inert(cls, name: str, config: dict[str, Any]) -> bool:
