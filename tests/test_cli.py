@@ -969,22 +969,34 @@ def test_commands_write_only_names_they_own(tmp_path, capsys, monkeypatch):
         assert status != 0 and "never replaces a run's own files" in err, (args, err)
     assert {p.name: p.read_bytes() for p in Path("run").iterdir() if p.is_file()} == run_files
 
-    Path("notes.txt").write_text("mine")
+    for name in ("notes.json", "notes.png", "notes.pt"):  # the user's files, by their names
+        Path(name).write_text("mine")
     for args in (
-        ("report", "run", "--store", "notes.txt"),
-        ("report", "run", "--plot", "notes.txt"),
-        ("export", "run", "--out", "notes.txt"),
+        ("report", "run", "--store", "notes.json"),
+        ("report", "run", "--plot", "notes.png"),
+        ("export", "run", "--out", "notes.pt"),
     ):
         status, _, err = in_process(*args, capsys=capsys)
         assert status != 0 and "pass --replace to overwrite it" in err, (args, err)
-    assert Path("notes.txt").read_text() == "mine"
+    assert {Path(name).read_text() for name in ("notes.json", "notes.png", "notes.pt")} == {"mine"}
+    # A name that hides what is written (a PNG as notes.txt; an agent file "folder" where
+    # a folder was meant): refused, with the name it would take.
+    for args, expected in (
+        (("report", "run", "--store", "table.txt"), "its name ends in .json, e.g. table.json"),
+        (("report", "run", "--plot", "curves.pdf"), "its name ends in .png, e.g. curves.png"),
+        (("export", "run", "--out", "folder/"), "its name ends in .pt, e.g. folder.pt"),
+        (("report", "--refresh", "nothing.md"), "--refresh nothing.md: no such file"),
+    ):
+        status, _, err = in_process(*args, capsys=capsys)
+        assert status == 1 and expected in err and err.count("\n") == 1, (args, err)
+        assert not Path(args[-1]).exists()
 
     for twice in ("first", "second"):  # their own output, again: replaced
         assert in_process("report", "run", "--store", "s.json", "--plot", "p.png",
                           capsys=capsys)[0] == 0, twice  # fmt: skip
         assert in_process("export", "run", "--out", "agent.pt", capsys=capsys)[0] == 0, twice
-    assert in_process("report", "run", "--store", "notes.txt", "--replace", capsys=capsys)[0] == 0
-    assert json.loads(Path("notes.txt").read_text())["runs"]
+    assert in_process("report", "run", "--store", "notes.json", "--replace", capsys=capsys)[0] == 0
+    assert json.loads(Path("notes.json").read_text())["runs"]
 
 
 def test_a_stored_figure_never_replaces_a_file_that_is_not_a_figure(tmp_path):

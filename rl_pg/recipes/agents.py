@@ -248,7 +248,8 @@ def export_agent(
         CheckpointError: ``run`` has no such checkpoint, or it is damaged.
         ValueError: ``out`` is a directory, or a file it may not replace.
     """
-    claim_output(out, flag="--out", writes="an agent file", ours=is_agent_file, replace=replace)
+    claim_output(out, flag="--out", writes="an agent file", ours=is_agent_file, suffix=".pt",
+                 replace=replace)  # fmt: skip
     run = resolve_latest(run)  # runs/latest: the newest run, recorded by its own name
     saved = read_run(run, which=which)
     weights = {

@@ -519,9 +519,8 @@ def refresh(page: Path) -> bool:
         write_atomically(page, refreshed)
     for match in STORED_FIGURE.finditer(refreshed):
         figure = page.parent / match["figure"]
-        claim_output(
-            figure, flag=f"the figure marker of {page}", writes="a figure (PNG)", ours=is_png
-        )
+        claim_output(figure, flag=f"the figure marker of {page}", writes="a figure (PNG)",
+                     ours=is_png, suffix=".png")  # fmt: skip
         before = figure.read_bytes() if figure.is_file() else None
         draw_stored(match, page.parent)
         changed |= figure.read_bytes() != before
@@ -1126,13 +1125,14 @@ def main(args: Args) -> str:
     if args.profile is not None and args.stored is None:
         raise ValueError("--profile draws stored files: name them with --stored.")
     outputs = (
-        ("--store", args.store, "a table store (JSON)", is_store),
-        ("--plot", args.plot, "a figure (PNG)", is_png),
-        ("--profile", args.profile, "a figure (PNG)", is_png),
+        ("--store", args.store, "a table store (JSON)", is_store, ".json"),
+        ("--plot", args.plot, "a figure (PNG)", is_png, ".png"),
+        ("--profile", args.profile, "a figure (PNG)", is_png, ".png"),
     )
-    for flag, path, writes, ours in outputs:  # before any work: refused, it costs nothing
+    for flag, path, writes, ours, suffix in outputs:  # before any work: refused, it costs nothing
         if path is not None:
-            claim_output(path, flag=flag, writes=writes, ours=ours, replace=args.replace)
+            claim_output(path, flag=flag, writes=writes, ours=ours, suffix=suffix,
+                         replace=args.replace)  # fmt: skip
     sources = sum((bool(args.runs), args.stored is not None, args.refresh is not None))
     if sources != 1:
         raise ValueError(
@@ -1140,6 +1140,12 @@ def main(args: Args) -> str:
             "(one of the three)."
         )
     if args.refresh is not None:
+        for page in args.refresh:
+            if not page.is_file():
+                raise ValueError(
+                    f"--refresh {page}: no such file; it takes pages (Markdown) whose "
+                    f"stored tables, values and figures it writes again from their files."
+                )
         changed = [str(page) for page in args.refresh if refresh(page)]
         message = f"refreshed: {', '.join(changed)}" if changed else "every stored table is current"
         print(message)

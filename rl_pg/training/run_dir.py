@@ -285,6 +285,7 @@ def claim_output(
     flag: str,
     writes: str,
     ours: Callable[[Path], bool],
+    suffix: str,
     replace: bool = False,
 ) -> Path:
     """Checks, before a command does its work, that it may write its output ``path``.
@@ -299,10 +300,14 @@ def claim_output(
         flag: the option that named it, for the messages (``"--store"``).
         writes: what the command writes there (``"a table store (JSON)"``).
         ours: whether an existing file is one this command writes.
+        suffix: how the name of what it writes ends (``".json"``): another name would
+            hide what the file is (a PNG named ``plot.txt``, an agent file ``newdir``
+            where a folder was meant).
         replace: the user's leave to replace a file that is not ``ours``.
 
     Raises:
-        ValueError: the path is a directory, or a file the command may not replace.
+        ValueError: the path is a directory, a name that does not end in ``suffix``, or
+            a file the command may not replace.
     """
     path = Path(path)
     if path.is_dir():
@@ -311,20 +316,24 @@ def claim_output(
             f"{flag} {path} is a directory: name the file to write there ({writes}), e.g. "
             f"{path / example}."
         )
-    if not (path.exists() or path.is_symlink()):
-        return path
-    run = run_directory_of(path)
-    own = run is not None and path.absolute().relative_to(run).parts[0] in RUN_FILES
-    if own or (run is not None and (path.is_symlink() or not ours(path))):
+    if path.exists() or path.is_symlink():
+        run = run_directory_of(path)
+        own = run is not None and path.absolute().relative_to(run).parts[0] in RUN_FILES
+        if own or (run is not None and (path.is_symlink() or not ours(path))):
+            raise ValueError(
+                f"{flag} {path} is a file of the run {run}, not {writes}: rl_pg never "
+                f"replaces a run's own files. Name a file outside the run, or a new name."
+            )
+        if (path.is_symlink() or not ours(path)) and not replace:
+            what = "a symbolic link" if path.is_symlink() else "a file this command did not write"
+            raise ValueError(
+                f"{flag} {path} exists and is {what}; it was left as it is. Name another "
+                f"file for {writes}, or pass --replace to overwrite it."
+            )
+    if path.suffix.lower() != suffix:
+        named = path.with_suffix(suffix) if path.suffix else path.parent / (path.name + suffix)
         raise ValueError(
-            f"{flag} {path} is a file of the run {run}, not {writes}: rl_pg never replaces "
-            f"a run's own files. Name a file outside the run, or a new name."
-        )
-    if (path.is_symlink() or not ours(path)) and not replace:
-        what = "a symbolic link" if path.is_symlink() else "a file this command did not write"
-        raise ValueError(
-            f"{flag} {path} exists and is {what}; it was left as it is. Name another "
-            f"file for {writes}, or pass --replace to overwrite it."
+            f"{flag} {path}: it writes {writes}, so its name ends in {suffix}, e.g. {named}."
         )
     return path
 
