@@ -1,8 +1,9 @@
 """The documentation site in a real browser: every page of a fresh build loads in
 headless Chromium with no console error, no failed request and no broken image, every
 link inside the site reaches a page (and its anchor), no maths is left as LaTeX, no
-inline formula stands outside its paragraph, no page marker shows as text, and every
-table or code block wider than the text column scrolls with a drawn scrollbar.
+inline formula or value marker stands outside its paragraph, no list item is folded
+into the paragraph above it, no page marker shows as text, and every table or code
+block wider than the text column scrolls with a drawn scrollbar.
 
 Chromium is Debian's package (``apt-get install chromium``), driven by playwright through
 ``executable_path``. Without it the test is skipped, except under CI, where .ci/run
@@ -44,14 +45,20 @@ RAW_MARKER = re.compile(r"<!--\s*(?:/?value|rl-pg report|end of (?:report|table)
 HIDDEN_OVERFLOW = r"""(() => {
   const article = document.querySelector('article'); if (!article) return [];
   const problems = [];
-  article.querySelectorAll('table, pre').forEach(element => {
+  article.querySelectorAll('table, pre, pre > code').forEach(element => {
     const wide = element.scrollWidth > article.clientWidth + 1;
     if (!wide && element.scrollWidth <= element.clientWidth + 1) return;
     let box = element, scrolls = false;
     while (box && box !== article.parentElement) {
       const style = getComputedStyle(box);
       if (['auto', 'scroll'].includes(style.overflowX) && box.scrollWidth > box.clientWidth) {
-        scrolls = true;  // (headless Chromium draws no scrollbar to measure: the CSS does)
+        // (headless Chromium draws no scrollbar to measure: the CSS does) Material's
+        // own bar is a faint thin line until hovered; the site's CSS must draw one
+        // whose thumb and track show (an 'auto' colour leaves Material's).
+        const alpha = c => { const v = c.match(/[\d.]+/g).map(Number); return v[3] ?? 1; };
+        const [thumb, track] = style.scrollbarColor.match(/rgba?\([^)]*\)/g) || [];
+        scrolls = style.scrollbarWidth === 'auto' && thumb !== undefined
+          && track !== undefined && alpha(thumb) >= 0.5 && alpha(track) > 0;
         break;
       }
       if (style.overflowX === 'hidden' || style.overflowX === 'clip') break;
@@ -59,7 +66,7 @@ HIDDEN_OVERFLOW = r"""(() => {
     }
     const what = element.textContent.trim().slice(0, 50);
     if (!scrolls) problems.push(`a ${element.tagName.toLowerCase()} ${element.scrollWidth}px `
-      + `wide, its column ${article.clientWidth}px, is cut off: ${what}`);
+      + `wide, its column ${article.clientWidth}px, is cut off or scrolls unseen: ${what}`);
   });
   return problems;
 })()"""
@@ -68,6 +75,27 @@ STRAY_TAGS = r"""(() => {
   const article = document.querySelector('article'); if (!article) return [];
   return Array.from(article.querySelectorAll('s, strike, del, u, ins, blink, font'))
     .map(e => `<${e.tagName.toLowerCase()}> around "${e.textContent.trim().slice(0, 40)}"`);
+})()"""
+
+# Where Markdown read the source other than it was written: a value marker that starts
+# a line became a block of its own between two halves of its sentence, and a list item
+# right after an item's second paragraph folded into it as text ("... budget. - Conclusion:").
+TORN_PROSE = r"""(() => {
+  const article = document.querySelector('article'); if (!article) return [];
+  const problems = [];
+  const prose = 'p, li, td, th, h1, h2, h3, h4, h5, h6, dd, dt, figcaption';
+  const walker = document.createTreeWalker(article, NodeFilter.SHOW_COMMENT);
+  for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+    const text = node.textContent.trim();
+    if (/^value\b/.test(text) && !node.parentElement.closest(prose))
+      problems.push(`a value marker between blocks splits its sentence: ${text.slice(0, 50)}`);
+  }
+  article.querySelectorAll('p').forEach(p => {
+    const item = p.textContent.split('\n').slice(1).find(l => /^\s*([-*+]|\d+\.)\s+\S/.test(l));
+    if (item !== undefined)
+      problems.push(`a list item folded into the paragraph above it: ${item.trim().slice(0, 50)}`);
+  });
+  return problems;
 })()"""
 
 if CHROMIUM is None and os.environ.get("CI"):
@@ -177,6 +205,7 @@ def test_every_page_loads_cleanly_in_chromium(site, tmp_path):
             # rest of the page struck through): elements no page's source writes
             stray = page.evaluate(STRAY_TAGS)
             problems += [f"{name}: prose read as an HTML tag: {what}" for what in stray]
+            problems += [f"{name}: {what}" for what in page.evaluate(TORN_PROSE)]
             hrefs = page.evaluate(
                 "Array.from(document.querySelectorAll('article a[href]')).map(a => a.href)"
             )
