@@ -705,19 +705,39 @@ def test_a_setting_names_a_resolved_default_only_where_a_run_left_it():
     ]
 
 
+def _page_lines():
+    """(where, line, line before) of every line of the pages outside code fences."""
+    pages = [REPO / "README.md", REPO / "RESULTS.md", REPO / "benchmarks" / "README.md",
+             *sorted((REPO / "docs").rglob("*.md"))]  # fmt: skip
+    for page in pages:
+        fenced, before = False, ""
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            fenced ^= line.lstrip().startswith("```")
+            if not fenced:
+                yield f"{page.relative_to(REPO)}:{number}", line, before
+            before = line
+
+
 def test_no_value_marker_opens_a_line_of_a_page():
     # Markdown opens an HTML block at a comment that starts a line: the sentence around
     # the value would be cut into paragraphs (and the comment shown raw on GitHub).
-    pages = [REPO / "README.md", REPO / "RESULTS.md", REPO / "benchmarks" / "README.md",
-             *sorted((REPO / "docs").rglob("*.md"))]  # fmt: skip
-    opening = []
-    for page in pages:
-        fenced = False
-        for number, line in enumerate(page.read_text().splitlines(), 1):
-            fenced ^= line.lstrip().startswith("```")
-            if not fenced and line.lstrip().startswith("<!-- value"):
-                opening.append(f"{page.relative_to(REPO)}:{number}")
+    opening = [where for where, line, _ in _page_lines() if line.lstrip().startswith("<!-- value")]
     assert not opening, f"value markers that open a line (join them to words): {opening}"
+
+
+def test_no_number_opens_a_line_inside_a_sentence():
+    # "... the former defaults held\n  5. Does ..." is an ordered list item to Markdown:
+    # the sentence loses its number and breaks in two.
+    item = re.compile(r"^\s*(\d+[.)]|[-*+]) ")
+    opening = [
+        where
+        for where, line, before in _page_lines()
+        if re.match(r"^\s*\d+[.)] ", line)
+        and before.strip()
+        and not item.match(before)
+        and not before.lstrip().startswith(("|", "<", "#"))
+    ]
+    assert not opening, f"a number that opens a line in a sentence (join it): {opening}"
 
 
 def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
