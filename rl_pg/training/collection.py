@@ -54,8 +54,6 @@ STALL_LIMIT_S = 300.0
 """Seconds without a batch after which the workers count as hung: this, or 20 times the
 slowest batch so far if longer. Hung workers are ended and replaced like lost ones."""
 
-RAY_ACTORS = -1  # where the reason Ray actors were ended is kept, among pids
-
 _WHERE_WORKERS_LOG = {
     True: "A Ray worker's own output, its error included, is in the Ray session's logs "
     "on its node (/tmp/ray/session_latest/logs/worker-*.err by default).",
@@ -143,8 +141,8 @@ class Collection:
         self._kwargs = kwargs
         self._replaced = 0  # workers lost since the last batch
         self._slowest = 0.0  # seconds of the slowest batch so far (the stall limit's base)
-        # Workers ended as stalled: why, by pid (Ray actors: under RAY_ACTORS)
-        self._ended: dict[int, str] = {}
+        self._ended: dict[int, str] = {}  # pids of workers ended as stalled: why
+        self._actors_ended: str | None = None  # why the Ray actors were, if they were
         self.collector = self._remote_collector()
         self._batches = self._remote_batches()
 
@@ -239,7 +237,7 @@ class Collection:
             # A Ray actor's process is its node's to end: Ray kills it on request, and
             # the collector waiting on it sees the actor die. Which one hangs cannot be
             # asked of a hung actor: all are ended, as worker processes are.
-            self._ended[RAY_ACTORS] = f"sent no batch in {limit:.0f} s, so rl-pg ended it"
+            self._actors_ended = f"sent no batch in {limit:.0f} s, so rl-pg ended it"
             for actor in self._workers.remote_collectors:
                 with contextlib.suppress(Exception):
                     ray.kill(actor, no_restart=True)
@@ -308,7 +306,8 @@ class Collection:
             import ray
 
             if isinstance(err, ray.exceptions.RayActorError):
-                return _actor_lost(err, self._ended.pop(RAY_ACTORS, None))
+                ended, self._actors_ended = self._actors_ended, None
+                return _actor_lost(err, ended)
             for actor in self._workers.remote_collectors:  # e.g. a failed weight transfer
                 try:
                     ray.get(actor.__ray_ready__.remote(), timeout=60)

@@ -311,7 +311,7 @@ def claim_output(
     """
     path = Path(path)
     if path.is_dir():
-        example = {"--out": "agent.pt", "--store": "table.json"}.get(flag, "figure.png")
+        example = {".pt": "agent", ".json": "table"}.get(suffix, "figure") + suffix
         raise ValueError(
             f"{flag} {path} is a directory: name the file to write there ({writes}), e.g. "
             f"{path / example}."
@@ -331,9 +331,9 @@ def claim_output(
                 f"file for {writes}, or pass --replace to overwrite it."
             )
     if path.suffix.lower() != suffix:
-        named = path.with_suffix(suffix) if path.suffix else path.parent / (path.name + suffix)
         raise ValueError(
-            f"{flag} {path}: it writes {writes}, so its name ends in {suffix}, e.g. {named}."
+            f"{flag} {path}: it writes {writes}, so its name ends in {suffix}, e.g. "
+            f"{path.with_suffix(suffix)}."
         )
     return path
 
