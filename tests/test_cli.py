@@ -77,6 +77,65 @@ def test_train_resume_and_play_a_run_by_its_directory_alone(tmp_path, capsys, mo
     assert "mean return" in out
 
 
+def _with_cell_policy(saved: dict, actions: list[int]) -> dict:
+    """``saved`` with a gridworld actor that takes ``actions[cell]`` in each cell."""
+    weights = dict(saved["loss"])
+    first, last = "actor_network.module.0.module.0", "actor_network.module.0.module.2"
+    hidden, cells = weights[f"{first}.weight"].shape
+    read = torch.zeros(hidden, cells)
+    read[:cells] = torch.eye(cells)  # unit c fires in cell c alone
+    choose = torch.zeros(weights[f"{last}.weight"].shape)
+    choose[actions, range(cells)] = 20.0
+    weights.update({
+        f"{first}.weight": read, f"{first}.bias": torch.zeros(hidden),
+        f"{last}.weight": choose, f"{last}.bias": torch.zeros(len(choose)),
+    })  # fmt: skip
+    return {**saved, "loss": weights}
+
+
+def test_every_command_deploys_the_best_checkpoint_unless_told_otherwise(tmp_path, capsys):
+    """best.pt walks the shortest path; checkpoint.pt repeats one move until the time
+    limit. What play, evaluate and Agent.load deploy from a run directory shows which."""
+    from collections import deque
+
+    from rl_pg.checkpoint import load_checkpoint, save_checkpoint
+    from rl_pg.envs import GridWorldEnv
+    from rl_pg.recipes import Agent
+
+    run = tmp_path / "run"
+    assert in_process("train", "gridworld", "--run-dir", str(run), *QUICK, capsys=capsys)[0] == 0
+    env = GridWorldEnv()
+    towards = {env.goal: 0}  # each cell's first move on a shortest path to the goal
+    queue = deque([env.goal])
+    while queue:
+        cell = queue.popleft()
+        for before in range(env.next_cell.shape[0]):
+            for move, after in enumerate(env.next_cell[before].tolist()):
+                if after == cell and before not in towards and before != env.pit:
+                    towards[before] = move
+                    queue.append(before)
+    shortest = [towards.get(cell, 0) for cell in range(env.next_cell.shape[0])]
+    saved = load_checkpoint(run / "best.pt")
+    save_checkpoint(_with_cell_policy(saved, shortest), run / "best.pt")
+    other = (shortest[env.start] + 1) % 4  # any one move repeated stays clear of the goal
+    save_checkpoint(_with_cell_policy(saved, [other] * len(shortest)), run / "checkpoint.pt")
+    best, last = f"{env.optimal_return:.2f}", "-10.00"
+
+    def played(*args):
+        status, out, err = in_process("play", str(run), "--episodes", "1", *args, capsys=capsys)
+        assert status == 0, err
+        return out.splitlines()[-1]
+
+    assert played() == f"mean return {best} over 1 episodes"
+    assert played("--checkpoint", "last") == f"mean return {last} over 1 episodes"
+    status, out, _ = in_process("evaluate", str(run), "--episodes", "1", capsys=capsys)
+    assert status == 0 and f"return {best} " in out, out
+    agent = Agent.load(run)
+    start = env.reset()["observation"]
+    assert agent.act(start) == shortest[env.start]
+    assert Agent.load(run, checkpoint="last").act(start) == other
+
+
 def test_resume_refuses_what_is_not_safe_to_change(tmp_path, capsys):
     run = str(tmp_path / "run")
     assert in_process("train", "gridworld", "--run-dir", run, *QUICK, capsys=capsys)[0] == 0

@@ -75,3 +75,22 @@ def test_the_fields_that_act_only_with_another_name_real_fields_and_values():
         assert name in names and other in names, (name, other)
         if values != "not None":
             assert set(values) <= set(typing.get_args(hints[other])), (other, values)
+
+
+def test_a_resume_refuses_every_change_to_what_the_run_learns_from():
+    """Only where and how the run goes on may change on resume: no field of the returns,
+    the loss, the optimiser or the evaluations, and each other field's change is named."""
+    from rl_pg.training.config import RESUMABLE_FIELDS, config_dict
+    from rl_pg.training.run_dir import changed_settings
+
+    learning = {
+        name for group in ("returns", "loss", "optimiser", "evaluation")
+        for name in TrainConfig.groups[group][1]
+    }  # fmt: skip
+    assert "gamma" in learning and not learning & RESUMABLE_FIELDS
+    for name in NAMES:
+        cfg = load(name).config(**({"env_id": "Acrobot-v1"} if name == "gym" else {}))
+        stored = config_dict(cfg)
+        for field in stored.keys() - RESUMABLE_FIELDS:
+            changed = changed_settings(cfg, {**stored, field: "another value"})
+            assert changed == {field: ("another value", stored[field])}, (name, field)

@@ -108,6 +108,15 @@ class TestDiscretizeAction:
         points = torch.tensor([[0.9, 0.5], [-0.2, -0.1], [-0.8, -0.7]])
         assert transform.to_index(points).tolist() == [0, 4, 8]
 
+    def test_table_nearest_index_on_unequal_bounds_scales_each_dimension(self):
+        # Steering in [0, 1] and throttle in [-10, 10]: measured in raw units the
+        # throttle's 1.5 would outweigh the steering's 0.9; measured as shares of each
+        # range (0.075 and 0.9), the steering decides.
+        transform = DiscretizeAction(actions=[[0.0, 0.0], [1.0, 2.0]])
+        _bound(transform, low=(0.0, -10.0), high=(1.0, 10.0))
+        points = torch.tensor([[0.9, 0.5], [0.1, 1.5], [0.6, -10.0]])
+        assert transform.to_index(points).tolist() == [1, 0, 1]
+
     def test_one_hot_spec(self):
         spec = _bound(DiscretizeAction(counts=3, one_hot=True))["action"]
         assert spec.shape == (9,) and spec.rand().sum() == 1

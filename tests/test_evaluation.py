@@ -12,7 +12,7 @@ from torchrl.modules import ProbabilisticActor
 
 from rl_pg.envs import BanditEnv, GridWorldEnv
 from rl_pg.episode_workers import EpisodeWorkers
-from rl_pg.evaluation import evaluate, first_episodes
+from rl_pg.evaluation import EpisodeRequest, evaluate, first_episodes
 
 
 def _fixed_actor(n_obs, logits):
@@ -339,10 +339,15 @@ def test_episode_workers_repeat_a_sampled_evaluation_from_its_seed():
                                     action_stats=True))  # fmt: skip
         env.set_seed(8)
         other = evaluate(policy, env, episodes=20, deterministic=False, action_stats=True)
+        # Each process plays episodes of its own: seeded alike, the two would repeat
+        # each other's 10 episodes, step for step.
+        env.set_seed(7)
+        lengths = env.play(policy, EpisodeRequest(20, False, 30, [], []))["length"]
     finally:
         env.close()
     assert results[0] == results[1]
     assert other["action_shares"] != results[0]["action_shares"]
+    assert lengths[:10].tolist() != lengths[10:].tolist()
 
 
 def test_action_stats_read_one_hot_actions():

@@ -150,6 +150,25 @@ class TestGradientStatistics:
             assert stats[name, "units"].item() > 6  # episodes, not rows
             assert torch.isfinite(stats[name, "trace_covariance"])
 
+    def test_gae_weights_are_torchrls_gae_and_a_cut_episode_is_bootstrapped(self):
+        # An episode cut by a time limit (done, not terminated) goes on in V(s_{t+1}); a
+        # terminated one does not. TorchRL's GAE is the reference.
+        from torchrl.objectives.value import GAE
+
+        torch.manual_seed(0)
+        critic = make_critic()
+        loss = ReinforceLoss(make_categorical_actor(), critic)
+        loss.make_value_estimator("gae", gamma=0.9, lmbda=0.8)
+        batch = _segment_batch()
+        done = batch["next", "done"]
+        cut = torch.rand(done.shape, generator=torch.Generator().manual_seed(3)) < 0.5
+        batch["next", "terminated"] = done & ~cut
+        batch["next", "truncated"] = done & cut
+        assert (done & cut).any() and (done & ~cut).any()
+        weights = GradientStatistics(loss, estimators=["gae"]).weights(batch)["gae"]
+        expected = GAE(gamma=0.9, lmbda=0.8, value_network=critic)(batch.clone())["advantage"]
+        torch.testing.assert_close(weights, expected.squeeze(-1))
+
     def test_row_units(self):
         torch.manual_seed(0)
         loss = ReinforceLoss(make_categorical_actor())

@@ -10,6 +10,7 @@ import itertools
 import json
 import math
 import os
+import random
 import re
 import signal
 import subprocess
@@ -59,6 +60,21 @@ from rl_pg.training.seeds import evaluation_seed
 
 def make_grid():
     return GridWorldEnv(batch_size=8, max_steps=30)
+
+
+class _GridWithGlobalNoise(GridWorldEnv):
+    """A gridworld whose rewards carry noise from numpy's and Python's global
+    generators, as many user environments draw theirs."""
+
+    def _step(self, tensordict):
+        out = super()._step(tensordict)
+        noise = np.random.standard_normal(out["reward"].shape) + random.random()
+        out["reward"] = out["reward"] + 0.01 * torch.as_tensor(noise, dtype=torch.float32)
+        return out
+
+
+def _grid_with_global_noise():
+    return _GridWithGlobalNoise(batch_size=8, max_steps=30)
 
 
 class NumberedGrids(GridWorldEnv):
@@ -739,6 +755,21 @@ class TestTrain:
                 assert torch.equal(value, other[key]), key
         curves = [read_curve(tmp_path / f"every{i}", "train/episode_return") for i in (1, 1000)]
         assert np.array_equal(curves[0][1], curves[1][1])
+
+    def test_resume_continues_the_global_generators_an_environment_draws_from(self, tmp_path):
+        # numpy's and Python's generators go on from where the checkpoint left them, not
+        # from the seed, nor from wherever this process had left them.
+        noisy = {"make_env": _grid_with_global_noise}
+        straight = _cfg(tmp_path, run_dir=tmp_path / "straight", total_updates=4)
+        train(straight, recipe="grid", make_models=make_grid_models, **noisy)
+        split = _cfg(tmp_path, run_dir=tmp_path / "split", total_updates=2)
+        train(split, recipe="grid", make_models=make_grid_models, **noisy)
+        np.random.seed(99), random.seed(99)
+        resumed = train(
+            replace(split, total_updates=4, resume=True), recipe="grid",
+            make_models=make_grid_models, **noisy,
+        )  # fmt: skip
+        assert_same_run(resumed, tmp_path / "split", tmp_path / "straight")
 
     @pytest.mark.parametrize("split", [5, 6, 8])  # on, just after and between restarts
     def test_segment_resume_between_restarts_is_exact(self, tmp_path, split):
