@@ -10,9 +10,9 @@ import sys
 
 
 def main() -> None:
-    """Runs ``rl-pg`` ([`run`][rl_pg.recipes.cli.run]) with its arguments."""
+    """Runs ``rl-pg`` ([`run`][rl_pg.app.cli.run]) with its arguments."""
     try:
-        from rl_pg.recipes.cli import run
+        from rl_pg.app.cli import run
 
         run()
     except KeyboardInterrupt:

@@ -7,7 +7,7 @@ script (what a user waits for), repetitions interleaved:
 * the command's module imported, its heap frozen (``gc.freeze()``) before exiting: the
   difference is the interpreter's teardown walking what the imports built;
 * each command through ``main`` (the command as it ran before its heap was frozen) and
-  through ``run`` (what the console script and ``python -m rl_pg.recipes`` start).
+  through ``run`` (what the console script and ``python -m rl_pg.app`` start).
 
 A ``train`` command gets a fresh run directory and ``--no-progress``; its own training
 time (``train_wall_s`` of its summary) is read too, to say how much of the wait is
@@ -33,12 +33,10 @@ from common import REPO, table, write_json
 
 IMPORTS = {
     "import torch": "import torch",
-    "import the command's module": "import rl_pg.recipes.cli",
-    "import the command's module, heap frozen at exit": (
-        "import gc, rl_pg.recipes.cli; gc.freeze()"
-    ),
+    "import the command's module": "import rl_pg.app.cli",
+    "import the command's module, heap frozen at exit": ("import gc, rl_pg.app.cli; gc.freeze()"),
 }
-ENTRY = "import sys; from rl_pg.recipes.cli import {0}; {0}(sys.argv[1:])"
+ENTRY = "import sys; from rl_pg.app.cli import {0}; {0}(sys.argv[1:])"
 
 
 @dataclass

@@ -36,8 +36,8 @@ import torch
 import tyro
 from common import REPO, table, write_json
 
+from rl_pg.app.report import read_stored
 from rl_pg.recipes import load
-from rl_pg.recipes.report import read_stored
 
 
 def _linear(start: float) -> Callable[[float], float]:
@@ -160,8 +160,8 @@ def run_sb3(tool: str, seed: int, cfg: Config) -> dict[str, Any]:
 
 
 def run_rl_pg(seed: int, cfg: Config) -> dict[str, Any]:
-    from rl_pg.recipes.evaluate import Args
-    from rl_pg.recipes.evaluate import main as evaluate
+    from rl_pg.app.evaluate import Args
+    from rl_pg.app.evaluate import main as evaluate
 
     recipe = load("lunarlander")
     with tempfile.TemporaryDirectory() as run_dir:

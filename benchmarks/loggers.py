@@ -54,7 +54,7 @@ def one_run(recipe: str, flags: list[str]) -> tuple[float, float]:
     """(training seconds, command seconds) of one run in a fresh process and folder."""
     with tempfile.TemporaryDirectory() as folder:
         args = [flag.format(folder=folder) for flag in flags]
-        command = [sys.executable, "-m", "rl_pg.recipes", "train", recipe,
+        command = [sys.executable, "-m", "rl_pg.app", "train", recipe,
                    "--run-dir", f"{folder}/run", "--no-progress", *args]  # fmt: skip
         start = time.perf_counter()
         subprocess.run(command, check=True, capture_output=True, text=True, cwd=folder)

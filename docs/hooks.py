@@ -3,7 +3,7 @@
 ``{{ config_table("cartpole") }}`` in a page becomes the table of every field of the
 cartpole recipe's config (flag, default, description), read from the dataclass and
 its field docstrings, the same text ``--help`` prints; ``config_table("play", "Args")``
-names a dataclass of another module of ``rl_pg.recipes``. ``{{ shipped_agents() }}``
+names a dataclass of a module of the application, ``rl_pg.app``. ``{{ shipped_agents() }}``
 becomes the table of the agents shipped with rl_pg and the results their files carry.
 
 ``$$ ... $$`` blocks of LaTeX, and ``$...$`` inside a line, become MathML when the site
@@ -43,8 +43,8 @@ warnings.filterwarnings(
     category=DeprecationWarning,
 )
 
+from rl_pg.app.flags import field_docs  # noqa: E402
 from rl_pg.recipes import load  # noqa: E402
-from rl_pg.recipes.cli import field_docs  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
@@ -76,7 +76,7 @@ def config_table(recipe: str, name: str | None = None) -> str:
     if name is None:
         config = load(recipe).config
     else:
-        config = getattr(importlib.import_module(f"rl_pg.recipes.{recipe}"), name)
+        config = getattr(importlib.import_module(f"rl_pg.app.{recipe}"), name)
     docs = field_docs(config)
     rows = ["| flag | default | meaning |", "|---|---|---|"]
     for field in dataclasses.fields(config):
@@ -96,8 +96,8 @@ def config_table(recipe: str, name: str | None = None) -> str:
 def shipped_agents() -> str:
     """The agents shipped with rl_pg, with the results their files carry (what
     ``rl-pg evaluate`` measured before ``rl-pg export`` wrote them)."""
+    from rl_pg.app.sources import SHIPPED
     from rl_pg.checkpoint import load_checkpoint
-    from rl_pg.recipes.agents import SHIPPED
 
     def result(record) -> str:
         if record is None:
@@ -200,4 +200,4 @@ def on_page_content(html_text: str, page, config, **kwargs) -> str:
 def on_page_markdown(markdown: str, **kwargs) -> str:
     markdown = inline_maths(DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown))
     markdown = AGENTS.sub(lambda m: shipped_agents(), markdown)
-    return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2) or "Config"), markdown)
+    return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2)), markdown)

@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rl_pg._checks import check_bool, check_int
 from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
-from rl_pg.lean import LeanCategoricalPolicy, _hooked, _hooked_globally
+from rl_pg.lean import LeanCategoricalPolicy, hooked, hooked_globally
 
 __all__ = ["DoubleBufferedCollector", "EpisodeCollector", "SegmentCollector"]
 
@@ -54,7 +54,7 @@ class _Segments:
         self._on_tensors = (
             type(policy) is LeanCategoricalPolicy
             and self.device is None
-            and policy._action_key == env.action_key
+            and policy.action_key == env.action_key
             and policy.acts_on(env.observation_spec.keys())
         )
         self._frames = 0
@@ -102,7 +102,7 @@ class _Segments:
         """A root of batch size ``size`` (``observations`` and the cleared done flags)
         with the policy's outputs: a dict of tensors where the policy acts on them, else
         a TensorDict."""
-        if self._on_tensors and not (_hooked(self.policy) or _hooked_globally()):
+        if self._on_tensors and not (hooked(self.policy) or hooked_globally()):
             root = {**observations, "done": clear, "terminated": clear, "truncated": clear}
             if self.policy.act(root) is not None:
                 return root

@@ -20,7 +20,7 @@ from rl_pg._checks import check_bool, check_int, check_real
 from rl_pg.functional import discounted_return, reward_to_go
 from rl_pg.lean import plain_layers, run_plain
 
-__all__ = ["DiscountedReturn", "RewardToGo"]
+__all__ = ["DiscountedReturn", "MonteCarloReturn", "RewardToGo"]
 
 REUSE_MIN_WORK = 1 << 21
 """Steps times value-network parameters from which the estimator looks for next
@@ -28,8 +28,10 @@ observations it can take from the following step instead of running the network 
 them: below it, the check costs about what the pass it saves does."""
 
 
-class _MonteCarloReturn(ValueEstimatorBase):
-    """What the two estimators share: only the return function differs."""
+class MonteCarloReturn(ValueEstimatorBase):
+    """What [`RewardToGo`][rl_pg.estimators.RewardToGo] and
+    [`DiscountedReturn`][rl_pg.estimators.DiscountedReturn] share: only the return
+    function differs. A loss recognises its estimators as its subclasses."""
 
     _returns = staticmethod(reward_to_go)
 
@@ -101,10 +103,10 @@ class _MonteCarloReturn(ValueEstimatorBase):
         Returns:
             ``tensordict``, updated in place.
         """
-        self._estimate(tensordict, params=params, target_params=target_params)
+        self.estimate(tensordict, params=params, target_params=target_params)
         return tensordict
 
-    def _estimate(
+    def estimate(
         self,
         tensordict: TensorDictBase,
         *,
@@ -313,7 +315,7 @@ class _MonteCarloReturn(ValueEstimatorBase):
 
 
 @register_value_estimator("reward_to_go", default_kwargs={"gamma": 0.99})
-class RewardToGo(_MonteCarloReturn):
+class RewardToGo(MonteCarloReturn):
     """Reward-to-go `G_t = Σ_{k≥t} γ^(k−t) r_k` as a TorchRL value estimator.
 
     Writes ``value_target`` (`G_t`) and ``advantage`` (`G_t − V(s_t)` with a
@@ -356,7 +358,7 @@ class RewardToGo(_MonteCarloReturn):
 
 
 @register_value_estimator("discounted_return", default_kwargs={"gamma": 0.99})
-class DiscountedReturn(_MonteCarloReturn):
+class DiscountedReturn(MonteCarloReturn):
     """Whole-episode return `R(τ) = Σ_k γ^k r_k` at every step.
 
     The "no causality" estimator: every step of an episode gets the same target. With a

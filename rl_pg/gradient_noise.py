@@ -28,9 +28,10 @@ from tensordict import TensorDict, TensorDictBase
 
 from rl_pg._checks import check_choice
 
-__all__ = ["noise_statistics", "unit_index"]
+__all__ = ["UNITS", "noise_statistics", "unit_index"]
 
-_UNITS = ("episode", "row", "group")
+UNITS = ("episode", "row", "group")
+"""What one unit gradient sums: an episode's steps, a row's, or a group's episodes'."""
 
 
 def noise_statistics(unit_gradients: torch.Tensor) -> TensorDict:
@@ -137,7 +138,7 @@ def unit_index(
         >>> unit_index(batch, unit="group")[0].tolist()
         [[0, 0, 0], [0, 1, 1]]
     """
-    check_choice("unit", unit, _UNITS)
+    check_choice("unit", unit, UNITS)
     if batch.batch_dims < 1:
         raise ValueError(
             f"unit_index needs a batch with a time dimension, got batch_size "

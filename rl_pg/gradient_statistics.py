@@ -14,7 +14,7 @@ from torchrl.objectives.value import GAE
 from rl_pg._checks import check_choice, check_real
 from rl_pg.estimators import RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
-from rl_pg.gradient_noise import _UNITS, noise_statistics, unit_index
+from rl_pg.gradient_noise import UNITS, noise_statistics, unit_index
 from rl_pg.groups import batch_group_advantage, greedy_flags
 
 __all__ = ["ESTIMATORS", "GradientStatistics"]
@@ -148,7 +148,7 @@ class GradientStatistics:
                 f"The estimators {missing} subtract the critic's V(s), but the loss has no "
                 f"critic: drop them, or give the loss a critic_network."
             )
-        check_choice("unit", unit, _UNITS)
+        check_choice("unit", unit, UNITS)
         grouped = [e for e in estimators if e in _GROUP]
         if grouped and unit != "group":
             raise ValueError(
@@ -210,8 +210,8 @@ class GradientStatistics:
             if "reward_to_go_minus_mean" in wanted:
                 baseline = self.scalar_baseline
                 if baseline is None:
-                    valid = loss._valid_steps(data, to_go)
-                    baseline = loss._episode_returns(data, to_go, valid).mean()
+                    valid = loss.valid_steps(data)
+                    baseline = loss.episode_returns(data, to_go, valid).mean()
                 psi["reward_to_go_minus_mean"] = to_go - baseline
             if "reward_to_go_minus_value" in wanted:
                 psi["reward_to_go_minus_value"] = to_go - value
@@ -219,7 +219,9 @@ class GradientStatistics:
                 ended = done if terminated is None else terminated
                 delta = reward + gamma * next_value * ~ended.bool() - value
                 psi["gae"] = reward_to_go(delta, done, gamma * self.gae_lambda, time_dim=time_dim)
-            valid = padding = loss._padding_mask(batch, torch.zeros(batch.batch_size))
+            valid = padding = loss.valid_steps(batch, greedy=True)
+            if padding is not None:
+                valid = padding = padding.squeeze(-1)
             if keys.greedy in batch.keys(True):  # greedy episodes are no samples of the policy
                 sampled = ~greedy_flags(batch, keys.greedy).reshape(batch.batch_size)
                 valid = sampled if valid is None else valid & sampled
@@ -260,21 +262,11 @@ class GradientStatistics:
         return dim - data.batch_dims - 1
 
     def _loss_weights(self, batch: TensorDictBase) -> torch.Tensor:
-        """The `Ψ` the loss itself weights ``log π`` with, its baseline's state kept."""
-        loss = self.loss
-        baseline = loss.baseline_module
-        training = baseline.training if baseline is not None else False
-        if baseline is not None:
-            baseline.eval()  # answers without taking in the batch
-        try:
-            data = batch.copy()
-            for key in (loss.tensor_keys.advantage, loss.tensor_keys.value_target):
-                data.pop(key, None)
-            psi, *_ = loss._policy_weights(data)
-        finally:
-            if baseline is not None:
-                baseline.train(training)
-        return psi.detach()
+        """The `Ψ` the loss itself weights ``log π`` with, its state left as it is."""
+        data = batch.copy()
+        for key in (self.loss.tensor_keys.advantage, self.loss.tensor_keys.value_target):
+            data.pop(key, None)
+        return self.loss.weights_as_they_are(data)
 
     def unit_gradients(
         self, batch: TensorDictBase, weights: dict[str, torch.Tensor]
@@ -386,12 +378,7 @@ class GradientStatistics:
 
     def _log_prob(self, steps: TensorDictBase) -> torch.Tensor:
         """``log π(a_t|s_t)`` of a flat batch of steps, through the loss's own policy."""
-        loss = self.loss
-        like = torch.zeros(steps.numel(), 1)
-        if loss.functional:
-            with loss.actor_network_params.to_module(loss.actor_network):
-                return loss._log_prob(loss._policy(steps), steps, like).reshape(-1)
-        return loss._log_prob(loss._policy(steps), steps, like).reshape(-1)
+        return self.loss.log_prob(steps).reshape(-1)
 
     def __call__(self, batch: TensorDictBase) -> TensorDict:
         """The statistics of every estimator on ``batch``: a ``TensorDict`` keyed by

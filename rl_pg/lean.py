@@ -25,6 +25,8 @@ __all__ = [
     "LeanCategoricalActor",
     "LeanCategoricalPolicy",
     "direct_network",
+    "hooked",
+    "hooked_globally",
     "lean_policy",
     "plain_layers",
     "run_plain",
@@ -99,6 +101,11 @@ class LeanCategoricalPolicy(TensorDictModuleBase):
         self._logits_key = head.in_keys[0]
         self._action_key = head.out_keys[0]
         self._default = head.default_interaction_type
+
+    @property
+    def action_key(self):
+        """The key the policy writes its action to (its actor's)."""
+        return self._action_key
 
     @staticmethod
     def supports(actor) -> bool:
@@ -319,12 +326,12 @@ class DirectSequential:
 
     def __call__(self, *inputs: torch.Tensor) -> torch.Tensor:
         network = self.network
-        if len(inputs) != 1 or _hooked(network) or _hooked_globally():
+        if len(inputs) != 1 or hooked(network) or hooked_globally():
             return network(*inputs)
         out = inputs[0]
         for layer in network._modules.values():  # read at each call: layers may be replaced
             function = _direct_function(layer)
-            if function is None or _hooked(layer):
+            if function is None or hooked(layer):
                 out = layer(out)
             elif function is F.linear:
                 out = F.linear(out, layer.weight, layer.bias)
@@ -347,7 +354,9 @@ def _direct_function(layer: torch.nn.Module):
     return None
 
 
-def _hooked(module: torch.nn.Module) -> bool:
+def hooked(module: torch.nn.Module) -> bool:
+    """Whether ``module`` has hooks of its own (forward or backward), which a direct
+    call of its layers would skip."""
     return bool(
         module._forward_hooks
         or module._forward_pre_hooks
@@ -356,7 +365,9 @@ def _hooked(module: torch.nn.Module) -> bool:
     )
 
 
-def _hooked_globally() -> bool:
+def hooked_globally() -> bool:
+    """Whether torch has global module hooks registered, which every module's call runs
+    (and a direct call of the layers would skip)."""
     return bool(
         _torch_module._global_forward_hooks
         or _torch_module._global_forward_pre_hooks

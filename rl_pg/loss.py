@@ -30,7 +30,7 @@ from torchrl.objectives.value import ValueEstimatorBase
 
 from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
-from rl_pg.estimators import DiscountedReturn, _MonteCarloReturn
+from rl_pg.estimators import DiscountedReturn, MonteCarloReturn
 from rl_pg.groups import GROUP_BASELINES, batch_group_advantage, greedy_flags
 
 __all__ = ["ReinforceLoss"]
@@ -406,7 +406,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if value_type is None:
             self._default_value_estimator()
             return self
-        if isinstance(value_type, type) and issubclass(value_type, _MonteCarloReturn):
+        if isinstance(value_type, type) and issubclass(value_type, MonteCarloReturn):
             hyperparams.setdefault("value_network", self._critic_or_none())
         if isinstance(value_type, ValueEstimatorBase) or (
             isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
@@ -519,6 +519,57 @@ class ReinforceLoss(TorchRLReinforceLoss):
         weights, _, value, valid = self._take_in(tensordict)
         return (weights, valid, value) if keep_value else (weights, valid)
 
+    def weights_as_they_are(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The weights `Ψ_t` that [`policy_weights`][rl_pg.ReinforceLoss.policy_weights]
+        would give this batch, detached, ``[*B, 1]``, without taking the batch in: a
+        running baseline answers with its state as it is, and ``value_norm`` keeps its
+        statistics. For measurements that must leave the loss as they found it (the
+        gradient statistics). Computes the returns when the batch has none, written
+        into it as ``forward`` does."""
+        _check_not_empty(tensordict)
+        baseline = self.baseline_module
+        training = baseline.training if baseline is not None else False
+        if baseline is not None:
+            baseline.eval()  # answers without taking in the batch
+        try:
+            psi, *_ = self._policy_weights(tensordict)
+        finally:
+            if baseline is not None:
+                baseline.train(training)
+        return psi.detach()
+
+    def log_prob(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``log π(a_t|s_t)`` of the batch's stored actions under the current policy
+        parameters, ``[*B, 1]``, with the graph to them: the term the weights multiply.
+        Refuses what ``forward`` refuses (an action outside the policy's support, a
+        non-finite log-probability). A composite action's is the sum of its parts'."""
+        like = torch.zeros(*tensordict.batch_size, 1, device=tensordict.device)
+        with (
+            self.actor_network_params.to_module(self.actor_network)
+            if self.functional
+            else contextlib.nullcontext()
+        ):
+            return self._log_prob(self._policy(tensordict), tensordict, like)
+
+    def valid_steps(
+        self, tensordict: TensorDictBase, *, greedy: bool = False
+    ) -> torch.Tensor | None:
+        """The steps the loss learns from, ``[*B, 1]`` booleans, or None when every
+        step counts: those the padding mask (``("collector", "mask")``) keeps, less
+        the greedy episodes' steps of ``baseline="greedy"`` (``greedy=True`` keeps
+        them: the padding alone)."""
+        like = torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool)
+        padding = self._padding_mask(tensordict, like)
+        return padding if greedy else self._valid_steps(tensordict, like, padding)
+
+    def episode_returns(
+        self, tensordict: TensorDictBase, returns: torch.Tensor, valid: torch.Tensor | None
+    ) -> torch.Tensor:
+        """``returns`` (``[*B, 1]``) at the first step of each episode of the batch, or
+        of each row's first segment, among the ``valid`` steps: one per episode, what a
+        scalar baseline averages."""
+        return self._episode_returns(tensordict, returns, valid)
+
     def policy_loss(
         self,
         tensordict: TensorDictBase,
@@ -547,12 +598,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
     def _take_in(self, tensordict: TensorDictBase):
         """``_policy_weights``, once per batch: the checks, the returns, the baselines'
         and ``value_norm``'s statistics."""
-        # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
-        if tensordict.batch_size.numel() == 0:
-            raise ValueError(
-                f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
-                " there is no step to learn from. Collect at least one step."
-            )
+        _check_not_empty(tensordict)
         taken = self._policy_weights(tensordict)
         if self.value_norm is not None:
             self._update_value_norm(tensordict)
@@ -602,7 +648,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"writes, or build the critic with that out_key."
                 ) from self._deferred_key_error
         if self._shares_critic_pass():
-            return self.value_estimator._estimate(tensordict, value_graph=True)
+            return self.value_estimator.estimate(tensordict, value_graph=True)
         functional_critic = self.functional and self.has_critic
         self.value_estimator(
             tensordict,
@@ -618,7 +664,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             and not self.functional
             and self.clip_value is None
             and self.value_norm is None  # its update comes between the two passes
-            and isinstance(estimator, _MonteCarloReturn)
+            and isinstance(estimator, MonteCarloReturn)
             and estimator.value_network is self.critic_network
             and not estimator.differentiable
         )
@@ -972,6 +1018,15 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = entropy.sum(dim="feature", reduce=True)
         return entropy
+
+
+def _check_not_empty(tensordict: TensorDictBase) -> None:
+    # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
+    if tensordict.batch_size.numel() == 0:
+        raise ValueError(
+            f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
+            " there is no step to learn from. Collect at least one step."
+        )
 
 
 def _required(tensordict: TensorDictBase, key, hint: str, lead: str = "") -> torch.Tensor:

@@ -249,7 +249,7 @@ class NaturalGradient:
                     "loss.policy_weights(batch) gave them, or neither."
                 )
             weights, valid = loss.policy_weights(tensordict)
-        elif valid is None and loss._valid_steps(tensordict, weights) is not None:
+        elif valid is None and loss.valid_steps(tensordict) is not None:
             raise ValueError(
                 "NaturalGradient.step got weights without valid for a batch with steps to "
                 "leave out (padding, greedy episodes): pass the valid that "

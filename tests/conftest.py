@@ -20,8 +20,8 @@ from torch import nn
 from torchrl.data import Unbounded
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 
+from rl_pg.app.cli import WORKER_IMPORTS
 from rl_pg.checkpoint import load_checkpoint
-from rl_pg.recipes.cli import WORKER_IMPORTS
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
 
 N_OBS = 3

@@ -12,10 +12,10 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from rl_pg.app import Agent
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.envs.gym import DRIVING_ACTIONS
 from rl_pg.frame_difference import FrameDifference
-from rl_pg.recipes import Agent
 
 
 @pytest.fixture(scope="module")

@@ -14,9 +14,10 @@ import torch
 from conftest import hide_module
 from test_cli import QUICK, in_process, rl_pg
 
+from rl_pg.app.export import export_agent, model_card
+from rl_pg.app.sources import HUB_FILE, SHIPPED, shipped_agent
 from rl_pg.checkpoint import load_checkpoint
 from rl_pg.recipes import load
-from rl_pg.recipes.agents import HUB_FILE, SHIPPED, export_agent, model_card, shipped_agent
 from rl_pg.training import load_models, read_run
 
 TRAINING_STATE = {"optimizer", "rng", "collection", "episodes", "callbacks"}
@@ -277,7 +278,7 @@ def test_a_played_agent_leaves_only_its_own_words_on_the_console(args, extra, tm
     # (a simulator's bindings, which TorchRL's kept import error held alive).
     pytest.importorskip(extra)
     env = {k: v for k, v in os.environ.items() if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER")}
-    done = subprocess.run([sys.executable, "-m", "rl_pg.recipes", *args], cwd=tmp_path, env=env,
+    done = subprocess.run([sys.executable, "-m", "rl_pg.app", *args], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0 and done.stderr == "", done.stderr[-2000:]
     assert done.stdout.splitlines()[-1].startswith(("mean return", "recorded"))

@@ -18,8 +18,9 @@ import pytest
 import torch
 from conftest import hide_module
 
+from rl_pg.app.cli import main
+from rl_pg.app.flags import field_docs
 from rl_pg.recipes import NAMES, load
-from rl_pg.recipes.cli import field_docs, main
 from rl_pg.training import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -27,9 +28,9 @@ QUICK = ["--total-updates", "2", "--eval-interval", "100", "--eval-episodes", "1
 
 
 def rl_pg(*args: str, cwd: Path, python: str = sys.executable, **kwargs):
-    """``rl-pg ARGS`` (the installed entry point: ``python -m rl_pg.recipes``)."""
+    """``rl-pg ARGS`` (the installed entry point: ``python -m rl_pg.app``)."""
     return subprocess.run(
-        [python, "-m", "rl_pg.recipes", *args], cwd=cwd, capture_output=True, text=True, **kwargs
+        [python, "-m", "rl_pg.app", *args], cwd=cwd, capture_output=True, text=True, **kwargs
     )
 
 
@@ -98,9 +99,9 @@ def test_every_command_deploys_the_best_checkpoint_unless_told_otherwise(tmp_pat
     limit. What play, evaluate and Agent.load deploy from a run directory shows which."""
     from collections import deque
 
+    from rl_pg.app import Agent
     from rl_pg.checkpoint import load_checkpoint, save_checkpoint
     from rl_pg.envs import GridWorldEnv
-    from rl_pg.recipes import Agent
 
     run = tmp_path / "run"
     assert in_process("train", "gridworld", "--run-dir", str(run), *QUICK, capsys=capsys)[0] == 0
@@ -375,7 +376,7 @@ def test_the_command_forks_its_workers_from_a_server_that_imported_rl_pg(monkeyp
     import contextlib
     import multiprocessing
 
-    from rl_pg.recipes import cli
+    from rl_pg.app import cli
 
     calls = []
     monkeypatch.setattr(multiprocessing, "set_start_method", lambda *a, **k: calls.append(a))
@@ -537,7 +538,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert first.startswith("| only the flags below | 0 1 |")
     assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
     # runs of one file that differ in more than their seed are not seeds of one setting
-    from rl_pg.recipes.report import _by_setting
+    from rl_pg.app.report import _by_setting
 
     groups = _by_setting(saved_runs["runs"])
     assert {label: len(runs) for label, runs in groups.items()} == {
@@ -741,7 +742,7 @@ def test_a_setting_names_a_resolved_default_only_where_a_run_left_it():
     # LunarLander's scale_lr_factor defaults to None, resolved by the policy (30 for the
     # continuous Gaussian, 1 otherwise) and stored resolved: a run at its policy's
     # value shows no flag, a run that set another one does.
-    from rl_pg.recipes.report import _setting
+    from rl_pg.app.report import _setting
     from rl_pg.training.config import config_dict
 
     lunarlander = load("lunarlander")
@@ -802,7 +803,7 @@ def test_no_number_opens_a_line_inside_a_sentence():
 def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
     from matplotlib.testing.compare import compare_images
 
-    from rl_pg.recipes.report import (
+    from rl_pg.app.report import (
         STORED_FIGURE,
         STORED_MAP,
         STORED_TABLE,
@@ -966,7 +967,7 @@ def test_a_recipe_module_that_fails_to_import_says_why(tmp_path, monkeypatch):
 
 def test_a_reported_evaluation_shows_its_crash_rate():
     """The driving recipes' targets count crashes: the table says how many."""
-    from rl_pg.recipes.report import format_report
+    from rl_pg.app.report import format_report
 
     record = {"mean_return": 21.5, "std_return": 2.2, "episodes": 100, "crashed_rate": 0.02}
     report = {"recipe": "highway", "seed": 0, "frames": 50_176, "train_wall_s": 948.0,
@@ -978,18 +979,17 @@ def test_a_reported_evaluation_shows_its_crash_rate():
 
 
 def test_every_way_of_starting_the_command_freezes_its_heap():
-    """The console script, ``python -m rl_pg.recipes`` and a checkout's recipe scripts
+    """The console script, ``python -m rl_pg.app`` and a checkout's recipe scripts
     start at ``run`` (the heap frozen), not at ``main``, which tests call in-process."""
     import tomllib
 
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts["rl-pg"] == "rl_pg_launcher:main"  # which starts at run
     assert (
-        "from rl_pg.recipes.cli import run\n\n        run()"
-        in (REPO / "rl_pg_launcher.py").read_text()
+        "from rl_pg.app.cli import run\n\n        run()" in (REPO / "rl_pg_launcher.py").read_text()
     )
-    assert "cli import run\n\nrun()" in (REPO / "rl_pg/recipes/__main__.py").read_text()
-    source = (REPO / "rl_pg/recipes/cli.py").read_text()
+    assert "cli import run\n\nrun()" in (REPO / "rl_pg/app/__main__.py").read_text()
+    source = (REPO / "rl_pg/app/cli.py").read_text()
     checkout = source[source.index("def run_checkout_script") :]
     assert "    run([" in checkout and "main([" not in checkout
 
@@ -999,7 +999,7 @@ def test_a_frozen_heap_still_collects_what_the_process_makes_afterwards(capsys):
     import weakref
 
     from rl_pg._process import frozen_heap
-    from rl_pg.recipes.cli import run
+    from rl_pg.app.cli import run
 
     class Node:
         pass
@@ -1079,7 +1079,7 @@ def test_commands_write_only_names_they_own(tmp_path, capsys, monkeypatch):
 
 
 def test_a_stored_figure_never_replaces_a_file_that_is_not_a_figure(tmp_path):
-    from rl_pg.recipes.report import refresh
+    from rl_pg.app.report import refresh
 
     (tmp_path / "store.json").write_text(json.dumps({"runs": []}))
     (tmp_path / "setup.cfg").write_text("[tool]\n")

@@ -211,7 +211,7 @@ class TestMonteCarloEstimators:
             lambda module, args, out: seen.append(out.shape[:-1].numel())
         )
         estimator = cls(gamma=0.9, value_network=critic)
-        attached = estimator._estimate(batch, value_graph=graph)
+        attached = estimator.estimate(batch, value_graph=graph)
         torch.testing.assert_close(batch["state_value"], value, rtol=0, atol=1e-6)
         torch.testing.assert_close(batch["next", "state_value"], next_value, rtol=0, atol=1e-6)
         torch.testing.assert_close(batch["value_target"], expected, rtol=1e-5, atol=1e-5)

@@ -1,4 +1,4 @@
-"""rl_pg.recipes.lab and ``rl-pg lab variance``: seeds trained with the
+"""rl_pg.app.lab and ``rl-pg lab variance``: seeds trained with the
 gradient statistics, then a figure and a table drawn from their logs alone."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_cli import in_process
 
-from rl_pg.recipes.lab import _markdown, noise_scale_curve
+from rl_pg.app.lab import _markdown, noise_scale_curve
 
 QUICK = ["--total-updates", "4", "--episodes-per-batch", "6"]
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
@@ -112,7 +112,7 @@ class TestLabCommand:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from rl_pg.recipes.lab import _log_scale
+        from rl_pg.app.lab import _log_scale
 
         figure, ax = plt.subplots()
         for line in values:

@@ -1802,7 +1802,7 @@ class TestResumeFromTheCommandLine:
     def test_resume_needs_only_the_run_directory_and_what_changes(self, tmp_path, capsys):
         # `python recipes/gridworld.py FLAGS` is this command (tests/test_cli.py), and a
         # fresh process resumes from the directory alone there too.
-        from rl_pg.recipes.cli import main
+        from rl_pg.app.cli import main
 
         run = str(tmp_path / "run")
         first = ["--run-dir", run, "--total-updates", "2", "--lr", "0.05", "--hidden", "16"]

@@ -335,6 +335,30 @@ class TestReinforceLoss:
         torch.testing.assert_close(padded_out["advantage_mean"], flat_out["advantage_mean"])
         assert padded_count == flat_count == 2
 
+    def test_what_measurements_read_of_the_loss_leaves_its_state_alone(
+        self, categorical_actor, categorical_batch
+    ):
+        # The public reads the gradient statistics and the natural gradient build on.
+        batch = categorical_batch.clone()
+        mask = torch.ones(*batch.shape, 1, dtype=torch.bool)
+        mask[0, -2:] = False
+        batch["collector", "mask"] = mask
+        loss = ReinforceLoss(categorical_actor, baseline="running_mean")
+        loss(categorical_batch.clone())  # the baseline has a state
+        state = {k: v.clone() for k, v in loss.state_dict().items()}
+        as_they_are = loss.weights_as_they_are(batch.clone())
+        for key, value in loss.state_dict().items():
+            assert torch.equal(value, state[key]), key
+        weights, valid = loss.policy_weights(batch.clone())  # takes the batch in
+        torch.testing.assert_close(as_they_are, weights)
+        assert torch.equal(valid, mask) and torch.equal(loss.valid_steps(batch), mask)
+        expected = categorical_actor.get_dist(batch).log_prob(batch["action"]).unsqueeze(-1)
+        log_prob = loss.log_prob(batch)
+        torch.testing.assert_close(log_prob, expected)
+        assert log_prob.requires_grad
+        starts = loss.episode_returns(batch, weights, valid)
+        assert starts.numel() == int((batch["next", "done"][:, :-1] & mask[:, 1:]).sum()) + 3
+
 
 class TestReinforceLossErrors:
     def test_unknown_baseline(self, categorical_actor):

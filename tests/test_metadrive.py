@@ -17,9 +17,10 @@ import torch
 from conftest import hide_module
 from PIL import Image
 
+from rl_pg.app import cli, evaluate, play
 from rl_pg.envs import metadrive as md
 from rl_pg.envs.metadrive_assets import assets_pull_skipped
-from rl_pg.recipes import cli, evaluate, load, play
+from rl_pg.recipes import load
 from rl_pg.training import read_run
 from rl_pg.training.seeds import evaluation_seed
 

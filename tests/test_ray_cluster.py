@@ -123,7 +123,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
         # Each worker takes one CPU and each node has one: one worker on each node.
         run = tmp_path / "run"
         result = subprocess.run(
-            [sys.executable, "-m", "rl_pg.recipes", "train", "cartpole", "--ray",
+            [sys.executable, "-m", "rl_pg.app", "train", "cartpole", "--ray",
              "--workers", "2", "--total-frames", "3000", "--eval-episodes", "2",
              "--run-dir", str(run), "--no-progress"],
             env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=300,
@@ -144,7 +144,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
         pytest.importorskip("metadrive")
         run = tmp_path / "metadrive"
         result = subprocess.run(
-            [sys.executable, "-m", "rl_pg.recipes", "train", "metadrive", "--ray",
+            [sys.executable, "-m", "rl_pg.app", "train", "metadrive", "--ray",
              "--workers", "2", "--total-frames", "512", "--eval-interval", "512",
              "--eval-episodes", "2", "--horizon", "40", "--run-dir", str(run), "--no-progress"],
             env={**env, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=600,
@@ -162,7 +162,7 @@ def test_training_and_evaluation_spread_their_workers_over_two_nodes(tmp_path):
 def test_a_cluster_address_where_nothing_answers_is_named_in_one_line(tmp_path):
     address = f"127.0.0.1:{_free_port()}"  # nothing listens there
     result = subprocess.run(
-        [sys.executable, "-m", "rl_pg.recipes", "train", "cartpole", "--ray", "--workers", "2",
+        [sys.executable, "-m", "rl_pg.app", "train", "cartpole", "--ray", "--workers", "2",
          "--total-frames", "2000", "--run-dir", str(tmp_path / "run"), "--no-progress"],
         env={**os.environ, "RAY_ADDRESS": address}, capture_output=True, text=True, timeout=120,
     )  # fmt: skip

@@ -14,8 +14,9 @@ import torch
 from conftest import assert_same_run, averaged_weights
 from PIL import Image, ImageSequence
 
+from rl_pg.app import evaluate, play
 from rl_pg.envs import GridWorldEnv
-from rl_pg.recipes import evaluate, load, play
+from rl_pg.recipes import load
 from rl_pg.training import load_models, read_run
 from rl_pg.training.seeds import evaluation_seed, fresh_seed
 
@@ -318,7 +319,7 @@ def test_training_evaluate_and_play_run_on_the_runs_threads_then_restore_them(
     """Small models on torch's one-thread-per-core default wait on each other beside
     other work: training, rl-pg evaluate and rl-pg play all run on cfg.threads, and
     leave the caller's thread count as they found it."""
-    import rl_pg.recipes.play as play_module
+    import rl_pg.app.play as play_module
     import rl_pg.training.recipe as recipe_module
     import rl_pg.training.selection as selection_module
 

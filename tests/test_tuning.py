@@ -12,8 +12,10 @@ from types import SimpleNamespace
 import pytest
 from conftest import hide_module
 
-from rl_pg.recipes import evaluate, load
-from rl_pg.recipes.cli import _flag, main
+from rl_pg.app import evaluate
+from rl_pg.app.cli import main
+from rl_pg.app.flags import flag
+from rl_pg.recipes import load
 from rl_pg.training.run_dir import locked
 from rl_pg.training.seeds import evaluation_seed, fresh_seed, replay_seed
 from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, tune
@@ -148,7 +150,7 @@ def test_two_searches_share_one_study(tmp_path):
     # rl-pg tune --jobs 2: a second search in a process of its own, on the same study;
     # the command reports once, after both
     done = subprocess.run(
-        [sys.executable, "-m", "rl_pg.recipes", "tune", "gridworld", "--trials", "4",
+        [sys.executable, "-m", "rl_pg.app", "tune", "gridworld", "--trials", "4",
          "--jobs", "2", "--params", "lr", "--total-updates", "2", "--no-progress",
          "--run-dir", str(tmp_path)],
         capture_output=True, text=True, timeout=300,
@@ -246,7 +248,7 @@ def test_the_command(tmp_path, capsys):
 def test_the_printed_flags_give_back_the_trial_s_exact_values():
     # Rounded, a sampled learning rate starts a different run from the same seed.
     lr = 0.0020299660450482514
-    assert float(_flag("lr", lr).split()[1]) == lr
+    assert float(flag("lr", lr).split()[1]) == lr
 
 
 @pytest.mark.parametrize("content", [b"not a database, just text\n" * 100, b""])

@@ -26,8 +26,8 @@ import matplotlib.pyplot as plt
 import torch
 from IPython.display import Image, Markdown
 
+from rl_pg.app.report import format_report, plot_stored, read_stored
 from rl_pg.recipes import load
-from rl_pg.recipes.report import format_report, plot_stored, read_stored
 from rl_pg.training.curves import read_curve
 
 torch.set_num_threads(1)  # these small networks train fastest on one thread

@@ -20,7 +20,7 @@ import importlib
 
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["NAMES", "Agent", "load", "recipe_of"]
+__all__ = ["NAMES", "load", "recipe_of"]
 
 NAMES = (
     "bandit", "gridworld", "cartpole", "pendulum", "lunarlander", "highway", "pong", "metadrive",
@@ -104,12 +104,3 @@ def recipe_of(saved: dict, run) -> Recipe:
             f"{run}: its stored config does not fit the {recipe.name} recipe: {err}"
         ) from None
     return recipe
-
-
-def __getattr__(name: str):
-    # Agent (rl_pg.recipes.acting) imports this module: loaded on first use.
-    if name == "Agent":
-        from rl_pg.recipes.acting import Agent
-
-        return Agent
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

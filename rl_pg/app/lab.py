@@ -1,10 +1,10 @@
 """The variance lesson on a real task: train a recipe's seeds while measuring the policy
 gradient's noise for every return estimator, then draw and tabulate it.
 
-``rl-pg lab variance RECIPE`` runs [`variance_lab`][rl_pg.recipes.lab.variance_lab]:
+``rl-pg lab variance RECIPE`` runs [`variance_lab`][rl_pg.app.lab.variance_lab]:
 each seed trains with ``grad_stats`` set (the same batches, the same parameters, every
 estimator), in ``ROOT/seed<S>`` (a stopped seed resumes, a finished one is kept), and
-[`summarise`][rl_pg.recipes.lab.summarise] reads their logs into
+[`summarise`][rl_pg.app.lab.summarise] reads their logs into
 ``ROOT/variance.png`` (noise scale and SNR by frame, seeds aggregated),
 ``ROOT/variance_by_seed.png`` (the loss's own noise beside each seed's evaluations,
 seeds whose best checkpoint holds the threshold on fresh episodes, greedily and by
@@ -28,10 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from rl_pg.app.report import read_report
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
 from rl_pg.groups import GROUP_BASELINES
-from rl_pg.recipes.report import read_report
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.curves import png_figure, read_curve
@@ -147,7 +147,7 @@ def noise_scale_curve(
 
     Examples:
         >>> import numpy as np
-        >>> from rl_pg.recipes.lab import noise_scale_curve
+        >>> from rl_pg.app.lab import noise_scale_curve
         >>> run = {"frames": np.array([64.0, 128.0]), "trace_covariance": np.array([4.0, 8.0]),
         ...        "grad_norm_sq": np.array([1.0, -1.0]), "units": np.array([8.0, 8.0])}
         >>> noise_scale_curve([run], np.array([0.0, 100.0, 200.0]))
@@ -410,7 +410,7 @@ def relative_variance(
 
     Examples:
         >>> import numpy as np
-        >>> from rl_pg.recipes.lab import relative_variance
+        >>> from rl_pg.app.lab import relative_variance
         >>> a = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([1.0, 3.0])}
         >>> b = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([8.0, 8.0])}
         >>> relative_variance([a], [b], np.array([0.0, 3.0]))

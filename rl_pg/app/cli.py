@@ -9,227 +9,32 @@
     rl-pg report runs/cartpole-seed* --plot seeds.png
     rl-pg lab variance cartpole --seeds 0 1 2
 
-``python -m rl_pg.recipes`` is the same command; in a checkout, ``python
+``python -m rl_pg.app`` is the same command; in a checkout, ``python
 recipes/<name>.py`` runs ``rl-pg train <name>`` and ``python recipes/play.py``
 runs ``rl-pg play``.
 """
 
 from __future__ import annotations
 
-import ast
-import copy
-import dataclasses
-import inspect
-import itertools
 import multiprocessing
 import os
-import re
 import subprocess
 import sys
-import textwrap
-import typing
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
-
-import tyro
 
 from rl_pg._process import frozen_heap
+from rl_pg.app.flags import flag, parse_args, parse_config
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.recipes import NAMES, load, recipe_of
 from rl_pg.training.checkpoints import LATEST, read_run, resolve_latest
-from rl_pg.training.config import DeviceUnavailable, TrainConfig
+from rl_pg.training.config import DeviceUnavailable
 from rl_pg.training.console import format_comparison, format_summary
 from rl_pg.training.interrupt import exit_quietly_on_interrupt
 from rl_pg.training.run_dir import RunDirBusy, RunDirUnusable
 
-__all__ = ["field_docs", "first_sentence", "main", "parse_config", "run_checkout_script"]
-
-SENTENCE_END = re.compile(r"(?<=[.!?])(?<!e\.g\.)(?<!i\.e\.)\s+(?=[A-Z(`'\"])")
-"""Where a sentence ends: after . ! or ?, before a capital, a bracket or a quote."""
-
-Config = TypeVar("Config", bound=TrainConfig)
-
-
-def parse_config(
-    config_class: type[Config],
-    args: Sequence[str] | None = None,
-    *,
-    prog: str | None = None,
-    stored: dict | None = None,
-) -> Config:
-    """``tyro.cli(config_class)``, except that ``--resume --run-dir DIR`` starts from the
-    configuration stored in DIR's checkpoint: only the flags given on the command line
-    change it (and the loop refuses changes that are not safe on resume).
-
-    Args:
-        config_class (type): a ``TrainConfig`` dataclass.
-        args (sequence of str, optional): the command line. Defaults to ``sys.argv[1:]``.
-
-    Keyword Args:
-        prog (str, optional): the program's name in ``--help``.
-        stored (dict, optional): the resumed run's stored configuration, where the
-            caller has read its checkpoint already (default: read from DIR).
-
-    Examples:
-        >>> import tempfile
-        >>> from pathlib import Path
-        >>> from rl_pg.envs import GridWorldEnv
-        >>> from rl_pg.models import mlp_actor_critic
-        >>> from rl_pg.training import TrainConfig, train
-        >>> from rl_pg.recipes.cli import parse_config
-        >>> run = Path(tempfile.mkdtemp()) / "run"
-        >>> cfg = parse_config(TrainConfig, ["--run-dir", str(run), "--lr", "0.02",
-        ...                                  "--total-updates", "1", "--no-progress"])
-        >>> _ = train(cfg, recipe="demo", make_env=GridWorldEnv, make_models=mlp_actor_critic)
-        >>> resumed = parse_config(TrainConfig, ["--resume", "--run-dir", str(run),
-        ...                                      "--total-updates", "2"])
-        >>> resumed.lr, resumed.total_updates, resumed.progress
-        (0.02, 2, False)
-    """
-    args = list(sys.argv[1:] if args is None else args)
-    run_dir = _resumed_run_dir(args)
-    defaults = None
-    if run_dir is not None:
-        if stored is None:
-            try:
-                stored = read_run(run_dir)["config"]
-            except CheckpointError:  # train() reports the missing or corrupted checkpoint
-                stored = None
-        if stored is not None:
-            resumed = config_class.from_stored(stored, resume=True, run_dir=Path(run_dir))
-            defaults = {f.name: getattr(resumed, f.name) for f in dataclasses.fields(resumed)}
-    return tyro.cli(_grouped(config_class, defaults), args=args, prog=prog).config
-
-
-def parse_args(args_class: type, args: Sequence[str], *, prog: str, **kwargs):
-    """``tyro.cli(args_class, args=args, prog=prog, **kwargs)`` whose ``--help`` gives
-    each flag its docstring's first sentence, on one line (the rest is for the docs)."""
-    docs = field_docs(args_class)
-    hints = typing.get_type_hints(args_class, include_extras=True)
-    fields = [f for f in dataclasses.fields(args_class) if f.init]
-    short = dataclasses.make_dataclass(
-        args_class.__name__,
-        [
-            (
-                f.name,
-                Annotated[hints[f.name], tyro.conf.arg(help=first_sentence(docs.get(f.name, "")))],
-                dataclasses.field(default=f.default, default_factory=f.default_factory),
-            )
-            for f in fields
-        ],
-    )
-    paragraphs = re.split(r"\n\s*\n", args_class.__doc__ or "")
-    short.__doc__ = "\n\n".join(" ".join(p.split()) for p in paragraphs)  # unwrapped
-    parsed = tyro.cli(short, args=list(args), prog=prog, **kwargs)
-    value, rest = parsed if kwargs.get("return_unknown_args") else (parsed, None)
-    value = args_class(**{f.name: getattr(value, f.name) for f in fields})
-    return (value, rest) if kwargs.get("return_unknown_args") else value
-
-
-def _grouped(config_class: type[Config], defaults: dict[str, Any] | None) -> type:
-    """``config_class`` as tyro should show it: one dataclass per group of
-    ``TrainConfig.groups`` (the recipe's own fields first, as a group of their own),
-    with the flags unprefixed and each field's docstring on one line, so that the help
-    wraps it whole. Parsing builds the config itself (``.config``), inside tyro, which
-    reports a value the config refuses as it reports a malformed flag."""
-    docs = field_docs(config_class)
-    hints = typing.get_type_hints(config_class, include_extras=True)
-    fields = {f.name: f for f in dataclasses.fields(config_class)}
-    grouped = {name: names for name, (_, names) in config_class.groups.items()}
-    placed = {name for names in grouped.values() for name in names}
-    own = tuple(name for name in fields if name not in placed)
-    groups = {"recipe": ("The recipe's own settings.", own)} if own else {}
-    groups.update(config_class.groups)
-
-    def spec(name: str) -> tuple[str, Any, dataclasses.Field]:
-        kind = Annotated[hints[name], tyro.conf.arg(help=first_sentence(docs.get(name, "")))]
-        if defaults is not None:
-            value = defaults[name]
-        elif fields[name].default is not dataclasses.MISSING:
-            value = fields[name].default
-        elif fields[name].default_factory is not dataclasses.MISSING:
-            return name, kind, dataclasses.field(default_factory=fields[name].default_factory)
-        else:
-            return name, kind, dataclasses.field()
-        return name, kind, dataclasses.field(default_factory=lambda v=value: copy.deepcopy(v))
-
-    members = []
-    for group, (about, names) in groups.items():
-        names = [name for name in names if name in fields]
-        if not names:
-            continue
-        section = dataclasses.make_dataclass(group, [spec(name) for name in names])
-        kind = Annotated[section, tyro.conf.OmitArgPrefixes, tyro.conf.arg(help=about)]
-        members.append((group, kind, dataclasses.field(default_factory=section)))
-
-    def build(self) -> None:
-        values = {
-            name: getattr(getattr(self, group), name)
-            for group, *_ in members
-            for name in (f.name for f in dataclasses.fields(getattr(self, group)))
-        }
-        self.config = config_class(**values)
-
-    cli = dataclasses.make_dataclass(
-        config_class.__name__, members, namespace={"__post_init__": build}
-    )
-    cli.__doc__ = (
-        f"{config_class.__doc__ or ''}\n\nEach flag's first sentence; the docs' recipe pages "
-        "(Flags) give each in full."
-    )
-    return cli
-
-
-def first_sentence(text: str) -> str:
-    """The first sentence of a field's docstring: what ``--help`` shows of it.
-
-    Examples:
-        >>> from rl_pg.recipes.cli import first_sentence
-        >>> first_sentence("Learning rate. Decays with lr_schedule, e.g. 'linear'.")
-        'Learning rate.'
-        >>> first_sentence("Where models live ('auto': CUDA when available). More.")
-        "Where models live ('auto': CUDA when available)."
-        >>> first_sentence("Steps (e.g. 5 per update) to take.")
-        'Steps (e.g. 5 per update) to take.'
-    """
-    return SENTENCE_END.split(text, maxsplit=1)[0]
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """The docstrings written under a dataclass's fields, each on one line
-    (subclasses' override their bases')."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        try:
-            body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
-        except (OSError, TypeError, IndentationError):  # no source: defined interactively
-            continue
-        for node, after in itertools.pairwise(body):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and isinstance(after, ast.Expr)
-                and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)
-            ):
-                docs[node.target.id] = " ".join(after.value.value.split())
-    return docs
-
-
-def _resumed_run_dir(args: list[str]) -> str | None:
-    if "--resume" not in args:
-        return None
-    for i, arg in enumerate(args):
-        if arg == "--run-dir" and i + 1 < len(args):
-            return args[i + 1]
-        if arg.startswith("--run-dir="):
-            return arg.split("=", 1)[1]
-    return None
-
+__all__ = ["main", "run", "run_checkout_script"]
 
 USAGE = """usage: rl-pg {list,train,resume,evaluate,play,export,tune,report,lab} ...
 
@@ -291,10 +96,10 @@ def _command_usage(command: str, rest: list[str]) -> str | None:
 
 
 def run(argv: Sequence[str] | None = None) -> None:
-    """The ``rl-pg`` command as a process of its own: [`main`][rl_pg.recipes.cli.main]
+    """The ``rl-pg`` command as a process of its own: [`main`][rl_pg.app.cli.main]
     with the imports' objects kept out of the garbage collector's walks, and none left
     for the interpreter's teardown (see ``rl_pg._process.frozen_heap``). The console
-    script, ``python -m rl_pg.recipes`` and a checkout's ``recipes/*.py`` start here."""
+    script, ``python -m rl_pg.app`` and a checkout's ``recipes/*.py`` start here."""
     _fork_workers_from_a_preloaded_server()
     with frozen_heap():
         main(argv)
@@ -406,7 +211,7 @@ def _tune(name: str, args: list[str]) -> None:
     # study's locks let searches share it); this one reports the result once all ended.
     own = [a for i, a in enumerate(args) if a != "--jobs" and not a.startswith("--jobs=")
            and (i == 0 or args[i - 1] != "--jobs")]  # fmt: skip
-    command = [sys.executable, "-m", "rl_pg.recipes", "tune", name, *own, "--jobs", "1"]
+    command = [sys.executable, "-m", "rl_pg.app", "tune", name, *own, "--jobs", "1"]
     jobs = [
         subprocess.Popen(command, env={**os.environ, _TUNE_JOB: "1"})
         for _ in range(tuning.jobs - 1)
@@ -424,7 +229,7 @@ def _tune(name: str, args: list[str]) -> None:
         return  # one search of several: the command that started it reports
     if jobs:
         result = search()  # every search's trials counted: none left to run
-    flags = " ".join(_flag(k, v) for k, v in result["best_settings"].items())
+    flags = " ".join(flag(k, v) for k, v in result["best_settings"].items())
     print(
         f"{result['trials']} trials in {study_dir} ({result['pruned']} pruned); best: trial "
         f"{result['best_trial']}, "
@@ -439,7 +244,7 @@ _TUNE_JOB = "RL_PG_TUNE_JOB"  # set in the extra searches of rl-pg tune --jobs N
 
 
 def _lab_variance(name: str, args: list[str]) -> None:
-    from rl_pg.recipes.lab import LabArgs, variance_lab
+    from rl_pg.app.lab import LabArgs, variance_lab
 
     recipe, lab, base, root = _command_over_runs(
         "lab variance", name, args, LabArgs, "lab-variance"
@@ -467,22 +272,6 @@ def _command_over_runs(command: str, name: str, args: list[str], own_args, folde
     return recipe, own, base, root
 
 
-def _flag(name: str, value) -> str:
-    """The flag that sets field ``name`` to ``value``, as ``rl-pg train`` takes it.
-
-    Examples:
-        >>> from rl_pg.recipes.cli import _flag
-        >>> _flag("kl_lr_range", [0.1, 3.0]), _flag("lr", 0.001), _flag("progress", False)
-        ('--kl-lr-range 0.1 3.0', '--lr 0.001', '--no-progress')
-    """
-    flag = name.replace("_", "-")
-    if isinstance(value, bool):
-        return f"--{flag}" if value else f"--no-{flag}"
-    values = value if isinstance(value, (list, tuple)) else [value]  # a pair: LOW HIGH
-    # Every digit (repr): a run is repeatable from its seed only with the exact values.
-    return f"--{flag} " + " ".join(repr(v) if isinstance(v, float) else str(v) for v in values)
-
-
 def _resume(run_dir: Path, args: list[str]) -> None:
     # Read here to rebuild the run; train() reads it again once it holds the directory,
     # in case another process wrote it in between.
@@ -497,7 +286,7 @@ def _resume(run_dir: Path, args: list[str]) -> None:
 
 
 def _play(args: list[str]) -> None:
-    from rl_pg.recipes import play
+    from rl_pg.app import play
 
     try:
         play.main(parse_args(play.Args, args, prog="rl-pg play"))
@@ -506,16 +295,16 @@ def _play(args: list[str]) -> None:
 
 
 def _export(args: list[str]) -> None:
-    from rl_pg.recipes import agents
+    from rl_pg.app import export
 
     try:
-        agents.main(parse_args(agents.ExportArgs, args, prog="rl-pg export"))
+        export.main(parse_args(export.ExportArgs, args, prog="rl-pg export"))
     except ValueError as err:
         sys.exit(f"rl-pg export: {err}")
 
 
 def _evaluate(args: list[str]) -> None:
-    from rl_pg.recipes import evaluate
+    from rl_pg.app import evaluate
 
     try:
         evaluate.main(parse_args(evaluate.Args, args, prog="rl-pg evaluate"))
@@ -524,7 +313,7 @@ def _evaluate(args: list[str]) -> None:
 
 
 def _report_runs(args: list[str]) -> None:
-    from rl_pg.recipes import report
+    from rl_pg.app import report
 
     try:
         report.main(parse_args(report.Args, args, prog="rl-pg report"))

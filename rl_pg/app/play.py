@@ -15,8 +15,8 @@ from typing import Annotated, Literal
 import torch
 import tyro
 
+from rl_pg.app.sources import agent_path
 from rl_pg.recipes import recipe_of
-from rl_pg.recipes.agents import agent_path
 from rl_pg.recording import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
 from rl_pg.training.threads import torch_threads

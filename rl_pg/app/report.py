@@ -51,8 +51,8 @@ from typing import Any
 import numpy as np
 import tyro
 
+from rl_pg.app.evaluate import EVALUATIONS
 from rl_pg.checkpoint import write_atomically
-from rl_pg.recipes.evaluate import EVALUATIONS
 from rl_pg.training.curves import (
     is_png,
     plot_profiles,
@@ -264,7 +264,7 @@ def smoothed(
 
     Examples:
         >>> import numpy as np
-        >>> from rl_pg.recipes.report import smoothed
+        >>> from rl_pg.app.report import smoothed
         >>> smoothed(np.arange(1.0, 6.0), np.array([0.0, 1.0, 0.0, 1.0, 1.0]), points=2)
         (array([3., 5.]), array([0.33333333, 1.        ]), 3)
     """
@@ -414,7 +414,7 @@ def _by_setting(runs: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
         }
     if len({tuple(_setting([run])) for run in runs}) == 1:
         return {"": runs}
-    from rl_pg.recipes.cli import _flag
+    from rl_pg.app.flags import flag
 
     configs = [config for config, _ in _as_run(runs)]
     quiet = _quiet_fields()
@@ -425,7 +425,7 @@ def _by_setting(runs: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
     ]
     groups: dict[str, list[dict[str, Any]]] = {}
     for run, config in zip(runs, configs, strict=True):
-        label = " ".join(_flag(name, config.get(name)) for name in varying)
+        label = " ".join(flag(name, config.get(name)) for name in varying)
         groups.setdefault(label, []).append(run)
     return groups
 
@@ -435,7 +435,7 @@ def _setting_names(stems: list[str]) -> list[str]:
     ``gridworld-reward-to-go`` -> ``no-baseline``, ``reward-to-go``).
 
     Examples:
-        >>> from rl_pg.recipes.report import _setting_names
+        >>> from rl_pg.app.report import _setting_names
         >>> _setting_names(["bandit-ema", "bandit-no-baseline"]), _setting_names(["seeds"])
         (['ema', 'no-baseline'], ['seeds'])
     """
@@ -549,7 +549,7 @@ def stored_value(match: re.Match, folder: Path) -> str:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from rl_pg.recipes.report import STORED_VALUE, stored_value
+        >>> from rl_pg.app.report import STORED_VALUE, stored_value
         >>> folder = Path(tempfile.mkdtemp())
         >>> _ = (folder / "b.json").write_text(json.dumps({"ratios": {"a/b": 0.7526}}))
         >>> line = "runs at <!-- value b.json /ratios/a~1b {:.2f}× -->?<!-- /value --> the speed"
@@ -571,7 +571,7 @@ def stored_map(match: re.Match, folder: Path) -> str:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from rl_pg.recipes.report import STORED_MAP, stored_map
+        >>> from rl_pg.app.report import STORED_MAP, stored_map
         >>> folder = Path(tempfile.mkdtemp())
         >>> data = {"rates": {"a": 1234.5, "b": 99}, "runs": {"x": {"s": 1.5, "ok": "2/3"}}}
         >>> _ = (folder / "b.json").write_text(json.dumps(data))
@@ -674,7 +674,7 @@ class Gathered:
     evaluations and a threshold).
 
     Examples:
-        >>> from rl_pg.recipes.report import Gathered
+        >>> from rl_pg.app.report import Gathered
         >>> "{0.count}/{0.n} solved, {0.min:,}–{0.max:,} frames".format(Gathered([900, None, 300]))
         '2/3 solved, 300–900 frames'
         >>> Gathered([900, None, 300]).missing
@@ -769,7 +769,7 @@ def _seeds(seeds: list[int]) -> str:
     """Seeds as a short list: runs of three or more consecutive ones as a range.
 
     Examples:
-        >>> from rl_pg.recipes.report import _seeds
+        >>> from rl_pg.app.report import _seeds
         >>> _seeds([0, 1, 2, 3, 4, 5, 6, 7, 8, 9]), _seeds([0, 1, 2, 4, 5, 8, 9]), _seeds([4])
         ('0–9', '0–2 4 5 8 9', '4')
     """
@@ -790,8 +790,8 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
     ``--lr-control kl``) counts as the default there; a field whose default None is
     resolved by the run's other fields (LunarLander's ``scale_lr_factor``, the
     gridworld's ``threshold``) is compared with what it resolves to for that run."""
+    from rl_pg.app.flags import flag
     from rl_pg.recipes import load
-    from rl_pg.recipes.cli import _flag
     from rl_pg.training import TrainConfig
 
     recipes = {run["report"]["recipe"] for run in runs}
@@ -818,7 +818,7 @@ def _setting(runs: list[dict[str, Any]]) -> list[str]:
             own.append(inert or config[name] == default)
         if not all(own):
             distinct = [v for i, v in enumerate(values) if v not in values[:i]]
-            shown = [_flag(name, v) for v in distinct]
+            shown = [flag(name, v) for v in distinct]
             flags.append(shown[0] if len(shown) == 1 else " / ".join(shown))
     return flags
 
@@ -876,7 +876,7 @@ def format_curves(path: Path) -> str:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from rl_pg.recipes.report import format_curves
+        >>> from rl_pg.app.report import format_curves
         >>> run = lambda name, frames, values, best: {"name": name, "report": {
         ...     "best_at_frames": best}, "curve": {"metric": "eval/mean_return",
         ...     "frames": frames, "values": values}}
@@ -944,7 +944,7 @@ def format_evaluations(path: Path) -> str:
     Examples:
         >>> import json, tempfile
         >>> from pathlib import Path
-        >>> from rl_pg.recipes.report import format_evaluations
+        >>> from rl_pg.app.report import format_evaluations
         >>> greedy = {"mode": "greedy", "episodes": 100, "mean_return": 288.9,
         ...           "std_return": 120.0, "mean_length": 370.0, "mean_route_completion": 0.7543,
         ...           "crash_rate": 0.14}
@@ -1010,7 +1010,7 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
     """The runs as a Markdown table, and how many reached their threshold.
 
     Examples:
-        >>> from rl_pg.recipes.report import format_report
+        >>> from rl_pg.app.report import format_report
         >>> table = format_report([{
         ...     "recipe": "cartpole", "seed": 0, "frames": 20224, "train_wall_s": 1.2,
         ...     "threshold": 475.0, "solved_at_frames": 20224, "best_eval_mean_return": 500.0,

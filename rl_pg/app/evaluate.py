@@ -23,8 +23,8 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
+from rl_pg.app.sources import agent_path
 from rl_pg.recipes import recipe_of
-from rl_pg.recipes.agents import agent_path
 from rl_pg.training import Count, Range, read_run
 
 __all__ = ["EVALUATIONS", "Args", "main"]

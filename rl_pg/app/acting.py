@@ -1,6 +1,6 @@
 """A trained agent in two lines: load it, and ask it for actions.
 
-    from rl_pg.recipes import Agent
+    from rl_pg.app import Agent
     agent = Agent.load("runs/cartpole-seed0")       # a run, checkpoint or agent file
     action = agent.act(observation)                  # as the environment gives it
 
@@ -25,8 +25,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from rl_pg.app.sources import agent_path
 from rl_pg.recipes import recipe_of
-from rl_pg.recipes.agents import agent_path
 from rl_pg.training import load_models, read_run
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.recipe import Recipe
@@ -37,7 +37,7 @@ __all__ = ["Agent"]
 class Agent:
     """A trained agent that acts on its environment's observations.
 
-    Build one with [`Agent.load`][rl_pg.recipes.acting.Agent.load].
+    Build one with [`Agent.load`][rl_pg.app.acting.Agent.load].
 
     Attributes:
         recipe (Recipe): the recipe that trained it.
@@ -48,7 +48,7 @@ class Agent:
 
     Examples:
         >>> import gymnasium as gym
-        >>> from rl_pg.recipes import Agent
+        >>> from rl_pg.app import Agent
         >>> agent = Agent.load("cartpole", pretrained=True)
         >>> env = gym.make("CartPole-v1")
         >>> observation, _ = env.reset(seed=0)
