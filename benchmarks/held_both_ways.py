@@ -36,7 +36,7 @@ import torch
 import tyro
 from common import REPO, table, write_json
 
-from rl_pg.app.report import read_stored
+from rl_pg.app.stores import read_stored
 from rl_pg.recipes import load
 
 

@@ -5,6 +5,8 @@ cartpole recipe's config (flag, default, description), read from the dataclass a
 its field docstrings, the same text ``--help`` prints; ``config_table("play", "Args")``
 names a dataclass of a module of the application, ``rl_pg.app``. ``{{ shipped_agents() }}``
 becomes the table of the agents shipped with rl_pg and the results their files carry.
+A page's stored tables and values are written from their files (``docs/pages.py``), so
+the site shows what the stored results hold even where a page was not refreshed.
 
 ``$$ ... $$`` blocks of LaTeX, and ``$...$`` inside a line, become MathML when the site
 is built (latex2mathml): browsers render MathML themselves, so the maths needs no script
@@ -31,6 +33,7 @@ import os
 import posixpath
 import re
 import shutil
+import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -45,6 +48,9 @@ warnings.filterwarnings(
 
 from rl_pg.app.flags import field_docs  # noqa: E402
 from rl_pg.recipes import load  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the docs' own tooling
+from pages import render  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PATTERN = re.compile(r'\{\{\s*config_table\("(\w+)"(?:,\s*"(\w+)")?\)\s*\}\}')
@@ -197,7 +203,10 @@ def on_page_content(html_text: str, page, config, **kwargs) -> str:
     return html_text
 
 
-def on_page_markdown(markdown: str, **kwargs) -> str:
+def on_page_markdown(markdown: str, page=None, config=None, **kwargs) -> str:
+    if page is not None:  # the stored tables and values as their files hold them
+        folder = Path(config["docs_dir"]) / posixpath.dirname(page.file.src_uri)
+        markdown = render(markdown, folder)
     markdown = inline_maths(DISPLAY_MATH.sub(lambda m: mathml(m.group(1)), markdown))
     markdown = AGENTS.sub(lambda m: shipped_agents(), markdown)
     return PATTERN.sub(lambda m: config_table(m.group(1), m.group(2)), markdown)

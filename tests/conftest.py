@@ -24,6 +24,9 @@ from rl_pg.app.cli import WORKER_IMPORTS
 from rl_pg.checkpoint import load_checkpoint
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states
 
+# The docs' own tooling (docs/pages.py writes the pages' stored tables and figures).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+
 N_OBS = 3
 N_ACT = 4
 

@@ -460,6 +460,20 @@ def test_the_command_works_from_a_wheel_outside_the_checkout(tmp_path):
     assert played.returncode == 0 and "mean return" in played.stdout, played.stderr
 
 
+def refresh_page(page: Path, capsys) -> tuple[int, str, str]:
+    """``python docs/pages.py PAGE`` in this process: (exit status, stdout, stderr)."""
+    from pages import main as refresh
+
+    try:
+        refresh([str(page)])
+        status = 0
+    except SystemExit as stop:
+        status = 1
+        print(stop.code, file=sys.stderr)
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
 def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, capsys):
     runs = _gridworld_runs(tmp_path, capsys)
     for run in runs:
@@ -495,14 +509,14 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         shutil.rmtree(run)
     status, again, err = in_process("report", "--stored", str(stored), capsys=capsys)
     assert status == 0 and again.strip() == table, err
-    # a page shows it between its markers; --refresh rewrites what drifted
+    # a page shows it between its markers; the docs' tooling rewrites what drifted
     page = tmp_path / "RESULTS.md"
     opening = "<!-- rl-pg report --stored results/seeds.json -->"
     page.write_text(f"Intro.\n\n{opening}\n| stale |\n<!-- end of report -->\n\nAfter.\n")
-    status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, out, err = refresh_page(page, capsys)
     assert status == 0 and "refreshed" in out, err
     assert page.read_text() == f"Intro.\n\n{opening}\n{table}\n<!-- end of report -->\n\nAfter.\n"
-    status, out, _ = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, out, _ = refresh_page(page, capsys)
     assert status == 0 and "current" in out
     # performance profiles of two stored settings; a page names one, --refresh draws it
     other = stored.with_name("other.json")
@@ -518,7 +532,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     page.write_text("<!-- rl-pg report --stored results/seeds.json results/other.json "
                     "--profile profile.png -->\n")  # fmt: skip
     (tmp_path / "profile.png").unlink()
-    status, out, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, out, err = refresh_page(page, capsys)
     assert status == 0 and "refreshed" in out and (tmp_path / "profile.png").is_file(), err
     # two stored settings on one figure, one aggregate curve each
     status, out, err = in_process("report", "--stored", str(stored), str(other), "--plot",
@@ -538,9 +552,9 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert first.startswith("| only the flags below | 0 1 |")
     assert shared == "Every row: `--total-updates 2` `--eval-interval 100`."
     # runs of one file that differ in more than their seed are not seeds of one setting
-    from rl_pg.app.report import _by_setting
+    from rl_pg.app.settings import by_setting
 
-    groups = _by_setting(saved_runs["runs"])
+    groups = by_setting(saved_runs["runs"])
     assert {label: len(runs) for label, runs in groups.items()} == {
         "--gamma 1.0": 1, "--gamma 0.9": 1}  # fmt: skip
     status, _, err = in_process("report", "--stored", str(other), "--plot",
@@ -564,7 +578,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     assert status == 0 and "| gridworld: " in two and "| bandit: " in two, err
     page.write_text("<!-- rl-pg report --stored results/seeds.json results/other.json "
                     "--settings -->\n| stale |\n<!-- end of report -->\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     assert out.strip() in page.read_text()
     # the stored evaluations as a table, one column per run, the kept one in bold
     status, curves, err = in_process("report", "--stored", str(stored), "--curves",
@@ -587,7 +601,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
             assert row[column].strip() == (f"**{text}**" if bold else text), (k, row)
     page.write_text("<!-- rl-pg report --stored results/seeds.json --curves -->\n| stale |\n"
                     "<!-- end of report -->\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     assert curves.strip() in page.read_text() and "stale" not in page.read_text()
     # every rl-pg evaluate result of the best and final checkpoints, one row each
     status, evaluations, err = in_process("report", "--stored", str(stored), "--evaluations",
@@ -613,23 +627,23 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         ], row
     page.write_text("<!-- rl-pg report --stored results/seeds.json --evaluations -->\n"
                     "| stale |\n<!-- end of report -->\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     assert evaluations.strip() in page.read_text() and "stale" not in page.read_text()
     # a figure in a sentence: the stored value at a JSON pointer, written by --refresh
     page.write_text("Seed 1 took <!-- value results/seeds.json /runs/1/report/frames "
                     "{:,} --> 12<!-- /value --> frames.\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     frames = saved_runs["runs"][1]["report"]["frames"]
     assert page.read_text().endswith(f"{{:,}} -->{frames:,}<!-- /value --> frames.\n")
     # a figure summarising every entry of a * pointer: how many, how many set, min, max
     page.write_text("The <!-- value results/seeds.json /runs/*/report/frames "
                     "{0.count}/{0.n}:{0.min:,}–{0.max:,} --> ?<!-- /value --> runs.\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     every = [run["report"]["frames"] for run in saved_runs["runs"]]
     assert f"-->2/2:{min(every):,}–{max(every):,}<!-- /value --> runs." in page.read_text()
     page.write_text("<!-- value results/seeds.json /runs/*/report {0.held}/{0.n} -->?<!-- /value "
                     "--> hold.\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     reports = [run["report"] for run in json.loads(stored.read_text())["runs"]]
     held = sum(
         min(r["greedy"]["mean_return"], r["sampled"]["mean_return"]) >= r["threshold"]
@@ -643,24 +657,24 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     (page.parent / "results" / "partly.json").write_text(json.dumps(partly))
     page.write_text("<!-- value results/partly.json /runs/*/report/sampled/mean_return "
                     "{0.count}/{0.n}:{0.missing} -->?<!-- /value --> sampled.\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     assert "-->1/2:1<!-- /value --> sampled." in page.read_text()
     page.write_text("<!-- value results/partly.json /runs/*/report/nowhere/mean_return "
                     "{0.n} -->?<!-- /value -->\n")  # fmt: skip
-    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, _, err = refresh_page(page, capsys)
     assert status == 1 and "has nothing at" in err, err
     # a table of a JSON object's entries, one row each
     page.write_text("<!-- table results/seeds.json /runs/1/report {} | entry | value -->\n"
                     "| stale |\n<!-- end of table -->\n")  # fmt: skip
-    assert in_process("report", "--refresh", str(page), capsys=capsys)[0] == 0
+    assert refresh_page(page, capsys)[0] == 0
     assert f"| frames | {frames:,} |" in page.read_text() and "stale" not in page.read_text()
     page.write_text("<!-- table results/seeds.json /runs/1/report/frames {} | a | b -->\n"
                     "<!-- end of table -->\n")  # fmt: skip
-    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, _, err = refresh_page(page, capsys)
     assert status == 1 and "not an object of rows" in err, err
     page.write_text("<!-- table results/seeds.json /runs/1 {} | a | b | c -->\n"
                     "<!-- end of table -->\n")  # fmt: skip
-    status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+    status, _, err = refresh_page(page, capsys)
     assert status == 1 and "needs one for the rows and one for each of its values" in err, err
     # a marker that cannot be written names what is wrong with it
     for marker, message in [
@@ -670,7 +684,7 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
         ("results/seeds.json /runs/*/report/frames {:,}", "gathers several values"),
     ]:
         page.write_text(f"A <!-- value {marker} -->1<!-- /value -->.\n")
-        status, _, err = in_process("report", "--refresh", str(page), capsys=capsys)
+        status, _, err = refresh_page(page, capsys)
         assert status == 1 and message in err and err.count("\n") == 1, (marker, err)
     # runs that stopped when solved: the share of them solved by each frame
     status, out, err = in_process("report", "--stored", str(stored), "--plot",
@@ -707,8 +721,8 @@ def test_report_stores_its_table_and_refreshes_pages_from_the_file(tmp_path, cap
     short_curve.write_text(json.dumps(broken))
     # what cannot be done says so
     for args, message in [
-        (("report",), "one of the three"),
-        (("report", runs[0], "--stored", str(stored)), "one of the three"),
+        (("report",), "one of the two"),
+        (("report", runs[0], "--stored", str(stored)), "one of the two"),
         (("report", "--stored", str(tmp_path)), "is not a stored report"),
         (("report", "--profile", "x.png"), "name them with --stored"),
         (("report", runs[0], "--settings"), "compares stored files"),
@@ -742,7 +756,7 @@ def test_a_setting_names_a_resolved_default_only_where_a_run_left_it():
     # LunarLander's scale_lr_factor defaults to None, resolved by the policy (30 for the
     # continuous Gaussian, 1 otherwise) and stored resolved: a run at its policy's
     # value shows no flag, a run that set another one does.
-    from rl_pg.app.report import _setting
+    from rl_pg.app.settings import setting_flags
     from rl_pg.training.config import config_dict
 
     lunarlander = load("lunarlander")
@@ -751,15 +765,15 @@ def test_a_setting_names_a_resolved_default_only_where_a_run_left_it():
         config = config_dict(lunarlander.config(**flags))
         return [{"report": {"recipe": "lunarlander"}, "config": config}]
 
-    assert _setting(runs()) == []
-    assert _setting(runs(continuous=True)) == ["--continuous"]
-    assert sorted(_setting(runs(continuous=True, scale_lr_factor=1.0))) == [
+    assert setting_flags(runs()) == []
+    assert setting_flags(runs(continuous=True)) == ["--continuous"]
+    assert sorted(setting_flags(runs(continuous=True, scale_lr_factor=1.0))) == [
         "--continuous",
         "--scale-lr-factor 1.0",
     ]
-    assert _setting(runs(scale_lr_factor=1.0)) == []
+    assert setting_flags(runs(scale_lr_factor=1.0)) == []
     both = runs(continuous=True) + runs(continuous=True, scale_lr_factor=10.0)
-    assert sorted(_setting(both)) == [
+    assert sorted(setting_flags(both)) == [
         "--continuous",
         "--scale-lr-factor 30.0 / --scale-lr-factor 10.0",
     ]
@@ -798,59 +812,6 @@ def test_no_number_opens_a_line_inside_a_sentence():
         and not before.lstrip().startswith(("|", "<", "#"))
     ]
     assert not opening, f"a number that opens a line in a sentence (join it): {opening}"
-
-
-def test_every_stored_table_and_figure_in_the_repository_is_current(tmp_path):
-    from matplotlib.testing.compare import compare_images
-
-    from rl_pg.app.report import (
-        STORED_FIGURE,
-        STORED_MAP,
-        STORED_TABLE,
-        STORED_VALUE,
-        draw_stored,
-        stored_map,
-        stored_table,
-        stored_value,
-    )
-
-    pages = [
-        REPO / "README.md",
-        REPO / "RESULTS.md",
-        REPO / "benchmarks" / "README.md",
-        *sorted((REPO / "docs").rglob("*.md")),
-    ]
-    found = 0
-    for page in pages:
-        for match in STORED_TABLE.finditer(page.read_text()):
-            found += 1
-            expected = stored_table(match, page.parent)
-            assert match["table"].strip() == expected, (
-                f"{page.name}: the table of {match['files']} is not what the file holds; "
-                f"run rl-pg report --refresh {page.relative_to(REPO)}"
-            )
-        for match in STORED_MAP.finditer(page.read_text()):
-            found += 1
-            assert match["table"].strip() == stored_map(match, page.parent), (
-                f"{page.name}: the table of {match['file']}'s {match['pointer']} is not what "
-                f"the file holds; run rl-pg report --refresh {page.relative_to(REPO)}"
-            )
-        for match in STORED_VALUE.finditer(page.read_text()):
-            found += 1
-            assert match["value"] == stored_value(match, page.parent), (
-                f"{page.name}: {match['value']!r} is not {match['file']}'s "
-                f"{match['pointer']}; run rl-pg report --refresh {page.relative_to(REPO)}"
-            )
-        for match in STORED_FIGURE.finditer(page.read_text()):
-            found += 1
-            drawn = draw_stored(match, page.parent, tmp_path / f"{found}.png")
-            # a tolerance for another matplotlib's anti-aliasing, not for other data
-            difference = compare_images(str(page.parent / match["figure"]), str(drawn), tol=2)
-            assert difference is None, (
-                f"{page.name}: {match['figure']} is not drawn from {match['files']} "
-                f"({difference}); run rl-pg report --refresh {page.relative_to(REPO)}"
-            )
-    assert found >= 3
 
 
 def test_torn_or_bad_records_cost_only_themselves(tmp_path, capsys):
@@ -967,7 +928,7 @@ def test_a_recipe_module_that_fails_to_import_says_why(tmp_path, monkeypatch):
 
 def test_a_reported_evaluation_shows_its_crash_rate():
     """The driving recipes' targets count crashes: the table says how many."""
-    from rl_pg.app.report import format_report
+    from rl_pg.app.tables import format_report
 
     record = {"mean_return": 21.5, "std_return": 2.2, "episodes": 100, "crashed_rate": 0.02}
     report = {"recipe": "highway", "seed": 0, "frames": 50_176, "train_wall_s": 948.0,
@@ -1064,7 +1025,6 @@ def test_commands_write_only_names_they_own(tmp_path, capsys, monkeypatch):
         (("report", "run", "--store", "table.txt"), "its name ends in .json, e.g. table.json"),
         (("report", "run", "--plot", "curves.pdf"), "its name ends in .png, e.g. curves.png"),
         (("export", "run", "--out", "folder/"), "its name ends in .pt, e.g. folder.pt"),
-        (("report", "--refresh", "nothing.md"), "--refresh nothing.md: no such file"),
     ):
         status, _, err = in_process(*args, capsys=capsys)
         assert status == 1 and expected in err and err.count("\n") == 1, (args, err)
@@ -1076,18 +1036,6 @@ def test_commands_write_only_names_they_own(tmp_path, capsys, monkeypatch):
         assert in_process("export", "run", "--out", "agent.pt", capsys=capsys)[0] == 0, twice
     assert in_process("report", "run", "--store", "notes.json", "--replace", capsys=capsys)[0] == 0
     assert json.loads(Path("notes.json").read_text())["runs"]
-
-
-def test_a_stored_figure_never_replaces_a_file_that_is_not_a_figure(tmp_path):
-    from rl_pg.app.report import refresh
-
-    (tmp_path / "store.json").write_text(json.dumps({"runs": []}))
-    (tmp_path / "setup.cfg").write_text("[tool]\n")
-    page = tmp_path / "page.md"
-    page.write_text("<!-- rl-pg report --stored store.json --plot setup.cfg -->\n")
-    with pytest.raises(ValueError, match=r"setup\.cfg exists and is a file this command did not"):
-        refresh(page)
-    assert (tmp_path / "setup.cfg").read_text() == "[tool]\n"
 
 
 def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(tmp_path):

@@ -26,7 +26,9 @@ import matplotlib.pyplot as plt
 import torch
 from IPython.display import Image, Markdown
 
-from rl_pg.app.report import format_report, plot_stored, read_stored
+from rl_pg.app.figures import plot_stored
+from rl_pg.app.stores import read_stored
+from rl_pg.app.tables import format_report
 from rl_pg.recipes import load
 from rl_pg.training.curves import read_curve
 

@@ -37,8 +37,9 @@ from IPython.display import Image, Markdown
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rl_pg import ReinforceLoss
-from rl_pg.app.report import format_evaluations, plot_stored
+from rl_pg.app.figures import plot_stored
 from rl_pg.app.sources import shipped_agent
+from rl_pg.app.tables import format_evaluations
 from rl_pg.functional import reward_to_go
 from rl_pg.recipes import load
 from rl_pg.training import load_models, read_run

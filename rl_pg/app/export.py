@@ -32,8 +32,8 @@ from typing import Any, Literal
 import tyro
 
 from rl_pg._checks import require_extra
-from rl_pg.app.report import read_report
 from rl_pg.app.sources import HUB_FILE
+from rl_pg.app.stores import read_report
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states, resolve_latest

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from rl_pg.app.report import read_report
+from rl_pg.app.stores import read_report
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
 from rl_pg.groups import GROUP_BASELINES
