@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from hypothesis import settings
+from hypothesis import Phase, settings
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
@@ -35,6 +35,13 @@ N_ACT = 4
 settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+# benchmarks/mutation.py needs to know that a test fails, not its smallest example: a
+# failing property is not shrunk (which can take a minute a mutant).
+settings.register_profile(
+    "mutation", derandomize=True, phases=[Phase.explicit, Phase.reuse, Phase.generate]
+)
+if os.environ.get("RL_PG_MUTATION"):
+    settings.load_profile("mutation")
 
 # One torch thread per test process: pytest-xdist runs one test process per core, and two
 # processes of two threads each on two cores made the in-process tests 2-3x slower

@@ -470,3 +470,41 @@ def test_loggers_times_each_backend_beside_the_csv_logs(tmp_path, monkeypatch):
     assert out["training_over_csv_only"]["csv only"] == 1.0
     assert all(len(times) == 1 and times[0] > 0 for times in out["training_s"].values())
     assert json.loads((tmp_path / "l.json").read_text())["command_extra_s"]["csv only"] == 0
+
+
+def test_mutation_makes_one_small_bug_at_a_time_outside_messages_and_docs():
+    mutation = _script("mutation")
+    source = '''def f(x, y):
+    """Doc: 1 < 2."""
+    if x < y and not y:
+        raise ValueError(f"x={x + 1} is wrong")
+    return -x * 2 + 0.5
+'''
+    found = {m.key for m in mutation.mutants(source)}  # none in the message, the docstring
+    assert found == {
+        "3:7 bool And->Or", "3:7 compare 0 Lt->LtE", "3:7 negate condition", "3:17 drop Not",
+        "5:11 binary Add->Sub", "5:11 binary Mult->Div", "5:11 drop USub",
+        "5:16 constant 2->3", "5:20 constant 0.5->1.0",
+    }  # fmt: skip
+    namespace = {}
+    for mutant in mutation.mutants(source):
+        exec(mutation.apply(source, mutant), namespace)  # each one compiles and differs
+        exec(source, original := {})
+        changed = [
+            (x, y) for x in (-2, 0, 3) for y in (0, 1, 5)
+            if _outcome(namespace["f"], x, y) != _outcome(original["f"], x, y)
+        ]  # fmt: skip
+        assert changed, mutant.key
+    outcomes = {"3:7 bool And->Or": "killed", "5:16 constant 2->3": "survived", "4:1 x": "timeout"}
+    results = {"modules": {"rl_pg.m": {"total": 3, "mutants": outcomes}}}
+    mutation._summarise(results)
+    assert results["summary"]["rl_pg.m"] == {"mutants": 3, "scored": 3, "killed": 2,
+                                             "score": 2 / 3}  # fmt: skip
+    assert results["modules"]["rl_pg.m"]["survivors"] == ["5:16 constant 2->3"]
+
+
+def _outcome(f, *args):
+    try:
+        return f(*args)
+    except ValueError:
+        return "raised"

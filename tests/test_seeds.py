@@ -82,6 +82,27 @@ def test_only_the_clashing_stream_of_a_run_moves():
     assert min(evaluation_seed(1), fresh_seed(2), replay_seed(3)) >= 2**31
 
 
+def test_training_seeds_lie_below_two_to_the_31():
+    # Above 2**31 lie the laid-out streams; run 3000's first restart seed, 3000·P,
+    # is above 2**31 before the modulus (and still above it modulo 2**32).
+    rng = random.Random(1)
+    for seed in [3000, 2**32 - 1, *(rng.randrange(2**32) for _ in range(200))]:
+        for updates in (0, 1, 10**6):
+            assert training_seed(seed, updates) == (seed * P + updates) % 2**31
+    assert training_seed(3000, 0) == 3000 * P - 2**31
+
+
+def test_laid_out_streams_take_the_seeds_the_layout_gives_them():
+    """A stream laid out above 2**31 starts at 2**31 + (4s + k)·2**14 (k: its place,
+    confirmation 0 to replay 3): runs checkpoint the seeds they evaluate on, and these
+    are the ones they were selected on."""
+    width = 2**14
+    assert [confirmation_seed(s) for s in (0, 5)] == [2**31, 2**31 + 20 * width]
+    assert evaluation_seed(1) == 2**31 + 5 * width  # each moved from its kept value
+    assert fresh_seed(2) == 2**31 + 10 * width
+    assert replay_seed(3) == 2**31 + 15 * width
+
+
 def test_confirmation_is_apart_from_the_replays_and_laid_out_runs_apart():
     firsts = sorted(
         stream_seed(name, s) for s in range(2**10) for name in STREAMS[2:]

@@ -1,0 +1,350 @@
+"""Mutation testing of rl_pg's core: one deliberate small bug at a time (a comparison
+turned round, a sign flipped, a constant moved by one, a condition negated), and the
+tests of that module run against it. A mutant the tests fail on is killed; one they pass
+on survived, and is either a gap in the tests or a change that cannot be told apart from
+the code (an equivalent mutant, argued in ``EQUIVALENT``).
+
+    python benchmarks/mutation.py --modules functional training.seeds  # these modules
+    python benchmarks/mutation.py                 # the whole core: hours
+    python benchmarks/mutation.py --survivors     # the survivors again, once tests changed
+    python benchmarks/mutation.py --targets       # the targets, their tests and mutants
+
+Scores go to ``benchmarks/results/mutation.json`` after every mutant, so a stopped run
+continues where it was; a module whose source changed is scored afresh. The heavy
+imports (torch, TorchRL, pytest) happen once: each mutant's tests run in a fork of this
+process, on a copy of the package, so a mutant costs what its tests take.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+import os
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tyro
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results" / "mutation.json"
+
+TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
+    "rl_pg.functional": ["tests/test_functional.py"],
+    "rl_pg._scan": ["tests/test_scan.py", "tests/test_functional.py"],
+    "rl_pg.estimators": ["tests/test_estimators.py"],
+    "rl_pg.baselines": ["tests/test_baselines.py"],
+    "rl_pg.groups": ["tests/test_groups.py"],
+    "rl_pg.loss": ["tests/test_loss.py", "tests/test_loss_torchrl_compat.py"],
+    "rl_pg.discretize": ["tests/test_discretize.py"],
+    "rl_pg.training.seeds": ["tests/test_seeds.py"],
+    "rl_pg.checkpoint": ["tests/test_checkpoint.py"],
+    "rl_pg.gradient_noise": ["tests/test_gradient_statistics.py"],
+    "rl_pg.gradient_statistics": ["tests/test_gradient_statistics.py"],
+    "rl_pg.training.selection": ["tests/test_selection.py"],
+    "rl_pg.episode_workers": ["tests/test_evaluation.py"],
+    "rl_pg.collectors": ["tests/test_collectors.py"],
+}
+"""The core's modules, each with the tests that answer for it."""
+
+EQUIVALENT: dict[str, str] = {
+    "rl_pg.training.seeds:105:11 compare 0 LtE->Lt": (
+        "a training span that ends exactly at 2**31 (runs 2**31 - 1 and 2**32 - 1) then "
+        "also claims the members past it; both runs' streams lie elsewhere either way "
+        "(stream_seed gives the same four seeds under the mutant)"
+    ),
+}
+"""Mutants that change no behaviour (``module:line:col operator`` -> why), left out of
+the score."""
+
+_FLIP_COMPARE = {
+    ast.Lt: ast.LtE, ast.LtE: ast.Lt, ast.Gt: ast.GtE, ast.GtE: ast.Gt,
+    ast.Eq: ast.NotEq, ast.NotEq: ast.Eq, ast.Is: ast.IsNot, ast.IsNot: ast.Is,
+    ast.In: ast.NotIn, ast.NotIn: ast.In,
+}  # fmt: skip
+_FLIP_BINARY = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult}
+
+
+@dataclass(frozen=True)
+class Mutant:
+    line: int
+    col: int
+    change: str
+
+    @property
+    def key(self) -> str:
+        return f"{self.line}:{self.col} {self.change}"
+
+
+def _skipped(tree: ast.Module) -> set[int]:
+    """Nodes no mutant touches: error messages and checks' raises, docstrings, type
+    annotations, ``__all__``, and logging or printing."""
+    skip: set[int] = set()
+
+    def all_of(node: ast.AST) -> None:
+        skip.update(id(n) for n in ast.walk(node))
+
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Raise, ast.JoinedStr, ast.Assert)):
+            all_of(node)
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef, ast.Module)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                all_of(body[0])
+            if not isinstance(node, (ast.ClassDef, ast.Module)):
+                for arg in [*node.args.args, *node.args.kwonlyargs, *node.args.posonlyargs]:
+                    if arg.annotation is not None:
+                        all_of(arg.annotation)
+                if node.returns is not None:
+                    all_of(node.returns)
+        elif isinstance(node, ast.AnnAssign):
+            all_of(node.annotation)
+        elif isinstance(node, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets
+        ):
+            all_of(node)
+        elif isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            all_of(node)  # an attribute's docstring
+        elif isinstance(node, ast.Call) and ast.unparse(node.func) in ("print", "warnings.warn"):
+            all_of(node)
+    return skip
+
+
+def mutants(source: str) -> list[Mutant]:
+    """Every mutant of ``source``, in the order of the source."""
+    tree = ast.parse(source)
+    skip = _skipped(tree)
+    found = []
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        where = (node.lineno, node.col_offset) if hasattr(node, "lineno") else None
+        if isinstance(node, ast.Compare):
+            for i, op in enumerate(node.ops):
+                if type(op) in _FLIP_COMPARE:
+                    found.append(Mutant(*where, f"compare {i} {type(op).__name__}->"
+                                                f"{_FLIP_COMPARE[type(op)].__name__}"))  # fmt: skip
+        elif isinstance(node, (ast.BinOp, ast.AugAssign)) and type(node.op) in _FLIP_BINARY:
+            new = _FLIP_BINARY[type(node.op)].__name__
+            found.append(Mutant(*where, f"binary {type(node.op).__name__}->{new}"))
+        elif isinstance(node, ast.BoolOp):
+            other = "Or" if isinstance(node.op, ast.And) else "And"
+            found.append(Mutant(*where, f"bool {type(node.op).__name__}->{other}"))
+        elif isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.Not, ast.USub)):
+            found.append(Mutant(*where, f"drop {type(node.op).__name__}"))
+        elif isinstance(node, ast.Constant) and type(node.value) in (bool, int, float):
+            found.append(Mutant(*where, f"constant {node.value!r}->{_moved(node.value)!r}"))
+        elif isinstance(node, (ast.If, ast.While)) and not isinstance(node.test, ast.Constant):
+            found.append(Mutant(node.test.lineno, node.test.col_offset, "negate condition"))
+    return sorted(set(found), key=lambda m: (m.line, m.col, m.change))
+
+
+def _moved(value):
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int):
+        return value + 1
+    return value * 2 if value else 1.0
+
+
+def apply(source: str, mutant: Mutant) -> str:
+    """``source`` with ``mutant`` applied."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        line, col = getattr(node, "lineno", None), getattr(node, "col_offset", None)
+        kind, *rest = mutant.change.split(" ", 1)
+        if kind == "negate" and isinstance(node, (ast.If, ast.While)):
+            if (node.test.lineno, node.test.col_offset) == (mutant.line, mutant.col):
+                node.test = ast.UnaryOp(op=ast.Not(), operand=node.test)
+                return ast.unparse(tree)
+            continue
+        if (line, col) != (mutant.line, mutant.col):
+            continue
+        if kind == "compare" and isinstance(node, ast.Compare):
+            i = int(rest[0].split()[0])
+            node.ops[i] = _FLIP_COMPARE[type(node.ops[i])]()
+        elif kind == "binary" and isinstance(node, (ast.BinOp, ast.AugAssign)):
+            node.op = _FLIP_BINARY[type(node.op)]()
+        elif kind == "bool" and isinstance(node, ast.BoolOp):
+            node.op = ast.Or() if isinstance(node.op, ast.And) else ast.And()
+        elif kind == "drop" and isinstance(node, ast.UnaryOp):
+            _replace(tree, node, node.operand)
+        elif kind == "constant" and isinstance(node, ast.Constant):
+            node.value = _moved(node.value)
+        else:
+            continue
+        return ast.unparse(tree)
+    raise ValueError(f"no node for mutant {mutant.key}")
+
+
+def _replace(tree: ast.AST, old: ast.AST, new: ast.AST) -> None:
+    for parent in ast.walk(tree):
+        for name, value in ast.iter_fields(parent):
+            if value is old:
+                setattr(parent, name, new)
+                return
+            if isinstance(value, list) and any(v is old for v in value):
+                value[next(i for i, v in enumerate(value) if v is old)] = new
+                return
+
+
+def _run_tests(root: Path, tests: list[str], timeout: float) -> str:
+    """``killed``, ``survived`` or ``timeout``: the tests of the package copy in
+    ``root``, in a fork of this process."""
+    pid = os.fork()
+    if pid == 0:  # the child: a fresh rl_pg from the copy, the heavy imports kept
+        code = 3
+        try:
+            import pytest
+
+            for name in list(sys.modules):
+                if name == "rl_pg" or name.startswith(("rl_pg.", "test_", "conftest", "pages")):
+                    del sys.modules[name]
+            sys.path.insert(0, str(root))
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1), os.dup2(devnull, 2)
+            code = pytest.main([
+                *[str(root / t) for t in tests], "-x", "-q", "-p", "no:cacheprovider",
+                "--doctest-modules",
+                "-p", "no:xdist", "-p", "no:randomly", "-o", "addopts=", "--rootdir", str(root),
+                "-W", "ignore",
+            ])  # fmt: skip
+        finally:
+            os._exit(int(code))
+    deadline = time.monotonic() + timeout
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            code = os.waitstatus_to_exitcode(status)
+            return "survived" if code == 0 else "killed"
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return "timeout"
+        time.sleep(0.05)
+
+
+@dataclass
+class Args:
+    """Mutation testing of rl_pg's core modules."""
+
+    modules: list[str] = field(default_factory=list)
+    """Modules to mutate, by their name after ``rl_pg.`` (default: every target)."""
+    limit: int | None = None
+    """At most this many new mutants per module in this run (the rest next time)."""
+    survivors: bool = False
+    """Score the mutants that survived again (after the tests changed), and no others."""
+    targets: bool = False
+    """Print the targets, their tests and their mutants' counts, and stop."""
+
+
+def main(args: Args) -> dict:
+    names = [f"rl_pg.{m}" if not m.startswith("rl_pg") else m for m in args.modules] or list(
+        TARGETS
+    )
+    unknown = [n for n in names if n not in TARGETS]
+    if unknown:
+        sys.exit(f"mutation.py: no target {unknown}; the targets are {sorted(TARGETS)}.")
+    if args.targets:
+        for name in names:
+            source = (REPO / (name.replace(".", "/") + ".py")).read_text()
+            print(f"{name}: {len(mutants(source))} mutants; tests {' '.join(TARGETS[name])}")
+        return {}
+    sys.dont_write_bytecode = True  # a mutant's bytecode must never be read for another's
+    os.environ["RL_PG_MUTATION"] = "1"  # hypothesis: the same examples, none shrunk
+    import numpy  # noqa: F401  (the heavy imports, once, before the forks)
+    import pytest  # noqa: F401
+    import tensordict  # noqa: F401
+    import torch
+    import torchrl  # noqa: F401
+
+    torch.set_num_threads(1)
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"modules": {}}
+    with tempfile.TemporaryDirectory(prefix="rl_pg-mutation-") as tmp:
+        root = Path(tmp)
+        for part in ("rl_pg", "tests", "docs", "pyproject.toml"):
+            source = REPO / part
+            if source.is_dir():
+                shutil.copytree(source, root / part, ignore=shutil.ignore_patterns("__pycache__"))
+            else:
+                shutil.copy(source, root / part)
+        for name in names:
+            _score_module(name, root, results, args.limit, again=args.survivors)
+    return results
+
+
+def _score_module(
+    name: str, root: Path, results: dict, limit: int | None, *, again: bool = False
+) -> None:
+    path = root / (name.replace(".", "/") + ".py")
+    original = path.read_text()
+    digest = hashlib.sha256(original.encode()).hexdigest()[:16]
+    entry = results["modules"].get(name)
+    if entry is None or entry.get("source") != digest:
+        entry = results["modules"][name] = {"source": digest, "tests": TARGETS[name], "mutants": {}}
+    started = time.monotonic()
+    tests = [*TARGETS[name], str(path.relative_to(root))]  # and the module's doctests
+    baseline = _run_tests(root, tests, timeout=3600)
+    seconds = time.monotonic() - started
+    if baseline != "survived":
+        sys.exit(f"mutation.py: the tests of {name} fail without a mutant; fix them first.")
+    timeout = 3 * seconds + 20
+    every = mutants(original)
+    entry["total"] = len(every)
+    if again:
+        todo = [m for m in every if entry["mutants"].get(m.key) == "survived"]
+    else:
+        todo = [m for m in every if m.key not in entry["mutants"]]
+    print(f"{name}: {len(todo)} mutants to score (tests take {seconds:.0f} s)", flush=True)
+    for number, mutant in enumerate(todo[:limit] if limit else todo, start=1):
+        path.write_text(apply(original, mutant))
+        began = time.monotonic()
+        try:
+            outcome = _run_tests(root, tests, timeout)
+        finally:
+            path.write_text(original)
+        entry["mutants"][mutant.key] = outcome
+        _save(results)
+        took = time.monotonic() - began
+        print(f"  [{number}/{len(todo)}] {mutant.key}: {outcome} ({took:.0f} s)", flush=True)
+
+
+def _summarise(results: dict) -> None:
+    """Each module's score and survivors, and the core's, as the docs show them: killed
+    over scored, equivalent mutants left out, a timeout counted as killed."""
+    summary, killed, scored = {}, 0, 0
+    for name, entry in results["modules"].items():
+        outcomes = {k: v for k, v in entry["mutants"].items() if f"{name}:{k}" not in EQUIVALENT}
+        own = sum(v != "survived" for v in outcomes.values())
+        summary[name] = {
+            "mutants": entry.get("total", len(entry["mutants"])),
+            "scored": len(outcomes),
+            "killed": own,
+            "score": own / len(outcomes) if outcomes else None,
+        }
+        entry["survivors"] = sorted(
+            (k for k, v in outcomes.items() if v == "survived"),
+            key=lambda k: int(k.split(":")[0]),
+        )
+        killed, scored = killed + own, scored + len(outcomes)
+    results["summary"] = summary
+    results["killed"], results["scored"] = killed, scored
+    results["score"] = killed / scored if scored else None
+    results["equivalent"] = EQUIVALENT
+
+
+def _save(results: dict) -> None:
+    _summarise(results)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    tmp = RESULTS.with_suffix(".tmp")
+    tmp.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, RESULTS)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
