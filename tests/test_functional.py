@@ -318,6 +318,38 @@ class TestBadInput:
         with pytest.raises(ValueError, match="time_dim=-2 is out of range"):
             fn(torch.zeros(5), torch.zeros(5, dtype=torch.bool), 0.9)
 
+    def test_time_dim_one_past_the_last_dimension(self, fn):
+        with pytest.raises(ValueError, match="time_dim=2 is out of range"):
+            fn(torch.zeros(2, 3), torch.zeros(2, 3, dtype=torch.bool), 0.9, time_dim=2)
+
+    def test_gamma_tensor_on_the_bounds_is_accepted(self, fn):
+        # 0 and 1 belong to [0, 1]: a row of each, as per-row discounts.
+        reward, done = torch.ones(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool)
+        both = fn(reward, done, torch.tensor([[[1.0]], [[0.0]]]))
+        torch.testing.assert_close(both[0], fn(reward, done, 1.0)[0])
+        torch.testing.assert_close(both[1], fn(reward, done, 0.0)[1])
+
+    def test_gamma_tensor_names_its_first_value_outside_the_bounds(self, fn):
+        gamma = torch.tensor([1.0, 0.0, 2.0, 3.0]).reshape(4, 1, 1)
+        with pytest.raises(ValueError, match=r"got a value of 2\.0\."):
+            fn(torch.zeros(4, 3, 1), torch.zeros(4, 3, 1, dtype=torch.bool), gamma)
+
+    @pytest.mark.parametrize("dtype", [torch.bool, torch.complex64])
+    def test_gamma_tensor_of_booleans_or_complex_numbers(self, fn, dtype):
+        gamma = torch.ones(2, 1, 1, dtype=dtype)
+        with pytest.raises(TypeError, match="gamma must hold real numbers"):
+            fn(torch.zeros(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool), gamma)
+
+    def test_a_one_element_gamma_tensor_is_a_number_whatever_its_shape(self, fn):
+        reward, done = torch.ones(2, 3, 1), torch.zeros(2, 3, 1, dtype=torch.bool)
+        gamma = torch.full((1, 1, 1, 1), 0.5)  # more dimensions than the rewards
+        torch.testing.assert_close(fn(reward, done, gamma), fn(reward, done, 0.5))
+
+    def test_a_mask_names_its_first_value_that_is_not_zero_or_one(self, fn):
+        done = torch.tensor([[[0.0], [1.0], [0.5]]])
+        with pytest.raises(ValueError, match=r"with value 0\.5\."):
+            fn(torch.ones(1, 3, 1), done, 0.9)
+
     def test_integer_reward(self, fn):
         with pytest.raises(TypeError, match="reward must be a floating-point tensor"):
             fn(torch.zeros(2, 3, 1, dtype=torch.long), torch.zeros(2, 3, 1, dtype=torch.bool), 0.9)

@@ -101,6 +101,10 @@ def test_laid_out_streams_take_the_seeds_the_layout_gives_them():
     assert evaluation_seed(1) == 2**31 + 5 * width  # each moved from its kept value
     assert fresh_seed(2) == 2**31 + 10 * width
     assert replay_seed(3) == 2**31 + 15 * width
+    # Run 237371392 trains on the seeds just below 2**31 and their members past it, where
+    # its slot (4s = 0 modulo 2**17) would start: its confirmation steps on one run's slots.
+    assert training_seed(237371392, 0) > 2**31 - P
+    assert confirmation_seed(237371392) == 2**31 + 4 * width
 
 
 def test_confirmation_is_apart_from_the_replays_and_laid_out_runs_apart():
