@@ -52,7 +52,43 @@ TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
 }
 """The core's modules, each with the tests that answer for it."""
 
+_THREADS = (
+    "how many threads the return kernel runs on: its results are the same for any count "
+    "(tests/test_scan.py checks the parallel kernel against the serial one)"
+)
+_LAST_OF_2D = "the scan's tensors are [rows, steps]: dimension -1 is dimension 1"
 EQUIVALENT: dict[str, str] = {
+    **{
+        f"rl_pg._scan:{key}": _THREADS
+        for key in (
+            "41:7 compare 0 Lt->LtE",
+            "42:15 constant 1->2",
+            "47:16 binary Add->Sub",
+            "47:16 binary Sub->Add",
+            "47:42 constant 1->2",
+            "48:15 constant 1->2",
+        )
+    },
+    **{
+        f"rl_pg._scan:{key}": _LAST_OF_2D
+        for key in (
+            "70:27 drop USub",
+            "76:16 drop USub",
+            "80:16 drop USub",
+            "88:52 drop USub",
+            "89:29 drop USub",
+        )
+    },
+    "rl_pg._scan:72:10 compare 0 Lt->LtE": (
+        "one more doubling step with shift >= steps slices nothing off and adds nothing"
+    ),
+    "rl_pg._scan:86:22 constant True->False": (
+        "a row's first step starts an episode either way: the running maximum of the start "
+        "positions is 0 before any marked start"
+    ),
+    "rl_pg._scan:103:34 constant 0->1": (
+        "reward[:0] is read for its dtype alone, which reward[:1] has too"
+    ),
     "rl_pg.training.seeds:105:11 compare 0 LtE->Lt": (
         "a training span that ends exactly at 2**31 (runs 2**31 - 1 and 2**32 - 1) then "
         "also claims the members past it; both runs' streams lie elsewhere either way "
@@ -342,7 +378,7 @@ def _save(results: dict) -> None:
     _summarise(results)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     tmp = RESULTS.with_suffix(".tmp")
-    tmp.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
+    tmp.write_text(json.dumps(results, indent=1) + "\n")
     os.replace(tmp, RESULTS)
 
 

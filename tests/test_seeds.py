@@ -82,6 +82,18 @@ def test_only_the_clashing_stream_of_a_run_moves():
     assert min(evaluation_seed(1), fresh_seed(2), replay_seed(3)) >= 2**31
 
 
+def test_a_stream_that_starts_where_the_training_span_ends_keeps_its_value():
+    # Run 2**30 trains on [2**30, 2**30 + P); its evaluations start at 2**30 + P, right
+    # after: adjacent, not overlapping.
+    assert stream_span("training", 2**30) == [(2**30, P)]
+    assert evaluation_seed(2**30) == 2**30 + P
+
+
+def test_a_run_started_now_keeps_the_laid_out_streams():
+    assert seeds.run_streams(1) == {"evaluation": evaluation_seed(1),
+                                    "confirmation": confirmation_seed(1)}  # fmt: skip
+
+
 def test_training_seeds_lie_below_two_to_the_31():
     # Above 2**31 lie the laid-out streams; run 3000's first restart seed, 3000·P,
     # is above 2**31 before the modulus (and still above it modulo 2**32).
