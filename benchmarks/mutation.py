@@ -86,6 +86,14 @@ EQUIVALENT: dict[str, str] = {
         "a row's first step starts an episode either way: the running maximum of the start "
         "positions is 0 before any marked start"
     ),
+    **{
+        f"rl_pg.estimators:{key}": (
+            "the work above which the estimator reuses the following step's V(s_t) as "
+            "V(s_{t+1}): the values are the same either way "
+            "(test_next_values_taken_from_the_following_step_match_a_full_pass)"
+        )
+        for key in ("25:17 constant 1->2", "25:22 constant 21->22")
+    },
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

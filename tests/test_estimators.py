@@ -96,7 +96,7 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(batch["advantage"], expected - value)
         assert not batch["value_target"].requires_grad
 
-    @pytest.mark.parametrize("differentiable", [True, False])
+    @pytest.mark.parametrize("differentiable", [True, False, "default"])
     def test_differentiable_as_torchrl_gradients_reach_inputs_never_the_critic(
         self, cls, fn, batch, differentiable
     ):
@@ -108,9 +108,11 @@ class TestMonteCarloEstimators:
         torch.manual_seed(0)
         critic = make_critic()
         batch = _truncate(batch)
+        given = {} if differentiable == "default" else {"differentiable": differentiable}
+        differentiable = given.get("differentiable", False)  # TorchRL's default: no graph
         for estimator in (
-            cls(gamma=0.9, value_network=critic, differentiable=differentiable),
-            TD1Estimator(gamma=0.9, value_network=critic, differentiable=differentiable),
+            cls(gamma=0.9, value_network=critic, **given),
+            TD1Estimator(gamma=0.9, value_network=critic, **given),
         ):
             data = batch.clone()
             observation = data["observation"].detach().requires_grad_(True)
