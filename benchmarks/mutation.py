@@ -37,7 +37,10 @@ RESULTS = REPO / "benchmarks" / "results" / "mutation.json"
 TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
     "rl_pg.functional": ["tests/test_functional.py"],
     "rl_pg._scan": ["tests/test_scan.py", "tests/test_functional.py"],
-    "rl_pg.estimators": ["tests/test_estimators.py"],
+    "rl_pg.estimators": [
+        "tests/test_estimators.py",
+        "tests/test_loss.py::TestReinforceLoss::test_make_value_estimator_by_name",
+    ],
     "rl_pg.baselines": ["tests/test_baselines.py"],
     "rl_pg.groups": ["tests/test_groups.py"],
     "rl_pg.loss": ["tests/test_loss.py", "tests/test_loss_torchrl_compat.py"],

@@ -166,7 +166,7 @@ class TestMonteCarloEstimators:
         )
 
     @pytest.mark.parametrize("graph", [False, True])
-    @pytest.mark.parametrize("broken", [None, "observation", "time_first"])
+    @pytest.mark.parametrize("broken", [None, "integer_done", "observation", "time_first"])
     def test_next_values_taken_from_the_following_step_match_a_full_pass(
         self, cls, fn, monkeypatch, graph, broken
     ):
@@ -196,6 +196,8 @@ class TestMonteCarloEstimators:
             },
             batch_size=[envs, steps],
         )
+        if broken == "integer_done":  # episode ends as 0/1 numbers: read as they are
+            batch["next", "done"] = done.to(torch.uint8)
         if broken == "observation":  # not the following step's, though no episode ended
             t = int((~done[0, :-1, 0]).nonzero()[0])
             batch["next", "observation"][0, t] += 1.0
@@ -222,7 +224,7 @@ class TestMonteCarloEstimators:
             assert attached.requires_grad
             torch.testing.assert_close(attached.detach(), value)
         rows = sum(seen)
-        if broken is None:  # every row's last step, and the ends before it
+        if broken in (None, "integer_done"):  # every row's last step, and the ends before it
             assert rows == envs * steps + envs + int(done[:, :-1].sum())
         else:
             assert rows == 2 * envs * steps

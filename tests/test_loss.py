@@ -104,6 +104,9 @@ class TestReinforceLoss:
         loss = ReinforceLoss(categorical_actor).make_value_estimator(value_type, gamma=0.5)
         assert type(loss.value_estimator) is cls
         assert loss.value_estimator.gamma.item() == 0.5
+        # without a gamma, the registered default: TorchRL's 0.99
+        loss = ReinforceLoss(categorical_actor).make_value_estimator(value_type)
+        assert type(loss.value_estimator) is cls and loss.value_estimator.gamma.item() == 0.99
 
     def test_make_value_estimator_by_class_receives_the_critic(
         self, categorical_actor, critic, categorical_batch
