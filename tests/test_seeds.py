@@ -89,6 +89,14 @@ def test_a_stream_that_starts_where_the_training_span_ends_keeps_its_value():
     assert evaluation_seed(2**30) == 2**30 + P
 
 
+def test_a_stream_that_ends_where_the_training_span_starts_keeps_its_value():
+    # Run 748765923's fresh episodes, from s + 2P, end one span before its training
+    # starts: adjacent, not overlapping.
+    seed = 748765923
+    assert seed + 2 * P + MEMBERS == training_seed(seed, 0)
+    assert fresh_seed(seed) == seed + 2 * P
+
+
 def test_a_run_started_now_keeps_the_laid_out_streams():
     assert seeds.run_streams(1) == {"evaluation": evaluation_seed(1),
                                     "confirmation": confirmation_seed(1)}  # fmt: skip
