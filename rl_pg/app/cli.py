@@ -16,6 +16,7 @@ runs ``rl-pg play``.
 
 from __future__ import annotations
 
+import importlib
 import multiprocessing
 import os
 import subprocess
@@ -138,14 +139,11 @@ def main(argv: Sequence[str] | None = None) -> None:
             _train(rest[0], rest[1:])
         elif command == "resume" and rest and not rest[0].startswith("-"):
             _resume(resolve_latest(rest[0]), rest[1:])
-        elif command == "evaluate":
-            _evaluate(rest)
-        elif command == "play":
-            _play(rest)
-        elif command == "export":
-            _export(rest)
+        elif command in ("evaluate", "play", "export"):
+            _subcommand(command, rest)
         elif command == "report":
-            _report_runs([str(resolve_latest(a)) if Path(a).name == LATEST else a for a in rest])
+            latest = [str(resolve_latest(a)) if Path(a).name == LATEST else a for a in rest]
+            _subcommand(command, latest)
         elif command == "tune" and rest and not rest[0].startswith("-"):
             _tune(rest[0], rest[1:])
         elif command == "lab" and rest[:1] == ["variance"] and len(rest) > 1:
@@ -285,40 +283,24 @@ def _resume(run_dir: Path, args: list[str]) -> None:
     _report(recipe.run(cfg))
 
 
-def _play(args: list[str]) -> None:
-    from rl_pg.app import play
+# What each subcommand's user can mend (a run that cannot be rebuilt, a missing extra,
+# not a run directory, no such metric): said in one line.
+_SUBCOMMANDS = {
+    "play": ("Args", (ValueError, ImportError)),
+    "export": ("ExportArgs", (ValueError,)),
+    "evaluate": ("Args", (ValueError, ImportError)),
+    "report": ("Args", (ValueError, FileNotFoundError)),
+}
 
+
+def _subcommand(command: str, args: list[str]) -> None:
+    """``rl-pg COMMAND ARGS``: ``rl_pg.app.COMMAND.main`` on its parsed flags."""
+    args_class, mendable = _SUBCOMMANDS[command]
+    module = importlib.import_module(f"rl_pg.app.{command}")
     try:
-        play.main(parse_args(play.Args, args, prog="rl-pg play"))
-    except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
-        sys.exit(f"rl-pg play: {err}")
-
-
-def _export(args: list[str]) -> None:
-    from rl_pg.app import export
-
-    try:
-        export.main(parse_args(export.ExportArgs, args, prog="rl-pg export"))
-    except ValueError as err:
-        sys.exit(f"rl-pg export: {err}")
-
-
-def _evaluate(args: list[str]) -> None:
-    from rl_pg.app import evaluate
-
-    try:
-        evaluate.main(parse_args(evaluate.Args, args, prog="rl-pg evaluate"))
-    except (ValueError, ImportError) as err:  # a run that cannot be rebuilt, a missing extra
-        sys.exit(f"rl-pg evaluate: {err}")
-
-
-def _report_runs(args: list[str]) -> None:
-    from rl_pg.app import report
-
-    try:
-        report.main(parse_args(report.Args, args, prog="rl-pg report"))
-    except (ValueError, FileNotFoundError) as err:  # not a run directory, or no such metric
-        sys.exit(f"rl-pg report: {err}")
+        module.main(parse_args(getattr(module, args_class), args, prog=f"rl-pg {command}"))
+    except mendable as err:
+        sys.exit(f"rl-pg {command}: {err}")
 
 
 def _report(result: dict) -> None:

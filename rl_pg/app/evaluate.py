@@ -21,9 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import tyro
-
-from rl_pg.app.sources import agent_path
+from rl_pg.app.sources import AgentSource, agent_path
 from rl_pg.recipes import recipe_of
 from rl_pg.training import Count, Range, read_run
 
@@ -34,17 +32,9 @@ EVALUATIONS = "evaluations.jsonl"
 
 
 @dataclass
-class Args:
+class Args(AgentSource):
     """Evaluate a trained agent on the recipe's test environment."""
 
-    run: tyro.conf.Positional[Path]
-    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name; with
-    --hub, a Hugging Face Hub repository, owner/name."""
-    pretrained: bool = False
-    """Evaluate the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
-    hub: bool = False
-    """Evaluate the agent of the Hugging Face Hub repository RUN names. Downloaded once
-    into the Hub's cache; needs rl_pg[hub]."""
     episodes: Count = 100
     """Episodes to evaluate on."""
     checkpoint: Literal["best", "last"] = "best"

@@ -13,9 +13,8 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import torch
-import tyro
 
-from rl_pg.app.sources import agent_path
+from rl_pg.app.sources import AgentSource, agent_path
 from rl_pg.recipes import recipe_of
 from rl_pg.recording import check_recording, play
 from rl_pg.training import Count, Positive, Range, check_fields, load_models, read_run
@@ -25,17 +24,9 @@ __all__ = ["Args", "main"]
 
 
 @dataclass
-class Args:
+class Args(AgentSource):
     """Play a trained agent's episodes and print their returns."""
 
-    run: tyro.conf.Positional[Path]
-    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name; with
-    --hub, a Hugging Face Hub repository, owner/name."""
-    pretrained: bool = False
-    """Play the agent rl_pg ships for the recipe RUN names. See rl-pg export."""
-    hub: bool = False
-    """Play the agent of the Hugging Face Hub repository RUN names. Downloaded once
-    into the Hub's cache; needs rl_pg[hub]."""
     episodes: Count = 5
     """Episodes to play."""
     checkpoint: Literal["best", "last"] = "best"

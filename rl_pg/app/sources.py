@@ -6,14 +6,17 @@ Face Hub (``--hub``). What ``rl-pg play``, ``rl-pg evaluate`` and ``Agent.load``
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 from rl_pg import recipes
 from rl_pg._checks import require_extra
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.training.checkpoints import resolve_latest
 
-__all__ = ["HUB_FILE", "SHIPPED", "agent_path", "hub_agent", "shipped_agent"]
+__all__ = ["HUB_FILE", "SHIPPED", "AgentSource", "agent_path", "hub_agent", "shipped_agent"]
 
 HUB_FILE = "agent.pt"
 """The agent file's name in a Hugging Face Hub model repository."""
@@ -106,3 +109,18 @@ def agent_path(run: str | Path, *, pretrained: bool = False, hub: bool = False) 
             f"Agent.load({str(run)!r}, pretrained=True))."
         )
     return resolve_latest(run)  # runs/latest: the newest run
+
+
+@dataclass
+class AgentSource:
+    """The flags that name an agent, which ``rl-pg play`` and ``rl-pg evaluate`` share
+    (``agent_path`` reads them)."""
+
+    run: tyro.conf.Positional[Path]
+    """Run directory, checkpoint or agent file. With --pretrained, a recipe's name; with
+    --hub, a Hugging Face Hub repository, owner/name."""
+    pretrained: bool = False
+    """The agent rl_pg ships for the recipe RUN names. See rl-pg export."""
+    hub: bool = False
+    """The agent of the Hugging Face Hub repository RUN names. Downloaded once into the
+    Hub's cache; needs rl_pg[hub]."""
