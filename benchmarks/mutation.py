@@ -263,17 +263,20 @@ def _run_tests(root: Path, tests: list[str], timeout: float) -> str:
             ])  # fmt: skip
         finally:
             os._exit(int(code))
-    deadline = time.monotonic() + timeout
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            code = os.waitstatus_to_exitcode(status)
-            return "survived" if code == 0 else "killed"
-        if time.monotonic() > deadline:
+    deadline, done = time.monotonic() + timeout, 0
+    try:
+        while True:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                code = os.waitstatus_to_exitcode(status)
+                return "survived" if code == 0 else "killed"
+            if time.monotonic() > deadline:
+                return "timeout"
+            time.sleep(0.05)
+    finally:  # a timeout, a Ctrl-C or a SIGTERM here: the child does not outlive it
+        if not done:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-            return "timeout"
-        time.sleep(0.05)
 
 
 @dataclass
@@ -311,7 +314,14 @@ def main(args: Args) -> dict:
     import torchrl  # noqa: F401
 
     torch.set_num_threads(1)
-    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"modules": {}}
+    results = {"modules": {}}
+    if RESULTS.is_file():
+        try:
+            results = json.loads(RESULTS.read_text())
+        except ValueError as err:
+            sys.exit(f"mutation.py: {RESULTS} is not JSON ({err}); delete it to score afresh.")
+    # SIGTERM ends the run as Ctrl-C does: the scores so far are saved, no child is left.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     with tempfile.TemporaryDirectory(prefix="rl_pg-mutation-") as tmp:
         root = Path(tmp)
         for part in ("rl_pg", "tests", "docs", "pyproject.toml"):
@@ -394,4 +404,7 @@ def _save(results: dict) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    try:
+        main(tyro.cli(Args))
+    except KeyboardInterrupt:
+        sys.exit(f"mutation.py: stopped; the mutants scored so far are in {RESULTS}.")
