@@ -58,7 +58,8 @@ from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _segm
 from rl_pg.envs import VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
-from rl_pg.training.metrics import BufferedCSVLogger, EpisodeReturns
+from rl_pg.training.loggers import BufferedCSVLogger
+from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update, warm_up
 
 

@@ -42,7 +42,7 @@ from torchrl.collectors import Collector
 
 from rl_pg.lean import lean_policy
 from rl_pg.recipes import load
-from rl_pg.training.collection import _start_ray
+from rl_pg.training.cluster import start_ray
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
 
 
@@ -132,7 +132,7 @@ def main(cfg: Config) -> dict:
     rates: dict[str, list[float]] = {name: [] for name in runs}
     # One Ray instance for every Ray run (each would start and stop its own otherwise:
     # seconds each, outside the training clock all the same).
-    started = _start_ray(max(cfg.workers))
+    started = start_ray(max(cfg.workers))
     try:
         for _ in range(cfg.repeats):
             for name, overrides in runs.items():

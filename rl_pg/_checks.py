@@ -24,6 +24,7 @@ __all__ = [
     "Range",
     "check_batch_size",
     "check_bool",
+    "check_field",
     "check_fields",
     "check_int",
     "check_key",
@@ -264,6 +265,32 @@ def check_fields(obj: Any) -> None:
         base, bounds = annotations[field.name]
         name = f"{field.name} (--{field.name.replace('_', '-')})"
         setattr(obj, field.name, _check_value(name, getattr(obj, field.name), base, bounds))
+
+
+def check_field(
+    cls: type, field: str, value: Any, name: str | None = None, *, optional: bool = False
+) -> Any:
+    """``value`` checked as dataclass ``cls`` checks its field ``field`` (its type and
+    bounds), for code that takes the same setting as an argument: the bound is declared
+    once, on the field. None passes only with ``optional`` (where the field's type
+    allows it). Returns the value in canonical form; errors name ``name`` (default: the
+    field).
+
+    Examples:
+        >>> from dataclasses import make_dataclass
+        >>> from typing import Annotated
+        >>> from rl_pg._checks import Range, check_field
+        >>> Config = make_dataclass("Config", [("rate", Annotated[float, Range(low=0)], 1.0)])
+        >>> check_field(Config, "rate", -1.0, name="rate")
+        Traceback (most recent call last):
+        ...
+        ValueError: rate must be a finite number >= 0, got -1.0 (float).
+    """
+    base, bounds = _field_annotations(cls)[field]
+    name = field if name is None else name
+    if value is None and not optional:
+        raise TypeError(f"{name} must not be None.")
+    return _check_value(name, value, base, bounds)
 
 
 def _field_annotations(cls: type) -> dict[str, tuple[Any, list[Range]]]:

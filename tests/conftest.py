@@ -144,9 +144,9 @@ def pytest_runtest_setup(item):
     started as a training with --ray starts it (its actors import what this process
     imports) before the first of them and stopped after the last."""
     if item.nodeid.startswith(SHARED_FIXTURES["ray"]) and importlib.util.find_spec("ray"):
-        from rl_pg.training.collection import _start_ray
+        from rl_pg.training.cluster import start_ray
 
-        _start_ray(2)  # nothing if it runs
+        start_ray(2)  # nothing if it runs
 
 
 def pytest_runtest_teardown(item, nextitem):

@@ -17,7 +17,7 @@ import subprocess
 import sys
 import textwrap
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, make_dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar
@@ -53,9 +53,11 @@ from rl_pg.training import (
 from rl_pg.training.checkpoints import resolve_latest
 from rl_pg.training.console import Console
 from rl_pg.training.curves import read_curve
-from rl_pg.training.metrics import BufferedCSVLogger, EpisodeReturns
+from rl_pg.training.loggers import BufferedCSVLogger
+from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update
 from rl_pg.training.seeds import evaluation_seed
+from rl_pg.training.settings import BatchedEnvironments
 
 
 def make_grid():
@@ -122,8 +124,8 @@ def _grid_with_a_bug():
 
 def _first_worker(collection) -> int:
     """The pid of the collection's first worker (a process, or a Ray actor's)."""
-    workers = collection._workers
-    if collection.cfg.ray:
+    workers = collection.workers.pool
+    if collection.settings.ray:
         import ray
 
         actor = workers.remote_collectors[0]
@@ -146,7 +148,7 @@ def _two_workers(tmp_path, module):
     cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
     env = make_grid()
     actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-    return module.Collection(cfg, env, make_grid, actor, updates=0)
+    return module.Collection(cfg, env, make_grid, actor, seed=cfg.seed, updates=0)
 
 
 def _exited(pid: int) -> bool:
@@ -245,7 +247,7 @@ class TestTrain:
     def test_a_slow_viewer_backend_gets_fewer_points_and_never_slows_the_run_much(self, tmp_path):
         from torchrl.record.loggers import Logger
 
-        from rl_pg.training.metrics import VIEWER_SHARE, Loggers
+        from rl_pg.training.loggers import VIEWER_SHARE, Loggers
 
         class Slow(Logger):  # a backend whose every call costs as much as an update
             def __init__(self):
@@ -275,7 +277,7 @@ class TestTrain:
             def __repr__(self):
                 return "Slow()"
 
-        loggers = Loggers(_cfg(tmp_path), tmp_path, "grid", resume_at=None)
+        loggers = Loggers(_cfg(tmp_path), tmp_path, "grid", hparams={}, resume_at=None)
         slow = Slow()
         loggers.loggers.append(slow)
         start = time.perf_counter()
@@ -600,7 +602,7 @@ class TestTrain:
                 seeds_set.append(seed)
             return real_set_seed(self, seed, *args, **kwargs)
 
-        monkeypatch.setattr("rl_pg.training.loop.evaluate_run", evaluate_run)
+        monkeypatch.setattr("rl_pg.training.run.evaluate_run", evaluate_run)
         monkeypatch.setattr(GridWorldEnv, "set_seed", set_seed)
         _train(_cfg(tmp_path, seed=1, total_updates=2, eval_interval=1))
         assert set(seeds_set) == {evaluation_seed(1)} != {1 + 1_000_003}
@@ -813,7 +815,7 @@ class TestTrain:
     def test_workers_freeze_their_imports_get_new_weights_and_are_replaced_when_lost(
         self, tmp_path, ray, capfd, monkeypatch, request
     ):
-        from rl_pg.training import collection as module
+        from rl_pg.training import workers as workers_module
         from rl_pg.training.collection import Collection
 
         if ray:
@@ -828,7 +830,7 @@ class TestTrain:
         user_path = os.environ.get("PYTHONPATH")
         frozen_here, heaps = gc.get_freeze_count(), tmp_path / "heaps"
         make_env = partial(_grid_noting_its_frozen_heap, heaps)
-        collection = Collection(cfg, env, make_env, actor, updates=0)
+        collection = Collection(cfg, env, make_env, actor, seed=cfg.seed, updates=0)
         # Ray's local instance got this process's sys.path (the actors import make_grid
         # from this file), and this process's environment is left as it was.
         assert os.environ.get("PYTHONPATH") == user_path
@@ -850,7 +852,7 @@ class TestTrain:
             # (stopped), and is ended through Ray past the time limit, which its replacing
             # then sees as a killed actor (a Ray replacement costs about 10 s).
             if ray:
-                monkeypatch.setattr(module, "STALL_LIMIT_S", 5.0)
+                monkeypatch.setattr(workers_module, "STALL_LIMIT_S", 5.0)
                 os.kill(_first_worker(collection), signal.SIGSTOP)
                 batch = next(batches)
             else:  # and between an update and the next
@@ -900,7 +902,7 @@ class TestTrain:
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
         cpus = local_ray.available_resources()["CPU"]
         with pytest.raises(RuntimeError, match="did not join the trainer's weight-sync"):
-            Collection(cfg, env, make_grid, actor, updates=0)
+            Collection(cfg, env, make_grid, actor, seed=cfg.seed, updates=0)
         # and its actors are gone, their CPUs free (on a cluster, for the next run)
         deadline = time.monotonic() + 30
         while local_ray.available_resources().get("CPU") != cpus:
@@ -911,12 +913,15 @@ class TestTrain:
         self, tmp_path, capfd, monkeypatch
     ):
         from rl_pg.training import collection as module
+        from rl_pg.training import workers as workers_module
 
-        monkeypatch.setattr(module, "REPLACEMENTS", 1)  # each costs two new processes
+        monkeypatch.setattr(workers_module, "REPLACEMENTS", 1)  # each costs two new processes
         cfg = _cfg(tmp_path, workers=2, batch_mode="segments", segment_length=5)
         env = make_grid()
         actor = mlp_actor(env, hidden=(16,), activation=nn.ReLU)
-        collection = module.Collection(cfg, env, _grid_that_crashes, actor, updates=0)
+        collection = module.Collection(
+            cfg, env, _grid_that_crashes, actor, seed=cfg.seed, updates=0
+        )
         try:
             with pytest.raises(RuntimeError) as raised:
                 next(iter(collection))
@@ -929,7 +934,7 @@ class TestTrain:
         # An exception in the environment is a bug new workers would meet again: it
         # stops the run at once (the worker prints its traceback: to the stderr of the
         # fork server, which predates capfd here), nothing replaced.
-        collection = module.Collection(cfg, env, _grid_with_a_bug, actor, updates=0)
+        collection = module.Collection(cfg, env, _grid_with_a_bug, actor, seed=cfg.seed, updates=0)
         try:
             with pytest.raises(RuntimeError, match="exit code 1"):
                 next(iter(collection))
@@ -948,7 +953,7 @@ class TestTrain:
             next(batches)
             # as `pkill -9 -f multiprocessing.forkserver` would: the server and its workers
             server = forkserver._forkserver._forkserver_pid
-            for pid in (server, *(proc.pid for proc in collection._workers.procs)):
+            for pid in (server, *(proc.pid for proc in collection.workers.pool.procs)):
                 os.kill(pid, signal.SIGKILL)
             batch = next(batches)  # new workers, from a new fork server
         finally:
@@ -961,16 +966,17 @@ class TestTrain:
         self, tmp_path, capfd, monkeypatch
     ):
         from rl_pg.training import collection as module
+        from rl_pg.training import workers as workers_module
 
         # As a worker stopped by a signal, deadlocked or stuck in its simulator: it sends
         # nothing. Past the limit, the workers are ended and new ones take over.
-        monkeypatch.setattr(module, "STALL_LIMIT_S", 2.0)
+        monkeypatch.setattr(workers_module, "STALL_LIMIT_S", 2.0)
         collection = _two_workers(tmp_path, module)
         try:
             batches = iter(collection)
             next(batches)
             next(batches)
-            stopped = collection._workers.procs[1].pid
+            stopped = collection.workers.pool.procs[1].pid
             os.kill(stopped, signal.SIGSTOP)
             start = time.monotonic()
             batch = next(batches)  # from the new workers
@@ -987,7 +993,7 @@ class TestTrain:
         from ray.core.generated.common_pb2 import ActorDiedErrorContext
         from ray.exceptions import ActorDiedError
 
-        from rl_pg.training.collection import _actor_lost
+        from rl_pg.training.workers import _actor_lost
 
         # Ray's error for an actor whose process was killed (as by the OOM killer)
         killed = ActorDiedError(ActorDiedErrorContext(
@@ -1093,8 +1099,8 @@ class TestTrain:
         # Grouped batches play rounds of one episode per environment: the episodes a
         # multiple of the environments, and the greedy ones at fixed places.
         @dataclass
-        class Config(TrainConfig):
-            num_envs: int = 16
+        class Config(TrainConfig, BatchedEnvironments, num_envs=16):
+            pass
 
         with pytest.raises(ValueError, match=r"a multiple of --num-envs .* 8 and 16"):
             Config(baseline="leave_one_out", episodes_per_batch=8)
@@ -1102,6 +1108,13 @@ class TestTrain:
         assert Config(baseline="leave_one_out", num_envs=1, episodes_per_batch=8).num_envs == 1
         with pytest.raises(ValueError, match="set --num-envs to a multiple of 5"):
             Config(baseline="greedy", num_envs=4, episodes_per_batch=20)
+
+    def test_a_config_that_declares_what_a_check_reads_must_say_so_by_its_bases(self):
+        # A field of its own named num_envs would be no field the checks read: the
+        # group-baseline and --overlap checks would pass it by unseen.
+        for name, mixin in (("num_envs", "BatchedEnvironments"), ("backend", "EnvPoolBackend")):
+            with pytest.raises(TypeError, match=rf"declares {name}.*{mixin}: add that class"):
+                make_dataclass("Config", [(name, int, 16)], bases=(TrainConfig,))
 
     def test_a_config_changed_after_it_was_made_is_checked_again(self, tmp_path):
         cfg = _cfg(tmp_path)

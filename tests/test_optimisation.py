@@ -8,10 +8,11 @@ from dataclasses import replace
 import pytest
 import torch
 
+from rl_pg.action_stats import means_beyond_bounds
 from rl_pg.envs import GridWorldEnv, gym_env
 from rl_pg.models import mlp_actor, mlp_actor_critic
 from rl_pg.training import TrainConfig
-from rl_pg.training.optimisation import make_loss, make_optimizer, means_beyond_bounds, update
+from rl_pg.training.optimisation import make_loss, make_optimizer, update
 
 
 @pytest.mark.parametrize("bounded", ["normal", "beta", "tanh_normal"])

@@ -132,7 +132,7 @@ class TestBestCheckpoint:
         scores = []
         for stream in (1, 2):
             torch.manual_seed(stream)  # wherever training's stream is
-            evaluate_run(cfg, actor, make_grid(), {}, state, logger)
+            evaluate_run(cfg, cfg.torch_device(), actor, make_grid(), {}, state, logger)
             scores.append(state.last_eval["eval/mean_return"])
             after = torch.rand(1)
             torch.manual_seed(stream)

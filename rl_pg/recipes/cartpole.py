@@ -13,7 +13,6 @@ episodes from one environment::
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 from torchrl.envs import EnvBase
 
@@ -22,11 +21,15 @@ from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments, EnvPoolBackend
 
 
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    EnvPoolBackend,
+    num_envs=32,
     total_frames=300_000,
     batch_mode="segments",
     segment_length=8,
@@ -44,11 +47,6 @@ class Config(
     train gym --env-id ID, under its own name and threshold."""
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
-    num_envs: Count = 32
-    """CartPoles stepped together as one batch. 1: a single unbatched environment."""
-    backend: Literal["gymnasium", "envpool"] = "gymnasium"
-    """What steps the training CartPoles. Gymnasium in this process, or EnvPool's C++
-    threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
     def validate(self) -> None:
         super().validate()

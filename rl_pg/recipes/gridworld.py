@@ -22,6 +22,7 @@ from rl_pg.training import Count, TrainConfig
 from rl_pg.training.comparison import run_variants
 from rl_pg.training.curves import plot_curves, read_curve
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments
 
 # The comparison of docs/recipes/gridworld.md, plus reward-to-go minus a learned V(s).
 VARIANTS = {
@@ -35,6 +36,8 @@ VARIANTS = {
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    num_envs=30,
     total_frames=1_000_000,
     total_updates=30,  # the experiment: 30 updates of 30 episodes
     episodes_per_batch=30,
@@ -47,8 +50,6 @@ class Config(
 
     hidden: Count = 32
     """Width of the hidden layer (obs -> hidden -> 4, ReLU)."""
-    num_envs: Count = 30
-    """Gridworld copies stepped together (1 to watch one: rl-pg play)."""
     max_steps: Count = 100
     """Episode truncation horizon."""
     compare: bool = False

@@ -25,11 +25,14 @@ from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, TrainConfig
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments
 
 
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    num_envs=16,
     total_frames=500_000,
     batch_mode="segments",
     segment_length=16,
@@ -46,8 +49,6 @@ class Config(
     env_id: str = ""
     """The gymnasium id to train on (required), e.g. Acrobot-v1. Its package must be
     installed and imported by gymnasium (the classic-control and Box2D ids are)."""
-    num_envs: Count = 16
-    """Copies of the environment stepped together as one batch in this process."""
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
     bounded: Literal["beta", "normal", "tanh_normal"] = "beta"

@@ -24,11 +24,15 @@ from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, Positive, TrainConfig
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments, EnvPoolBackend
 
 
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    EnvPoolBackend,
+    num_envs=8,
     total_frames=1_000_000,
     batch_mode="segments",
     segment_length=64,
@@ -75,13 +79,8 @@ class Config(
     init_scale: Positive = 1.0
     """Starting scale of the continuous Gaussian's one learned scale. In thrust units
     (the thrust is in [-1, 1]); with --continuous, without --state-dependent-scale."""
-    num_envs: Count = 8
-    """Landers stepped together as one batch in this process."""
     hidden: Count = 128
     """Width of the two hidden layers of the actor and of the critic."""
-    backend: Literal["gymnasium", "envpool"] = "gymnasium"
-    """What steps the training landers. Gymnasium in this process, or EnvPool's C++
-    threads (pip install "rl_pg[envpool]"). Evaluation always plays gymnasium's."""
 
     @property
     def gaussian(self) -> bool:

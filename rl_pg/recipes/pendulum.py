@@ -24,11 +24,14 @@ from rl_pg.envs import gym_env
 from rl_pg.models import mlp_actor_critic
 from rl_pg.training import Count, Positive, TrainConfig
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments
 
 
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    num_envs=16,
     # Most seeds' best checkpoints come after 700k frames; at 500k some were still
     # swinging up too slowly (docs/lab/pendulum.md, "A larger budget: 1M frames").
     total_frames=1_000_000,
@@ -57,8 +60,6 @@ class Config(
     # Runs stored before the KL-set rate was the default trained at --lr alone.
     absent_means: ClassVar[dict[str, Any]] = {"lr_control": "none", "target_kl": 0.01}
 
-    num_envs: Count = 16
-    """Pendulums stepped together as one batch in this process."""
     hidden: Count = 64
     """Width of the two hidden layers of the actor and of the critic."""
     bounded: Literal["beta", "normal", "tanh_normal"] = "beta"

@@ -27,11 +27,14 @@ from rl_pg.envs import gym_env
 from rl_pg.frame_difference import FrameDifference
 from rl_pg.training import Count, Range, TrainConfig
 from rl_pg.training.recipe import Recipe
+from rl_pg.training.settings import BatchedEnvironments
 
 
 @dataclass
 class Config(
     TrainConfig,
+    BatchedEnvironments,
+    num_envs=16,
     total_frames=2_000_000,  # agent steps, each 4 Atari frames
     batch_mode="segments",
     segment_length=50,  # t_max
@@ -48,8 +51,6 @@ class Config(
 ):
     """REINFORCE + learned baseline with bootstrapped 50-step segments on ALE Pong."""
 
-    num_envs: Count = 16
-    """Pong games played at once, as one batch. Split evenly over the workers."""
     hidden: Count = 200
     """Width of the shared trunk."""
     eval_sticky: Annotated[float, Range(0, 1, high_open=True)] = 0.25

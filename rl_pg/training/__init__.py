@@ -2,11 +2,18 @@
 
 One file per concern, imports pointing down (config first, loop and cli last):
 
-* [`config`][rl_pg.training.config]: ``TrainConfig`` and the field types that bound it;
+* [`settings`][rl_pg.training.settings] and [`learning`][rl_pg.training.learning]: the
+  config's groups, each with the rules among its fields; every part below takes the
+  groups it acts on;
+* [`config`][rl_pg.training.config]: ``TrainConfig``, every group at once, and the
+  rules across groups;
 * [`collection`][rl_pg.training.collection]: the collector and every decision that
   depends on local, multi-process or Ray collection;
+* [`workers`][rl_pg.training.workers] and [`cluster`][rl_pg.training.cluster]: worker
+  processes or Ray actors kept running (lost and hung ones replaced), and their Ray;
 * [`optimisation`][rl_pg.training.optimisation]: the loss, the optimiser, one update;
-* [`metrics`][rl_pg.training.metrics]: training-episode returns and the loggers;
+* [`metrics`][rl_pg.training.metrics]: training-episode returns;
+* [`loggers`][rl_pg.training.loggers]: CSV, TensorBoard, W&B and MLflow;
 * [`console`][rl_pg.training.console]: the progress shown while training, the summary;
 * [`checkpoints`][rl_pg.training.checkpoints]: what a checkpoint holds, resuming and
   deploying from one;
@@ -19,6 +26,7 @@ One file per concern, imports pointing down (config first, loop and cli last):
   early stop, kept checkpoints and the gradient-noise measurement);
 * [`selection`][rl_pg.training.selection]: which policy is evaluated and kept as
   ``best.pt`` (evaluations, the policy average, confirmation replays);
+* [`run`][rl_pg.training.run]: the pieces of one run, which callbacks receive;
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;
@@ -33,8 +41,8 @@ from rl_pg._checks import check_fields
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import load_models, read_run
 from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConfig
+from rl_pg.training.loggers import scalar_log_rows
 from rl_pg.training.loop import train
-from rl_pg.training.metrics import scalar_log_rows
 from rl_pg.training.optimisation import TrainingDiverged
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import RunDirBusy, RunDirectory, RunDirUnusable

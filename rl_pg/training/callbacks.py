@@ -17,13 +17,15 @@ from typing import TYPE_CHECKING, Any
 
 from tensordict import TensorDictBase
 
-from rl_pg._checks import check_int, check_real
+from rl_pg._checks import check_field
 from rl_pg.controllers import EntropyTarget, KLStepSize
 from rl_pg.gradient_statistics import GradientStatistics
+from rl_pg.training.learning import LossSettings, OptimiserSettings, check_kl_lr_range
 from rl_pg.training.optimisation import scale_rewards
+from rl_pg.training.settings import CheckpointSettings, EvaluationSettings, LoggingSettings
 
 if TYPE_CHECKING:
-    from rl_pg.training.loop import Run
+    from rl_pg.training.run import Run
 
 __all__ = [
     "Callback",
@@ -39,7 +41,7 @@ __all__ = [
 class Callback:
     """A behaviour the training loop calls; override the hooks you need.
 
-    Every hook gets the [`Run`][rl_pg.training.loop.Run]: ``run.cfg``, ``run.state``
+    Every hook gets the [`Run`][rl_pg.training.run.Run]: ``run.cfg``, ``run.state``
     (``frames``, ``updates``, ``last_eval``, …), ``run.loss``, ``run.actor``,
     ``run.optimizer``, ``run.deployed`` (the policy that evaluations play and
     ``best.pt`` deploys: ``run.actor`` unless a callback such as
@@ -231,7 +233,8 @@ class GradientNoise(Callback):
     def __init__(
         self, every: int, *, estimators: Sequence[str] | None = None, unit: str = "episode"
     ) -> None:
-        self.every, self.estimators, self.unit = _updates(every), estimators, unit
+        self.every = check_field(LoggingSettings, "grad_stats", every, "every")
+        self.estimators, self.unit = estimators, unit
         self._statistics: GradientStatistics | None = None
         self._pending: dict[str, float] | None = None
 
@@ -277,7 +280,7 @@ class KeepCheckpoints(Callback):
     """
 
     def __init__(self, every: int) -> None:
-        self.every = _updates(every)
+        self.every = check_field(CheckpointSettings, "keep_every", every, "every")
 
     def checkpoint_due(self, run: Run) -> bool:
         return run.state.updates % self.every == 0
@@ -301,9 +304,9 @@ class LearningRateByKL(Callback):
     """
 
     def __init__(self, target_kl: float, lr_range: tuple[float, float] = (0.01, 10.0)) -> None:
-        self.target_kl = check_real("target_kl", target_kl, low=0, low_open=True)
-        low = check_real("lr_range[0]", lr_range[0], low=0, low_open=True, high=1)
-        self.lr_range = (low, check_real("lr_range[1]", lr_range[1], low=1))
+        self.target_kl = check_field(OptimiserSettings, "target_kl", target_kl)
+        check_kl_lr_range(lr_range)
+        self.lr_range = (float(lr_range[0]), float(lr_range[1]))
         self._step_size: KLStepSize | None = None
 
     def on_start(self, run: Run) -> None:
@@ -335,9 +338,9 @@ class EntropyByTarget(Callback):
     """
 
     def __init__(self, target: float, lr: float, min_coeff: float = 0.0) -> None:
-        self.target = check_real("target", target)
-        self.lr = check_real("lr", lr, low=0, low_open=True)
-        self.min_coeff = check_real("min_coeff", min_coeff)
+        self.target = check_field(LossSettings, "entropy_target", target, "target")
+        self.lr = check_field(LossSettings, "entropy_target_lr", lr, "lr")
+        self.min_coeff = check_field(LossSettings, "entropy_coeff_min", min_coeff, "min_coeff")
         self._controller: EntropyTarget | None = None
         self._restored: dict[str, Any] | None = None
 
@@ -376,7 +379,7 @@ class StopWhenSolved(Callback):
     """
 
     def __init__(self, threshold: float, *, confirmed: bool = False) -> None:
-        self.threshold = check_real("threshold", threshold)
+        self.threshold = check_field(EvaluationSettings, "threshold", threshold)
         self.confirmed = confirmed
         self._solved = False
 
@@ -390,7 +393,3 @@ class StopWhenSolved(Callback):
     def stop_training(self, run: Run) -> bool:
         solved, self._solved = self._solved, False
         return solved
-
-
-def _updates(every: int) -> int:
-    return check_int("every", every, low=1, hint="It is a positive number of updates.")

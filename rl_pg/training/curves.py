@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rl_pg.checkpoint import write_atomically
-from rl_pg.training.metrics import scalar_log_rows
+from rl_pg.training.loggers import scalar_log_rows
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

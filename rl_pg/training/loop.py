@@ -21,20 +21,16 @@ seed would, however often either checkpointed (see
 
 from __future__ import annotations
 
-import math
 import sys
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
 from rl_pg.evaluation import EvaluationEnv
-from rl_pg.groups import GROUP_BASELINES
 from rl_pg.training.callbacks import (
     Callback,
     Callbacks,
@@ -44,26 +40,15 @@ from rl_pg.training.callbacks import (
     LearningRateByKL,
     StopWhenSolved,
 )
-from rl_pg.training.checkpoints import RunState, callback_states, restore, restore_rng
-from rl_pg.training.collection import Collection, segments_per_update
+from rl_pg.training.collection import segments_per_update
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.console import Console
 from rl_pg.training.interrupt import InterruptRequest
-from rl_pg.training.metrics import EpisodeReturns, Loggers
-from rl_pg.training.optimisation import (
-    entropy_coeff,
-    learning_rate,
-    make_loss,
-    make_optimizer,
-    update,
-    warm_up,
-)
+from rl_pg.training.run import Run
 from rl_pg.training.run_dir import RunDirectory, link_latest, new_run_dir
-from rl_pg.training.seeds import run_streams, seed_everything
-from rl_pg.training.selection import Confirmation, PolicyAverage, evaluate_run
+from rl_pg.training.selection import Confirmation, PolicyAverage
 from rl_pg.training.threads import torch_threads
 
-__all__ = ["Run", "from_config", "train"]
+__all__ = ["from_config", "train"]
 
 
 def train(
@@ -158,7 +143,12 @@ def train(
         try:
             for batch in run.collection:
                 interrupt.reclaim()  # Ray's workers and evaluators set handlers of their own
-                batch = run.collection.join(batch, segments_per_update(cfg, run.state.frames))
+                batch = run.collection.join(
+                    batch,
+                    segments_per_update(
+                        run.collection.settings, run.state.frames, cfg.total_frames
+                    ),
+                )
                 hooks.on_batch(run, batch)
                 metrics = run.update(batch)
                 if not directory.kept and cfg.run_dir is None:
@@ -210,167 +200,6 @@ def train(
     return summary
 
 
-class Run:
-    """The pieces of one run and the steps the loop calls them through.
-
-    Callbacks read it: ``cfg``, ``state`` (a ``RunState``: ``frames``, ``updates``,
-    ``last_eval``, …), ``loss``, ``actor``, ``deployed``, ``optimizer``, ``eval_env``,
-    ``logger``, ``path``, ``log`` and ``save``.
-    """
-
-    def __init__(
-        self, cfg, directory, saved, make_env, make_models, make_eval_env, eval_entries, hooks
-    ) -> None:
-        self.cfg, self.directory, self.eval_entries = cfg, directory, eval_entries
-        self.hooks = hooks
-        seed_everything(cfg.seed)
-        env = make_env()
-        if not isinstance(env, EnvBase):
-            raise TypeError(
-                f"make_env must return a TorchRL environment (EnvBase), got "
-                f"{type(env).__name__}. Wrap gymnasium environments with rl_pg.envs.gym_env."
-            )
-        device = cfg.torch_device()
-        self.actor, critic = _models(make_models, env)
-        self.loss = make_loss(cfg, self.actor, critic).to(device)
-        warm_up(self.loss, env, device)
-        self.optimizer = make_optimizer(cfg, self.loss)
-        # What evaluations play and best.pt deploys (a callback may set another).
-        self.deployed = self.actor
-        self.state = RunState(streams=run_streams(cfg.seed))
-        if saved is not None:
-            self.state = restore(saved, self.loss, self.optimizer, directory.checkpoint_path)
-        self.eval_env = (make_eval_env or make_env)()
-        self.collection = Collection(
-            cfg, env, make_env, self.actor, updates=self.state.updates, device=device,
-            resumed=saved.get("collection") if saved is not None else None,
-        )  # fmt: skip
-        self.logger = Loggers(
-            cfg, directory.path, directory.recipe["recipe"],
-            resume_at=self.state.frames if saved is not None else None,
-        )  # fmt: skip
-        self.console = Console(
-            total_frames=cfg.total_frames,
-            initial_frames=self.state.frames,
-            enabled=cfg.progress,
-            total_updates=cfg.total_updates,
-        )
-        self.episode_returns = EpisodeReturns(carry=cfg.batch_mode == "segments")
-        if saved is not None:  # the environments and counters where the run left them
-            self.collection.replay()
-            if "episodes" in saved:
-                self.episode_returns.load_state_dict(saved["episodes"])
-            restore_rng(saved)
-            hooks.load_state_dict(callback_states(saved))
-        self.next_eval = self._next_evaluation()
-        self.spent = 0
-        hooks.on_start(self)
-        self._clock = time.perf_counter()  # training time excludes evaluations and saving
-
-    @property
-    def path(self) -> Path:
-        """The run directory."""
-        return self.directory.path
-
-    def log(self, name: str, value: float) -> None:
-        """Sends ``name = value`` to every logger of the run, at the current frames."""
-        self.logger.log_scalar(name, value, step=self.state.frames)
-
-    def logs_update(self) -> bool:
-        """Whether the update just made logs its metrics (every ``log_interval``)."""
-        return self.state.updates % self.cfg.log_interval == 0
-
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """One optimiser step on ``batch``; returns its metrics (logged every
-        ``log_interval`` updates)."""
-        cfg, state = self.cfg, self.state
-        metrics = update(
-            cfg,
-            self.loss,
-            self.optimizer,
-            batch,
-            lr=learning_rate(cfg, state.frames),
-            entropy_coeff=entropy_coeff(cfg, state.frames),
-        )
-        # The training return is the policy's: a group's greedy episode is not one.
-        greedy = batch.get("greedy", None)
-        self.episode_returns.add(batch if greedy is None else batch[~greedy.squeeze(-1)])
-        state.updates += 1
-        self.spent = self.collection.frames_spent(batch)
-        state.frames += self.spent
-        if self.collection.after_update(state.updates):
-            self.episode_returns.reset()
-        if not self.logs_update():
-            return metrics
-        metrics["train/episode_return"] = self.episode_returns.pop_mean()
-        finite = {name: value for name, value in metrics.items() if math.isfinite(value)}
-        self.logger.log_metrics(finite, step=state.frames)  # one call per backend
-        return metrics
-
-    def budget_spent(self) -> bool:
-        cfg, state = self.cfg, self.state
-        return state.frames >= cfg.total_frames or (
-            cfg.total_updates is not None and state.updates >= cfg.total_updates
-        )
-
-    def evaluation_due(self) -> bool:
-        return self.state.frames >= self.next_eval
-
-    def evaluate(self) -> None:
-        """Evaluates, keeping the best checkpoint and noting when the run first solved."""
-        cfg, state = self.cfg, self.state
-        self._pause()
-        self.next_eval = self._next_evaluation()
-        evaluate_run(cfg, self.deployed, self.eval_env, self.eval_entries, state, self.logger)
-        best = self.hooks.keeps_best(self, state.last_eval)
-        if best is None:
-            best = state.is_best()
-        if best:
-            self.save(to="best")
-        solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
-        if solved and state.solved_at_frames is None:
-            state.solved_at_frames = state.frames
-        self._resume_clock()
-
-    def checkpoint_due(self) -> bool:
-        return self.state.updates % self.cfg.checkpoint_interval == 0
-
-    def checkpoint(self) -> None:
-        """Writes the last checkpoint, then lets the callbacks write theirs."""
-        self._pause()
-        self.save()
-        self.hooks.on_checkpoint(self)
-        self._resume_clock()
-
-    def save(self, *, to: str = "last") -> None:
-        """Writes the run's checkpoint ``to`` ``"last"`` (``checkpoint.pt``), ``"best"``
-        (``best.pt``) or ``"kept"`` (``checkpoints/update_<updates>.pt``)."""
-        self.directory.save(
-            self.loss, self.optimizer, self.state, to=to,
-            collection=self.collection.state_dict(), episodes=self.episode_returns.state_dict(),
-            callbacks=self.hooks.state_dict(),
-        )  # fmt: skip
-
-    def close(self) -> None:
-        self.console.close()
-        self.logger.close()
-        self.collection.shutdown()
-        if not self.eval_env.is_closed:  # a process-backed one that never started is
-            self.eval_env.close()
-
-    def _next_evaluation(self) -> int:
-        return (self.state.frames // self.cfg.eval_interval + 1) * self.cfg.eval_interval
-
-    def _pause(self) -> None:
-        """Stops the training clock for an evaluation or a checkpoint, whose logs and
-        checkpoint then agree on disk (the CSV rows held back are written)."""
-        self.state.train_time += time.perf_counter() - self._clock
-        self.logger.flush()
-
-    def _resume_clock(self) -> None:
-        self._clock = time.perf_counter()
-
-
 def from_config(cfg: TrainConfig) -> list[Callback]:
     """The callbacks the config's optional behaviours ask for (``policy_ema``,
     ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
@@ -386,7 +215,7 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
         callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:
         # Episodes of one group share their start: the group is the independent unit.
-        grouped = cfg.baseline in GROUP_BASELINES
+        grouped = cfg.grouped
         callbacks.append(GradientNoise(cfg.grad_stats, unit="group" if grouped else "episode"))
     if cfg.lr_control == "kl":
         callbacks.append(LearningRateByKL(cfg.target_kl, cfg.kl_lr_range))
@@ -395,13 +224,3 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
             EntropyByTarget(cfg.entropy_target, cfg.entropy_target_lr, cfg.entropy_coeff_min)
         )
     return callbacks
-
-
-def _models(make_models, env: EnvBase):
-    models = make_models(env)
-    if not (isinstance(models, tuple) and len(models) == 2):
-        raise TypeError(
-            f"make_models must return (actor, critic or None), got {type(models).__name__}. "
-            f"Return (actor, None) to train without a critic."
-        )
-    return models

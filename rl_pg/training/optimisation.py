@@ -6,12 +6,12 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
-from torchrl.modules import IndependentNormal
 
+from rl_pg.action_stats import means_beyond_bounds
 from rl_pg.loss import ReinforceLoss
 from rl_pg.natural_gradient import NaturalGradient
 from rl_pg.normalization import popart_output, update_running_norms
-from rl_pg.training.config import TrainConfig
+from rl_pg.training.learning import LearningSettings, LossSettings, OptimiserSettings
 from rl_pg.training.metrics import EpisodeReturns
 
 __all__ = [
@@ -21,7 +21,6 @@ __all__ = [
     "learning_rate",
     "make_loss",
     "make_optimizer",
-    "means_beyond_bounds",
     "scale_rewards",
     "update",
     "warm_up",
@@ -32,12 +31,12 @@ class TrainingDiverged(RuntimeError):
     """The loss or its gradient became non-finite; the last good checkpoint is kept."""
 
 
-def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
+def make_loss(settings: LearningSettings, actor, critic) -> ReinforceLoss:
     """The run's loss; with ``value_norm='popart'`` the critic's output layer becomes a
     [`PopArt`][rl_pg.normalization.PopArt] one first (so build the critic, make the loss,
     then load weights)."""
     value_norm = None
-    if cfg.value_norm == "popart":
+    if settings.value_norm == "popart":
         if critic is None:
             raise ValueError(
                 "--value-norm popart normalises a critic's values, but the recipe's models "
@@ -47,21 +46,21 @@ def make_loss(cfg: TrainConfig, actor, critic) -> ReinforceLoss:
     loss = ReinforceLoss(
         actor,
         critic,
-        baseline=cfg.baseline,
-        baseline_rate=cfg.baseline_rate,
-        entropy_coeff=cfg.entropy_coeff or None,
-        critic_coeff=cfg.critic_coeff,
-        normalize_advantage=cfg.normalize_advantage,
-        group_scale=cfg.group_scale,
+        baseline=settings.baseline,
+        baseline_rate=settings.baseline_rate,
+        entropy_coeff=settings.entropy_coeff or None,
+        critic_coeff=settings.critic_coeff,
+        normalize_advantage=settings.normalize_advantage,
+        group_scale=settings.group_scale,
         value_norm=value_norm,
         loss_critic_type="l2",
         # The collector runs the actor itself: keep one set of parameters.
         functional=False,
     )
-    if cfg.returns == "gae":
-        loss.make_value_estimator("gae", gamma=cfg.gamma, lmbda=cfg.gae_lambda)
+    if settings.returns == "gae":
+        loss.make_value_estimator("gae", gamma=settings.gamma, lmbda=settings.gae_lambda)
     else:
-        loss.make_value_estimator(cfg.returns, gamma=cfg.gamma)
+        loss.make_value_estimator(settings.returns, gamma=settings.gamma)
     return loss
 
 
@@ -89,15 +88,15 @@ class NaturalOptimiser:
     ``param_groups``, ``state_dict`` and ``load_state_dict`` are the critic's Adam's
     (the natural step keeps no state between updates)."""
 
-    def __init__(self, cfg: TrainConfig, loss: ReinforceLoss) -> None:
-        self.natural = NaturalGradient(loss, max_kl=cfg.max_kl, fisher=cfg.fisher)
+    def __init__(self, settings: OptimiserSettings, loss: ReinforceLoss) -> None:
+        self.natural = NaturalGradient(loss, max_kl=settings.max_kl, fisher=settings.fisher)
         self.critic = None
         if loss.has_critic:
             params = [p for p in loss.critic_network.parameters() if p.requires_grad]
             fused = {"fused": True} if _fused_kernels(params) else {}
             self.critic = torch.optim.Adam(
-                params, lr=cfg.lr, betas=(cfg.adam_beta1, 0.999),
-                weight_decay=cfg.weight_decay, **fused,
+                params, lr=settings.lr, betas=(settings.adam_beta1, 0.999),
+                weight_decay=settings.weight_decay, **fused,
             )  # fmt: skip
 
     @property
@@ -121,22 +120,22 @@ class NaturalOptimiser:
             self.critic.load_state_dict(state["critic"])
 
 
-def make_optimizer(cfg: TrainConfig, loss: ReinforceLoss):
+def make_optimizer(settings: OptimiserSettings, loss: ReinforceLoss):
     """The run's optimiser: Adam or SGD on both networks, or a
     [`NaturalOptimiser`][rl_pg.training.optimisation.NaturalOptimiser]."""
-    if cfg.optimizer == "natural":
-        return NaturalOptimiser(cfg, loss)
+    if settings.optimizer == "natural":
+        return NaturalOptimiser(settings, loss)
     params = [p for p in loss.parameters() if p.requires_grad]
     fused = {"fused": True} if _fused_kernels(params) else {}
-    if cfg.scale_lr_factor != 1:
-        params = _scale_apart(loss, params, cfg.scale_lr_factor, cfg.lr)
-    if cfg.optimizer == "sgd":
-        return torch.optim.SGD(params, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
+    if settings.scale_lr_factor != 1:
+        params = _scale_apart(loss, params, settings.scale_lr_factor, settings.lr)
+    if settings.optimizer == "sgd":
+        return torch.optim.SGD(params, lr=settings.lr, weight_decay=settings.weight_decay, **fused)
     return torch.optim.Adam(
         params,
-        lr=cfg.lr,
-        betas=(cfg.adam_beta1, 0.999),
-        weight_decay=cfg.weight_decay,
+        lr=settings.lr,
+        betas=(settings.adam_beta1, 0.999),
+        weight_decay=settings.weight_decay,
         **fused,
     )
 
@@ -161,29 +160,32 @@ def _scale_apart(loss: ReinforceLoss, params: list, factor: float, lr: float) ->
     return [{"params": rest}, {"params": scale, "lr": factor * lr, "lr_factor": factor}]
 
 
-def learning_rate(cfg: TrainConfig, frames: int) -> float | None:
-    """The learning rate of the update that follows ``frames`` environment steps (None
-    with ``lr_control='kl'``: the rate the controller set stays)."""
-    if cfg.lr_control == "kl":
+def learning_rate(settings: OptimiserSettings, frames: int, total_frames: int) -> float | None:
+    """The learning rate of the update that follows ``frames`` of ``total_frames``
+    environment steps, where a schedule moves it; None where nothing does: the rate the
+    optimiser holds stays (the ``lr`` it was made with, or the rate ``lr_control='kl'``
+    set)."""
+    if settings.lr_schedule == "constant":
         return None
     return _scheduled(
-        cfg.lr, cfg.lr_schedule, frames, cfg.total_frames, start=cfg.lr_schedule_start
+        settings.lr, settings.lr_schedule, frames, total_frames, start=settings.lr_schedule_start
     )
 
 
-def entropy_coeff(cfg: TrainConfig, frames: int) -> float | None:
-    """The entropy bonus of the update that follows ``frames`` environment steps
+def entropy_coeff(settings: LossSettings, frames: int, total_frames: int) -> float | None:
+    """The entropy bonus of the update that follows ``frames`` of ``total_frames``
+    environment steps
     (negative: a penalty, past the zero of a schedule to ``entropy_coeff_end < 0``;
     None with ``entropy_target``: the learned coefficient stays)."""
-    if cfg.entropy_target is not None:
+    if settings.entropy_target is not None:
         return None
     return _scheduled(
-        cfg.entropy_coeff,
-        cfg.entropy_schedule,
+        settings.entropy_coeff,
+        settings.entropy_schedule,
         frames,
-        cfg.total_frames,
-        end=cfg.entropy_coeff_end,
-        start=cfg.entropy_schedule_start,
+        total_frames,
+        end=settings.entropy_coeff_end,
+        start=settings.entropy_schedule_start,
     )
 
 
@@ -209,7 +211,7 @@ def _scheduled(
 
 
 def update(
-    cfg: TrainConfig,
+    settings: LearningSettings,
     loss: ReinforceLoss,
     optimizer,
     batch: TensorDictBase,
@@ -221,24 +223,24 @@ def update(
     the optimiser holds).
 
     ``entropy_coeff`` replaces the loss's entropy bonus from this update on (None keeps
-    it); it takes effect only where the loss has one (``cfg.entropy_coeff > 0``).
+    it); it takes effect only where the loss has one (``entropy_coeff > 0``).
     """
     if entropy_coeff is not None and loss.entropy_coeff is not None:
         loss.entropy_coeff = entropy_coeff
-    if cfg.reward_scale != 1.0:
-        batch = scale_rewards(batch, cfg.reward_scale, loss.tensor_keys.reward)
+    if settings.reward_scale != 1.0:
+        batch = scale_rewards(batch, settings.reward_scale, loss.tensor_keys.reward)
     if isinstance(optimizer, NaturalOptimiser):
-        return _natural_update(cfg, loss, optimizer, batch, lr)
+        return _natural_update(settings, loss, optimizer, batch, lr)
     losses = loss(batch)
     total = sum(value for key, value in losses.items() if key.startswith("loss_"))
     _check_finite(total, f"The loss became {total.item()} ({_describe(losses)})")
-    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
-    grad_norm = _step(cfg, loss, optimizer, total, lr, max_norm)
+    max_norm = settings.max_grad_norm if settings.max_grad_norm is not None else float("inf")
+    grad_norm = _step(settings, loss, optimizer, total, lr, max_norm)
     metrics = {
         f"loss/{key[5:]}": value.item() for key, value in losses.items() if key.startswith("loss_")
     }
     metrics["train/grad_norm"] = grad_norm.item()
-    return _after_step(cfg, loss, optimizer, batch, losses, metrics, max_norm)
+    return _after_step(settings, loss, optimizer, batch, losses, metrics, max_norm)
 
 
 def _check_finite(value: torch.Tensor, what: str) -> None:
@@ -249,13 +251,15 @@ def _check_finite(value: torch.Tensor, what: str) -> None:
         )
 
 
-def _step(cfg, loss, optimizer, total: torch.Tensor, lr, max_norm: float) -> torch.Tensor:
+def _step(
+    settings: OptimiserSettings, loss, optimizer, total: torch.Tensor, lr, max_norm: float
+) -> torch.Tensor:
     """Back-propagates ``total``, clips the gradient of the optimiser's parameters and
     steps at ``lr``; returns the gradient norm before the clip."""
     optimizer.zero_grad(set_to_none=True)
     total.backward()
     params = [p for group in optimizer.param_groups for p in group["params"]]
-    if cfg.clip_scope == "per_network":
+    if settings.clip_scope == "per_network":
         grad_norm = _clip_per_network(loss, params, max_norm)
     else:
         grad_norm = nn.utils.clip_grad_norm_(
@@ -273,14 +277,18 @@ def _set_lr(optimizer, lr: float | None) -> None:
             group["lr"] = lr * group.get("lr_factor", 1.0)
 
 
-def _after_step(cfg, loss, optimizer, batch, losses, metrics: dict, max_norm: float) -> dict:
+def _after_step(
+    settings: LearningSettings, loss, optimizer, batch, losses, metrics: dict, max_norm: float
+) -> dict:
     """What follows either optimiser's step: the critic's further steps, the running
     norms, the diagnostics."""
-    if cfg.critic_steps > 1:
+    if settings.critic_steps > 1:
         critic_optimizer = (
             optimizer.critic if isinstance(optimizer, NaturalOptimiser) else optimizer
         )
-        metrics["loss/value_fitted"] = _fit_critic(loss, critic_optimizer, batch, cfg, max_norm)
+        metrics["loss/value_fitted"] = _fit_critic(
+            loss, critic_optimizer, batch, settings.critic_steps, max_norm
+        )
     # Observation statistics move after the step: the batch was collected, and its
     # loss computed, with the ones before it.
     update_running_norms(loss, batch)
@@ -298,7 +306,9 @@ def _after_step(cfg, loss, optimizer, batch, losses, metrics: dict, max_norm: fl
     return metrics
 
 
-def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch, lr) -> dict:
+def _natural_update(
+    settings: LearningSettings, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch, lr
+) -> dict:
     """The policy's natural-gradient step, then the critic's Adam step on the value
     targets the step wrote into the batch."""
     # The critic's V(s_t) from the returns' pass is regressed as it is: one critic
@@ -312,59 +322,14 @@ def _natural_update(cfg, loss: ReinforceLoss, optimizer: NaturalOptimiser, batch
     }
     for key in ("kl", "step_fraction", "improvement"):
         metrics[f"train/{key}"] = out[key].item()
-    max_norm = cfg.max_grad_norm if cfg.max_grad_norm is not None else float("inf")
+    max_norm = settings.max_grad_norm if settings.max_grad_norm is not None else float("inf")
     if optimizer.critic is not None:
         value_loss = loss.value_loss(batch, value=value)
         _check_finite(value_loss, f"The critic's loss became {value_loss.item()}")
-        grad_norm = _step(cfg, loss, optimizer, value_loss, lr, max_norm)
+        grad_norm = _step(settings, loss, optimizer, value_loss, lr, max_norm)
         metrics["loss/value"] = value_loss.item()
         metrics["train/grad_norm"] = grad_norm.item()
-    return _after_step(cfg, loss, optimizer, batch, out, metrics, max_norm)
-
-
-def means_beyond_bounds(actor, batch: TensorDictBase) -> float | None:
-    """For a Gaussian policy on a bounded action whose samples the environment clips
-    (``mlp_actor(bounded="normal")``): the largest share, over the action's dimensions,
-    of the batch's steps whose mean lies outside the bounds; None for other policies.
-
-    Where the mean is far past a bound, almost every sample is clipped to it and the
-    policy learns nothing more about that dimension (a MetaDrive driver stuck at full
-    throttle showed 0.97-0.99 here); a Beta policy (``bounded="beta"``) keeps its
-    mean inside.
-
-    Examples:
-        >>> import torch
-        >>> from rl_pg.envs import gym_env
-        >>> from rl_pg.models import mlp_actor
-        >>> env = gym_env("Pendulum-v1")  # torque in [-2, 2]
-        >>> actor = mlp_actor(env, bounded="normal")
-        >>> batch = env.rollout(4, actor)
-        >>> batch["loc"] = torch.tensor([[3.0], [0.0], [-2.5], [1.0]])
-        >>> means_beyond_bounds(actor, batch)
-        0.5
-    """
-    head = getattr(actor, "module", [None])[-1]
-    if getattr(head, "distribution_class", None) is not IndependentNormal:
-        return None
-    spec = getattr(actor, "spec", None)
-    action = spec.get("action", None) if spec is not None else None
-    space = getattr(action, "space", None)
-    loc = batch.get("loc", None)
-    if loc is None or not hasattr(space, "low"):
-        return None
-    low, high = (_like(bound.to(loc.device), loc) for bound in (space.low, space.high))
-    beyond = ((loc < low) | (loc > high)).reshape(-1, loc.shape[-1]).float().mean(0)
-    return beyond.max().item()
-
-
-def _like(bound: torch.Tensor, loc: torch.Tensor) -> torch.Tensor:
-    """A batched environment's bounds (``[envs, dims]``) laid against a batch of its
-    steps: ``[envs, time, dims]`` segments, or steps flattened to ``[n, dims]``."""
-    if bound.dim() > 1 and loc.dim() == bound.dim() + 1 and loc.shape[:-2] == bound.shape[:-1]:
-        return bound.unsqueeze(-2)  # the time dimension of each environment's segment
-    if bound.dim() > 1 and loc.shape[:-1] != bound.shape[:-1]:
-        return bound.reshape(-1, bound.shape[-1])[0]  # copies of one environment
-    return bound
+    return _after_step(settings, loss, optimizer, batch, out, metrics, max_norm)
 
 
 def scale_rewards(batch: TensorDictBase, scale: float, reward_key: str = "reward"):
@@ -386,14 +351,14 @@ def scale_rewards(batch: TensorDictBase, scale: float, reward_key: str = "reward
     return scaled
 
 
-def _fit_critic(loss: ReinforceLoss, optimizer, batch, cfg: TrainConfig, max_norm: float) -> float:
+def _fit_critic(loss: ReinforceLoss, optimizer, batch, steps: int, max_norm: float) -> float:
     """The critic's further steps on the batch; returns its value loss after them.
 
     Only the critic's parameters get gradients here (a trunk it shares with the policy
     included), so the optimiser leaves the policy's own parameters alone.
     """
     params = [p for p in loss.critic_network.parameters() if p.requires_grad]
-    for _ in range(cfg.critic_steps - 1):
+    for _ in range(steps - 1):
         value_loss = loss.value_loss(batch)
         if not torch.isfinite(value_loss):
             raise TrainingDiverged(

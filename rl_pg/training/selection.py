@@ -14,27 +14,29 @@ import torch
 from tensordict import TensorDictBase
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from rl_pg._checks import check_int, check_real
+from rl_pg._checks import check_field
 from rl_pg.evaluation import evaluate
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import POLICY_AVERAGE, RunState
-from rl_pg.training.config import TrainConfig
+from rl_pg.training.settings import EvaluationSettings
 
 if TYPE_CHECKING:
-    from rl_pg.training.loop import Run
+    from rl_pg.training.run import Run
 
 __all__ = ["Confirmation", "PolicyAverage", "confirm", "evaluate_run"]
 
 
-def confirm(cfg, actor, eval_env, state: RunState, logger, *, episodes: int) -> float:
-    """Replays ``actor`` on ``episodes`` episodes greedily, then by sampling,
-    both from the confirmation seed; logs both means and returns the lower one. Training's
+def confirm(
+    device: torch.device, actor, eval_env, state: RunState, logger, *, episodes: int
+) -> float:
+    """Replays ``actor`` (on ``device``) on ``episodes`` episodes greedily, then by
+    sampling, both from the confirmation seed; logs both means and returns the lower one. Training's
     random stream is left as it was: confirming changes which checkpoint is kept, not
     the run."""
     start = time.perf_counter()
     means = {}
     for mode, greedy in (("greedy", True), ("sampled", False)):
-        with _random_stream(cfg, state.streams["confirmation"]):
+        with _random_stream(device, state.streams["confirmation"]):
             eval_env.set_seed(state.streams["confirmation"])
             result = evaluate(actor, eval_env, episodes=episodes, deterministic=greedy)
         means[f"confirm/{mode}_mean_return"] = result["mean_return"]
@@ -45,16 +47,19 @@ def confirm(cfg, actor, eval_env, state: RunState, logger, *, episodes: int) -> 
     return score
 
 
-def evaluate_run(cfg, actor, eval_env, eval_entries, state: RunState, logger) -> None:
-    """Plays the run's evaluation (``cfg.eval_episodes`` from the evaluation seed, the
+def evaluate_run(
+    settings: EvaluationSettings, device: torch.device, actor, eval_env, eval_entries,
+    state: RunState, logger,
+) -> None:  # fmt: skip
+    """Plays the run's evaluation (``eval_episodes`` from the evaluation seed, the
     same start states every time and, sampled, the same random numbers), logs it under
     ``eval/`` and keeps it as ``state.last_eval``. Training's random stream is left as
     it was: how often a run evaluates does not change what it learns."""
     start = time.perf_counter()
-    with _random_stream(cfg, state.streams["evaluation"]):
+    with _random_stream(device, state.streams["evaluation"]):
         eval_env.set_seed(state.streams["evaluation"])
         result = evaluate(
-            actor, eval_env, episodes=cfg.eval_episodes, deterministic=cfg.eval_greedy,
+            actor, eval_env, episodes=settings.eval_episodes, deterministic=settings.eval_greedy,
             **eval_entries,
         )  # fmt: skip
     result = {f"eval/{key}": value for key, value in result.items()}
@@ -84,7 +89,7 @@ class PolicyAverage(Callback):
     key = POLICY_AVERAGE
 
     def __init__(self, decay: float) -> None:
-        self.decay = check_real("decay", decay, low=0, high=1, high_open=True)
+        self.decay = check_field(EvaluationSettings, "policy_ema", decay, "decay")
         self.average: AveragedModel | None = None
         self._saved: dict[str, Any] | None = None
 
@@ -123,23 +128,23 @@ class Confirmation(Callback):
     """
 
     def __init__(self, episodes: int, threshold: float | None = None) -> None:
-        self.episodes = check_int("episodes", episodes, low=1, hint="It is a number of episodes.")
-        self.threshold = None if threshold is None else check_real("threshold", threshold)
+        self.episodes = check_field(EvaluationSettings, "confirm_episodes", episodes, "episodes")
+        self.threshold = check_field(EvaluationSettings, "threshold", threshold, optional=True)
 
     def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
         state = run.state
         if not state.worth_confirming(self.threshold):
             return None  # the run's own rule, which keeps nothing once a replay decided
         score = confirm(
-            run.cfg, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
+            run.device, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
         )
         return state.is_best_confirmed(score)
 
 
 @contextlib.contextmanager
-def _random_stream(cfg: TrainConfig, seed: int):
-    """torch's generators seeded with ``seed`` inside, restored to training's after."""
-    device = cfg.torch_device()
+def _random_stream(device: torch.device, seed: int):
+    """torch's generators (those of ``device`` too) seeded with ``seed`` inside, restored
+    to training's after."""
     cuda = (
         [torch.cuda.current_device() if device.index is None else device.index]
         if device.type == "cuda"
