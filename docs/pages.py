@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from rl_pg.app.figures import plot_profile, plot_stored
+from rl_pg.app.outputs import claim_output
 from rl_pg.app.settings import format_settings
 from rl_pg.app.stores import holds, read_stored
 from rl_pg.app.tables import format_curves, format_evaluations, format_report
@@ -44,7 +45,6 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.training.curves import (
     is_png,
 )
-from rl_pg.training.run_dir import claim_output
 
 STORED_FIGURE = re.compile(
     r"^<!-- rl-pg report --stored (?P<files>\S+(?: \S+)*?) --(?P<kind>plot|profile) "

@@ -81,7 +81,7 @@ def test_a_resume_refuses_every_change_to_what_the_run_learns_from():
     """Only where and how the run goes on may change on resume: no field of the returns,
     the loss, the optimiser or the evaluations, and each other field's change is named."""
     from rl_pg.training.config import RESUMABLE_FIELDS, config_dict
-    from rl_pg.training.run_dir import changed_settings
+    from rl_pg.training.resuming import changed_settings
 
     learning = {
         name for group in ("returns", "loss", "optimiser", "evaluation")

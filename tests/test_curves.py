@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rl_pg.training.curves import interquartile_mean, plot_seeds, seed_aggregate
+from rl_pg.training.aggregates import interquartile_mean, seed_aggregate
+from rl_pg.training.curves import plot_seeds
 
 
 def test_interquartile_mean_is_the_mean_of_the_middle_half():

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from test_cli import in_process
 
-from rl_pg.app.lab import _markdown, noise_scale_curve
+from rl_pg.app.lab import _markdown
+from rl_pg.app.noise import noise_scale_curve
 
 QUICK = ["--total-updates", "4", "--episodes-per-batch", "6"]
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "results"
@@ -112,12 +113,12 @@ class TestLabCommand:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from rl_pg.app.lab import _log_scale
+        from rl_pg.app.lab_figures import log_scale
 
         figure, ax = plt.subplots()
         for line in values:
             ax.plot(range(len(line)), line)
-        _log_scale(ax, "noise scale B")
+        log_scale(ax, "noise scale B")
         assert ax.get_yscale() == scale
         assert ("none > 0" in ax.get_ylabel()) == (scale == "linear")
         figure.savefig(io.BytesIO(), format="png")  # draws: no error either way

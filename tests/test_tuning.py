@@ -18,7 +18,8 @@ from rl_pg.app.flags import flag
 from rl_pg.recipes import load
 from rl_pg.training.run_dir import locked
 from rl_pg.training.seeds import evaluation_seed, fresh_seed, replay_seed
-from rl_pg.training.tuning import TRIAL_LOCK, _abandoned, tune
+from rl_pg.training.studies import TRIAL_LOCK, abandoned
+from rl_pg.training.tuning import tune
 
 optuna = pytest.importorskip("optuna")
 gridworld = load("gridworld")
@@ -169,8 +170,8 @@ def test_a_running_trial_without_a_lock_is_abandoned_once_it_is_old():
     now = datetime.datetime.now()
     young = SimpleNamespace(number=0, datetime_start=now)
     old = SimpleNamespace(number=0, datetime_start=now - datetime.timedelta(minutes=5))
-    assert not _abandoned(young, Path("no-such-study"))  # a search that just asked for it
-    assert _abandoned(old, Path("no-such-study"))  # killed before it locked, or older code
+    assert not abandoned(young, Path("no-such-study"))  # a search that just asked for it
+    assert abandoned(old, Path("no-such-study"))  # killed before it locked, or older code
 
 
 def test_the_sampled_settings_reach_the_runs(tmp_path):

@@ -32,12 +32,12 @@ from typing import Any, Literal
 import tyro
 
 from rl_pg._checks import require_extra
+from rl_pg.app.outputs import claim_output
 from rl_pg.app.sources import HUB_FILE
 from rl_pg.app.stores import read_report
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.training import read_run
 from rl_pg.training.checkpoints import POLICY_AVERAGE, callback_states, resolve_latest
-from rl_pg.training.run_dir import claim_output
 
 __all__ = ["ExportArgs", "export_agent", "is_agent_file", "main", "model_card", "push_agent"]
 

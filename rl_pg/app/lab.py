@@ -19,26 +19,31 @@ unbiased but often negative, their ratio per batch is not.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from rl_pg.app.lab_figures import seed_figure, variance_figure
+from rl_pg.app.noise import (
+    comparable,
+    measurements,
+    noise_scale_curve,
+    relative_variance,
+    stored_config,
+    units,
+)
 from rl_pg.app.stores import read_report
 from rl_pg.checkpoint import write_atomically
 from rl_pg.gradient_statistics import ESTIMATORS
-from rl_pg.groups import GROUP_BASELINES
 from rl_pg.training.checkpoints import CHECKPOINT
 from rl_pg.training.config import TrainConfig
-from rl_pg.training.curves import png_figure, read_curve
-from rl_pg.training.records import read_json
-from rl_pg.training.run_dir import SUMMARY, changed_settings
+from rl_pg.training.resuming import changed_settings
+from rl_pg.training.run_dir import SUMMARY
 
-__all__ = ["LabArgs", "measurements", "noise_scale_curve", "summarise", "variance_lab"]
+__all__ = ["LabArgs", "summarise", "variance_lab"]
 
 
 @dataclasses.dataclass
@@ -54,10 +59,6 @@ class LabArgs:
     every: int = 20
     """Updates between measurements. Measuring every estimator on one batch costs about
     one to two updates of the recipes' small networks."""
-
-
-WINDOWS = 10
-"""Equal frame windows the measurements are pooled in, for the curves."""
 
 
 def variance_lab(recipe, cfg: TrainConfig, *, seeds: Sequence[int], every: int, root: Path):
@@ -91,7 +92,7 @@ def _same_setting(cfg: TrainConfig, run_dir: Path) -> None:
     ``cfg``'s: its seeds would be measured under two settings and pooled as one."""
     if not (run_dir / "config.json").is_file():
         return
-    stored = _config(run_dir)
+    stored = stored_config(run_dir)
     keep = frozenset({"resume", "run_dir", "progress", "threads", "workers", "ray"})
     changed = changed_settings(cfg, stored, may_change=keep | _LOGGING)
     if changed:
@@ -128,50 +129,6 @@ def _finished(run_dir: Path) -> bool:
         return False
 
 
-def measurements(run_dir: Path, estimator: str) -> dict[str, np.ndarray]:
-    """A run's logged measurements of ``estimator``: ``frames``, ``trace_covariance``,
-    ``grad_norm_sq`` and ``units``, one entry per measured update."""
-    out = {}
-    for name in ("trace_covariance", "grad_norm_sq", "units"):
-        out["frames"], out[name] = read_curve(run_dir, f"grad/{estimator}/{name}")
-    return out
-
-
-def noise_scale_curve(
-    runs: Sequence[dict[str, np.ndarray]], edges: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(frames, noise scale, snr)`` in each window ``edges[i] <= frames < edges[i+1]``,
-    pooling the measurements of every run in it: `B` is the ratio of their means, the
-    SNR at the batch size used their mean units over `B`. NaN where a window has no
-    measurement or its mean `|∇J|²` is not positive.
-
-    Examples:
-        >>> import numpy as np
-        >>> from rl_pg.app.lab import noise_scale_curve
-        >>> run = {"frames": np.array([64.0, 128.0]), "trace_covariance": np.array([4.0, 8.0]),
-        ...        "grad_norm_sq": np.array([1.0, -1.0]), "units": np.array([8.0, 8.0])}
-        >>> noise_scale_curve([run], np.array([0.0, 100.0, 200.0]))
-        (array([ 50., 150.]), array([ 4., nan]), array([ 2., nan]))
-        >>> noise_scale_curve([run], np.array([0.0, 200.0]))[1]  # pooled: 6 / 0
-        array([nan])
-    """
-    centres, scale, snr = [], [], []
-    for low, high in itertools.pairwise(edges):
-        pooled = {key: [] for key in ("trace_covariance", "grad_norm_sq", "units")}
-        for run in runs:
-            inside = (run["frames"] >= low) & (run["frames"] < high)
-            for key, values in pooled.items():
-                values.append(run[key][inside])
-        trace, signal, units = (np.concatenate(v) for v in pooled.values())
-        b = np.nan
-        if len(signal) and signal.mean() > 0:
-            b = trace.mean() / signal.mean()
-        centres.append((low + high) / 2)
-        scale.append(b)
-        snr.append(units.mean() / b if np.isfinite(b) else np.nan)
-    return np.array(centres), np.array(scale), np.array(snr)
-
-
 def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any]:
     """The figure (``root/variance.png``) and the table (``root/variance.md``,
     ``root/variance.json``) of the runs ``{seed: run_dir}``; returns the table's data:
@@ -187,7 +144,7 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
     ]
     if not estimators:
         raise FileNotFoundError(_nothing_measured(runs, root))
-    table: dict[str, Any] = {"seeds": list(runs), **_units(runs), "estimators": {}}
+    table: dict[str, Any] = {"seeds": list(runs), **units(runs), "estimators": {}}
     for estimator in estimators:
         measured = {seed: measurements(run_dir, estimator) for seed, run_dir in runs.items()}
         end = max(m["frames"].max() for m in measured.values()) + 1
@@ -207,7 +164,7 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
                     np.array([0.0, end]),
                 )[0]
             )
-            if "episode_return" in estimators and _comparable(estimator, runs)
+            if "episode_return" in estimators and comparable(estimator, runs)
             else None,
             "noise_scale_by_seed": {
                 seed: float(noise_scale_curve([m], np.array([0.0, end]))[1][0])
@@ -218,19 +175,11 @@ def summarise(runs: dict[int, Path], root: Path, *, title: str) -> dict[str, Any
     # the data first: a figure that fails loses no measurement
     write_atomically(root / "variance.json", json.dumps(table, indent=2))
     write_atomically(root / "variance.md", _markdown(table))
-    _figure(runs, estimators, root / "variance.png", title=title)
+    variance_figure(runs, estimators, root / "variance.png", title=title)
     # The quietest estimator resolves the signal |∇J|² best (they share it, GAE nearly).
     quietest = next(e for e in ("gae", "reward_to_go_minus_value", *estimators) if e in estimators)
-    _seed_figure(
-        runs, table["held"], root / "variance_by_seed.png", title=title, estimator=quietest
-    )
+    seed_figure(runs, table["held"], root / "variance_by_seed.png", title=title, estimator=quietest)
     return table
-
-
-def _config(run_dir: Path) -> dict[str, Any]:
-    """A seed's stored config, or a ValueError naming the file."""
-    return read_json(run_dir / "config.json", what="a run's config", schema={},
-                     fix=f"remove {run_dir} to train that seed anew")  # fmt: skip
 
 
 def _nothing_measured(runs: dict[int, Path], root: Path) -> str:
@@ -258,24 +207,6 @@ def _nothing_measured(runs: dict[int, Path], root: Path) -> str:
     return f"No gradient statistics in every run under {root}: train them with --grad-stats N."
 
 
-def _units(runs: dict[int, Path]) -> dict[str, Any]:
-    """The unit the runs were measured by: ``{"unit": "episode"}``, or for runs
-    collected in groups ``{"unit": "group", "group_size": K}`` (K sampled episodes each,
-    so a noise scale of B groups is about K·B episodes)."""
-    configs = [_config(run_dir) for run_dir in runs.values()]
-    grouped = {c.get("baseline") in GROUP_BASELINES for c in configs}
-    if grouped == {True}:
-        sizes = {c["group_size"] for c in configs}
-        if len(sizes) == 1:
-            return {"unit": "group", "group_size": sizes.pop()}
-    if True in grouped:
-        raise ValueError(
-            "The runs were measured by different units (some in groups, some by episode, or "
-            "groups of different sizes): summarise runs of one kind together."
-        )
-    return {"unit": "episode"}
-
-
 def _held(run_dir: Path) -> dict[str, Any] | None:
     """Whether the run's best checkpoint held the run's threshold on fresh episodes
     greedily and by sampling (its latest ``rl-pg evaluate`` results), with both means;
@@ -287,86 +218,6 @@ def _held(run_dir: Path) -> dict[str, Any] | None:
         return None
     means = greedy["mean_return"], sampled["mean_return"]
     return {"holds": min(means) >= threshold, "greedy": means[0], "sampled": means[1]}
-
-
-_GROUPS = {"holds": "tab:green", "drops": "tab:red", "not evaluated": "tab:grey"}
-
-
-def _group(verdict: dict[str, Any] | None) -> str:
-    if verdict is None:
-        return "not evaluated"
-    return "holds" if verdict["holds"] else "drops"
-
-
-def _seed_figure(runs, held, path: Path, *, title: str, estimator: str) -> None:
-    """The seeds whose best checkpoint held beside those that dropped: each seed's
-    evaluations (thin), and for each group the noise scale and SNR of ``estimator``
-    (its seeds' measurements pooled in windows) and the policy's mean entropy during
-    training (where it is logged)."""
-    groups: dict[str, list[Path]] = {}
-    for seed, run_dir in runs.items():
-        groups.setdefault(_group(held[seed]), []).append(run_dir)
-    end = max(measurements(r, estimator)["frames"].max() for r in runs.values()) + 1
-    edges = np.linspace(0.0, end, WINDOWS + 1)
-    with png_figure(path, size=(8, 11)) as ax, warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        figure = ax.figure
-        ax.remove()
-        top, scale_ax, snr_ax, entropy_ax = figure.subplots(4, 1, sharex=True)
-        for name, members in groups.items():
-            colour = _GROUPS[name]
-            for i, run_dir in enumerate(members):
-                label = f"{name} ({len(members)} seeds)" if i == 0 else None
-                top.plot(*read_curve(run_dir, "eval/mean_return"), color=colour, lw=0.8,
-                         label=label)  # fmt: skip
-            frames, scale, snr = noise_scale_curve(
-                [measurements(r, estimator) for r in members], edges
-            )
-            scale_ax.plot(frames, scale, marker=".", color=colour)
-            snr_ax.plot(frames, snr, marker=".", color=colour)
-            entropy = [_windowed(r, "train/entropy", edges) for r in members]
-            if all(e is not None for e in entropy):
-                entropy_ax.plot(frames, np.nanmean(np.stack(entropy), 0), marker=".", color=colour)
-        returns = np.concatenate([read_curve(r, "eval/mean_return")[1] for r in runs.values()])
-        top.set_ylim(bottom=np.percentile(returns, 5))
-        recipe = title.split(":")[0]
-        top.set(
-            ylabel="evaluation mean return", title=f"{recipe}: seeds that hold, seeds that drop"
-        )
-        top.legend(loc="best", fontsize="small", title="best checkpoint on fresh episodes")
-        _log_scale(scale_ax, f"noise scale B, {estimator}")
-        _log_scale(snr_ax, "SNR at the batch size")
-        entropy_ax.set(ylabel="policy entropy (training)", xlabel="frames")
-
-
-def _log_scale(ax, label: str) -> None:
-    """A log scale for a panel of positive quantities, labelled. A noise scale or an SNR
-    measured on few batches can come out at or below 0 (``|G|²``'s estimate is a
-    difference), and such points are left out of a log scale; a panel with no positive
-    point at all (a short run, one seed) stays linear and says why."""
-    values = np.concatenate(
-        [np.asarray(line.get_ydata(), dtype=float) for line in ax.lines] or [np.empty(0)]
-    )
-    if np.any(np.isfinite(values) & (values > 0)):
-        ax.set(yscale="log", ylabel=label)
-    else:
-        ax.set(ylabel=f"{label} (none > 0 yet: linear)")
-
-
-def _windowed(run_dir: Path, metric: str, edges: np.ndarray) -> np.ndarray | None:
-    """The mean of a logged ``metric`` in each window (None if the run did not log it)."""
-    try:
-        frames, values = read_curve(run_dir, metric)
-    except FileNotFoundError:
-        return None
-    return np.array(
-        [
-            values[(frames >= low) & (frames < high)].mean()
-            if ((frames >= low) & (frames < high)).any()
-            else np.nan
-            for low, high in itertools.pairwise(edges)
-        ]
-    )
 
 
 def _markdown(table: dict[str, Any]) -> str:
@@ -396,95 +247,3 @@ def _markdown(table: dict[str, Any]) -> str:
 
 def _number(value: float) -> str:
     return "—" if not np.isfinite(value) else f"{value:,.3g}"
-
-
-def relative_variance(
-    runs: Sequence[dict[str, np.ndarray]],
-    reference: Sequence[dict[str, np.ndarray]],
-    edges: np.ndarray,
-) -> np.ndarray:
-    """In each window, the summed ``trace_covariance`` of ``runs`` over that of
-    ``reference`` (another estimator measured on the very same batches): how much
-    noisier or quieter one estimator is than the other on identical data. Unbiased
-    estimators share `∇J`, so this is also the ratio of their noise scales.
-
-    Examples:
-        >>> import numpy as np
-        >>> from rl_pg.app.lab import relative_variance
-        >>> a = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([1.0, 3.0])}
-        >>> b = {"frames": np.array([1.0, 2.0]), "trace_covariance": np.array([8.0, 8.0])}
-        >>> relative_variance([a], [b], np.array([0.0, 3.0]))
-        array([0.25])
-    """
-    out = []
-    for low, high in itertools.pairwise(edges):
-        sums = []
-        for measured in (runs, reference):
-            inside = [
-                m["trace_covariance"][(m["frames"] >= low) & (m["frames"] < high)] for m in measured
-            ]
-            sums.append(np.concatenate(inside).sum() if inside else 0.0)
-        out.append(sums[0] / sums[1] if sums[1] > 0 else np.nan)
-    return np.array(out)
-
-
-def _comparable(estimator: str, runs: dict[int, Path]) -> bool:
-    """Whether ``estimator``'s variance is at the scale of the returns': the loss's own
-    `Ψ` is not when the runs standardise it (``normalize_advantage``), nor a group
-    advantage divided by its group's standard deviation."""
-    if estimator == "group_mean_scaled":
-        return False
-    if estimator != "loss":
-        return True
-    configs = [_config(run_dir) for run_dir in runs.values()]
-    return not any(c.get("normalize_advantage", False) for c in configs)
-
-
-def _figure(runs: dict[int, Path], estimators: list[str], path: Path, *, title: str) -> None:
-    """Three panels by frame: each estimator's variance relative to the whole-episode
-    return's on the same batches (every seed pooled; shaded from seed to seed), the
-    noise scale B, and each seed's evaluations."""
-    reference = "episode_return" if "episode_return" in estimators else estimators[0]
-    measured = {e: [measurements(r, e) for r in runs.values()] for e in estimators}
-    end = max(m["frames"].max() for m in measured[reference]) + 1
-    edges = np.linspace(0.0, end, WINDOWS + 1)
-    with png_figure(path, size=(8, 9)) as ax, warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # windows where no seed has a B
-        figure = ax.figure
-        ax.remove()
-        top, middle, bottom = figure.subplots(3, 1, sharex=True)
-        centres = (edges[:-1] + edges[1:]) / 2
-        for estimator in estimators:
-            if _comparable(estimator, runs):
-                ratio = relative_variance(measured[estimator], measured[reference], edges)
-            else:  # keeps its colour in the other panels
-                ratio = np.full_like(centres, np.nan)
-            (line,) = top.plot(centres, ratio, marker=".", label=estimator)
-            frames, scale, _ = noise_scale_curve(measured[estimator], edges[::2])
-            middle.plot(frames, scale, marker=".", color=line.get_color())
-            if len(runs) > 1 and _comparable(estimator, runs):
-                seeds = np.stack(
-                    [
-                        relative_variance([m], [r], edges)
-                        for m, r in zip(measured[estimator], measured[reference], strict=True)
-                    ]
-                )
-                top.fill_between(
-                    centres,
-                    np.nanmin(seeds, 0),
-                    np.nanmax(seeds, 0),
-                    color=line.get_color(),
-                    alpha=0.15,
-                )
-        for seed, run_dir in runs.items():
-            bottom.plot(*read_curve(run_dir, "eval/mean_return"), label=f"seed {seed}")
-        returns = np.concatenate([read_curve(r, "eval/mean_return")[1] for r in runs.values()])
-        bottom.set_ylim(bottom=np.percentile(returns, 5))  # early collapses off the scale
-        _log_scale(top, f"tr Σ relative to {reference}")
-        top.set(title=title)
-        top.legend(loc="best", fontsize="small")
-        units = _units(runs)
-        unit = f"groups of {units['group_size']}" if units["unit"] == "group" else "units"
-        _log_scale(middle, f"noise scale B ({unit})")
-        bottom.set(ylabel="evaluation mean return", xlabel="frames")
-        bottom.legend(loc="best", fontsize="small")

@@ -29,6 +29,7 @@ from pathlib import Path
 import tyro
 
 from rl_pg.app.figures import plot_profile, plot_stored
+from rl_pg.app.outputs import claim_output
 from rl_pg.app.settings import format_settings
 from rl_pg.app.stores import is_store, read_report, read_stored, run_names, store_report
 from rl_pg.app.tables import format_curves, format_evaluations, format_report
@@ -36,7 +37,6 @@ from rl_pg.training.curves import (
     is_png,
     plot_runs,
 )
-from rl_pg.training.run_dir import claim_output
 
 __all__ = ["Args", "main"]
 

@@ -11,9 +11,7 @@ from typing import Any
 import numpy as np
 
 from rl_pg.app.stores import MODES, holds, stored_runs
-from rl_pg.training.curves import (
-    seed_aggregate,
-)
+from rl_pg.training.aggregates import seed_aggregate
 
 __all__ = ["RECORD_ABOUT", "format_curves", "format_evaluations", "format_report"]
 

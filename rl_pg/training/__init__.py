@@ -30,8 +30,12 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`loop`][rl_pg.training.loop]: ``train()``;
 * [`recipe`][rl_pg.training.recipe]: ``Recipe``, what a recipe gives ``train``,
   ``rl-pg`` and ``play``;
+* [`resuming`][rl_pg.training.resuming]: what a resumed run may change;
 * [`comparison`][rl_pg.training.comparison]: several variants and seeds;
-* [`curves`][rl_pg.training.curves]: every plot, drawn from the CSV logs.
+* [`tuning`][rl_pg.training.tuning] over [`studies`][rl_pg.training.studies]: Optuna
+  searches;
+* [`curves`][rl_pg.training.curves]: every plot, drawn from the CSV logs, over
+  [`aggregates`][rl_pg.training.aggregates] (statistics over seeds).
 
 The library (losses, estimators, transforms, environments, models) knows nothing of
 this package.

@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rl_pg.checkpoint import write_atomically
+from rl_pg.training.aggregates import performance_profile, seed_aggregate, solved_share
 from rl_pg.training.loggers import scalar_log_rows
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
 __all__ = [
-    "interquartile_mean",
     "plot_curves",
     "plot_run",
     "plot_runs",
@@ -32,7 +32,6 @@ __all__ = [
     "plot_solved_settings",
     "png_figure",
     "read_curve",
-    "seed_aggregate",
 ]
 
 CURVE = "learning_curve.png"
@@ -132,102 +131,6 @@ def plot_curves(
     return path
 
 
-def interquartile_mean(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """The mean of the middle half of ``values`` along ``axis`` (25 % trimmed at each
-    end): robust to one seed that fails or one that is lucky, and less noisy than the
-    median (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice").
-
-    Examples:
-        >>> import numpy as np
-        >>> from rl_pg.training.curves import interquartile_mean
-        >>> float(interquartile_mean(np.array([-500.0, 1.0, 2.0, 3.0, 4.0, 900.0, 5.0, 6.0])))
-        3.5
-    """
-    from scipy.stats import trim_mean
-
-    return trim_mean(values, 0.25, axis=axis)
-
-
-def seed_aggregate(
-    values: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Interquartile mean over seeds (``values``: ``[seeds, points]``) at each point,
-    with a percentile-bootstrap confidence interval over the seeds (scipy's
-    ``bootstrap``, a fixed random state: the same data give the same band).
-
-    Returns:
-        ``(iqm, low, high)``, each of shape ``[points]``.
-
-    Raises:
-        ValueError: fewer than 2 seeds (a single run has no spread to bound).
-    """
-    values = np.asarray(values, dtype=np.float64)
-    if values.ndim != 2 or values.shape[0] < 2:
-        raise ValueError(
-            f"seed_aggregate needs values of shape [seeds, points] with at least 2 seeds, "
-            f"got shape {values.shape}."
-        )
-    low, high = _bootstrap_interval(values, interquartile_mean, confidence, resamples)
-    return interquartile_mean(values), low, high
-
-
-def _bootstrap_interval(data, statistic, confidence: float, resamples: int):
-    """The percentile-bootstrap interval of ``statistic`` over ``data``'s first axis
-    (scipy's ``bootstrap``, a fixed random state: the same data give the same band)."""
-    from scipy.stats import bootstrap
-
-    interval = bootstrap(
-        (data,), statistic, axis=0, vectorized=True, confidence_level=confidence,
-        n_resamples=resamples, method="percentile", random_state=0,
-    ).confidence_interval  # fmt: skip
-    return interval.low, interval.high
-
-
-def performance_profile(
-    scores: np.ndarray, taus: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The share of runs scoring above each ``τ`` of ``taus`` (a performance profile, as
-    Agarwal et al. 2021 recommend over a table of means: it shows the whole spread of the
-    runs), with a percentile-bootstrap interval over the runs (scipy's ``bootstrap``, a
-    fixed random state). The ``rliable`` package computes the same; it needs ``arch``,
-    whose releases it accepts (< 8) do not import with pandas 3, so rl_pg uses scipy.
-
-    Returns:
-        ``(share, low, high)``, each of shape ``[len(taus)]``.
-
-    Raises:
-        ValueError: ``scores`` is not one score per run for at least 2 runs.
-
-    Examples:
-        >>> import numpy as np
-        >>> from rl_pg.training.curves import performance_profile
-        >>> share, low, high = performance_profile(np.array([1.0, 2.0, 3.0, 4.0]),
-        ...                                        np.array([0.0, 2.5, 5.0]))
-        >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
-        ([1.0, 0.5, 0.0], True)
-    """
-    return _share_of_runs(
-        scores, taus, np.greater, confidence, resamples, "performance_profile needs one score"
-    )
-
-
-def _share_of_runs(values, points, compare, confidence: float, resamples: int, needs: str):
-    """The share of runs whose value ``compare``s each of ``points``, with a
-    percentile-bootstrap interval over the runs: ``(share, low, high)``, each
-    ``[len(points)]``. ``needs`` opens the error for fewer than 2 runs."""
-    values = np.asarray(values, dtype=np.float64)
-    points = np.asarray(points, dtype=np.float64)
-    if values.ndim != 1 or len(values) < 2:
-        raise ValueError(f"{needs} per run for at least 2 runs, got shape {values.shape}.")
-
-    def share(runs: np.ndarray, axis: int = -1) -> np.ndarray:
-        runs = np.moveaxis(runs, axis, -1)  # [..., runs]
-        return np.moveaxis(compare(runs[..., None], points).mean(axis=-2), -1, 0)
-
-    low, high = _bootstrap_interval(values, share, confidence, resamples)
-    return share(values), low, high
-
-
 def plot_profiles(
     scores: dict[str, np.ndarray],
     path: Path,
@@ -238,7 +141,7 @@ def plot_profiles(
 ) -> Path:
     """Performance profiles of several settings (``{name: one score per run}``) in one
     figure, each with its 95 % bootstrap band (see
-    [`performance_profile`][rl_pg.training.curves.performance_profile])."""
+    [`performance_profile`][rl_pg.training.aggregates.performance_profile])."""
     every = np.concatenate([np.asarray(s, dtype=np.float64) for s in scores.values()])
     margin = 0.05 * (every.max() - every.min() or 1.0)
     taus = np.linspace(every.min() - margin, every.max() + margin, 400)
@@ -260,32 +163,10 @@ def plot_profiles(
     return path
 
 
-def solved_share(
-    reached: np.ndarray, frames: np.ndarray, *, confidence: float = 0.95, resamples: int = 2000
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The share of runs that reached their threshold by each of ``frames`` (``reached``:
-    each run's frames to the threshold, ``inf`` for one that never did), with a
-    percentile-bootstrap interval over the runs: the aggregate of runs that stop when
-    solved, whose evaluation curves end at different frames.
-
-    Examples:
-        >>> import numpy as np
-        >>> from rl_pg.training.curves import solved_share
-        >>> share, low, high = solved_share(np.array([10.0, 20.0, 40.0, np.inf]),
-        ...                                 np.array([0.0, 20.0, 100.0]))
-        >>> share.tolist(), bool((low <= share).all() and (share <= high).all())
-        ([0.0, 0.5, 0.75], True)
-    """
-    return _share_of_runs(
-        reached, frames, np.less_equal, confidence, resamples,
-        "solved_share needs the frames to the threshold",
-    )  # fmt: skip
-
-
 def plot_solved(reached: dict[str, float | None], path: Path, *, budget: int, title: str) -> Path:
     """Runs that stop when solved (``{name: frames to the threshold, or None}``): the
     share of them solved by each frame up to ``budget``, with its 95 % bootstrap band
-    (see [`solved_share`][rl_pg.training.curves.solved_share]), and a tick per run."""
+    (see [`solved_share`][rl_pg.training.aggregates.solved_share]), and a tick per run."""
     return plot_solved_settings({"": reached}, path, budget=budget, title=title)
 
 
@@ -351,7 +232,7 @@ def plot_seeds(
 ) -> Path:
     """Several seeds of one setting (``{name: (frames, values)}``, evaluated at the same
     frames): each seed as a thin line, and their interquartile mean with its 95 %
-    bootstrap confidence band (see [`seed_aggregate`][rl_pg.training.curves.seed_aggregate]).
+    bootstrap confidence band (see [`seed_aggregate`][rl_pg.training.aggregates.seed_aggregate]).
 
     Runs whose batches are whole episodes evaluate at the first batch past each
     interval, so their frames differ a little: evaluations that differ by less than half

@@ -13,9 +13,8 @@ import contextlib
 import json
 import os
 import shutil
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -27,9 +26,10 @@ from rl_pg.checkpoint import (
     write_atomically,
 )
 from rl_pg.training.checkpoints import BEST, CHECKPOINT, LATEST, RunState, save
-from rl_pg.training.config import RESUMABLE_FIELDS, TrainConfig, config_dict
+from rl_pg.training.config import TrainConfig, config_dict
 from rl_pg.training.curves import CURVE, plot_run
 from rl_pg.training.provenance import session_record
+from rl_pg.training.resuming import changed_on_resume, check_resumable
 
 __all__ = [
     "LATEST",
@@ -37,8 +37,6 @@ __all__ = [
     "RunDirBusy",
     "RunDirUnusable",
     "RunDirectory",
-    "changed_settings",
-    "claim_output",
     "link_latest",
     "locked",
     "new_run_dir",
@@ -192,7 +190,7 @@ class RunDirectory:
         self.sessions = _earlier_sessions(self.path) if saved is not None else []
         self.session = session_record(saved["state"]["frames"] if saved is not None else 0)
         if saved is not None:
-            self.session["changed"] = _changed_on_resume(cfg, saved)
+            self.session["changed"] = changed_on_resume(cfg, saved)
         # Readable by people; the checkpoint's own copy is what resuming checks.
         write_atomically(
             self.path / CONFIG, json.dumps({**self.recipe, **config_dict(cfg)}, indent=2)
@@ -279,81 +277,9 @@ def run_directory_of(path: str | Path) -> Path | None:
     return None
 
 
-def claim_output(
-    path: str | Path,
-    *,
-    flag: str,
-    writes: str,
-    ours: Callable[[Path], bool],
-    suffix: str,
-    replace: bool = False,
-) -> Path:
-    """Checks, before a command does its work, that it may write its output ``path``.
-
-    A command writes only names it owns: a new file, or a file it wrote itself before
-    (``ours(path)`` says so, e.g. a table store of ``rl-pg report``); a file of a run
-    directory that is not its own (a checkpoint, the config, the logs) never, and any
-    other existing file only when told to ``replace`` it.
-
-    Args:
-        path: the output the user named.
-        flag: the option that named it, for the messages (``"--store"``).
-        writes: what the command writes there (``"a table store (JSON)"``).
-        ours: whether an existing file is one this command writes.
-        suffix: how the name of what it writes ends (``".json"``): another name would
-            hide what the file is (a PNG named ``plot.txt``, an agent file ``newdir``
-            where a folder was meant).
-        replace: the user's leave to replace a file that is not ``ours``.
-
-    Raises:
-        ValueError: the path is a directory, a name that does not end in ``suffix``, or
-            a file the command may not replace.
-    """
-    path = Path(path)
-    if path.is_dir():
-        example = {".pt": "agent", ".json": "table"}.get(suffix, "figure") + suffix
-        raise ValueError(
-            f"{flag} {path} is a directory: name the file to write there ({writes}), e.g. "
-            f"{path / example}."
-        )
-    if path.exists() or path.is_symlink():
-        run = run_directory_of(path)
-        own = run is not None and path.absolute().relative_to(run).parts[0] in RUN_FILES
-        if own or (run is not None and (path.is_symlink() or not ours(path))):
-            raise ValueError(
-                f"{flag} {path} is a file of the run {run}, not {writes}: rl_pg never "
-                f"replaces a run's own files. Name a file outside the run, or a new name."
-            )
-        if (path.is_symlink() or not ours(path)) and not replace:
-            what = "a symbolic link" if path.is_symlink() else "a file this command did not write"
-            raise ValueError(
-                f"{flag} {path} exists and is {what}; it was left as it is. Name another "
-                f"file for {writes}, or pass --replace to overwrite it."
-            )
-    if path.suffix.lower() != suffix:
-        raise ValueError(
-            f"{flag} {path}: it writes {writes}, so its name ends in {suffix}, e.g. "
-            f"{path.with_suffix(suffix)}."
-        )
-    return path
-
-
 def new_run_dir(recipe: str, seed: int) -> Path:
     # Time-stamped, so that running a recipe twice never collides with an earlier run.
     return Path("runs") / f"{recipe}-seed{seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-
-
-def changed_settings(
-    cfg: TrainConfig, stored: dict[str, Any], *, may_change: frozenset[str] = RESUMABLE_FIELDS
-) -> dict[str, tuple[Any, Any]]:
-    """The fields of ``cfg`` that differ from a run's stored config (``{name: (stored,
-    now)}``; a field newer than the run at the value it had then), but ``may_change``."""
-    stored = type(cfg).as_run(stored)
-    return {
-        key: (stored.get(key), value)
-        for key, value in config_dict(cfg).items()
-        if key not in may_change and stored.get(key) != value
-    }
 
 
 def link_latest(run_dir: Path) -> None:
@@ -379,19 +305,7 @@ def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
                 f"these logs stay as they are."
             )
         saved = load_checkpoint(checkpoint_path)
-        if saved.get("recipe") != recipe:
-            raise CheckpointError(
-                f"{checkpoint_path} was written by recipe {saved.get('recipe')!r}, not "
-                f"{recipe!r}; resume it with that recipe."
-            )
-        changed = changed_settings(cfg, saved["config"])
-        if changed:
-            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
-            raise CheckpointError(
-                f"Cannot resume {checkpoint_path} with a different configuration ({details}). "
-                f"Only {sorted(RESUMABLE_FIELDS)} may change on resume."
-            )
-        _check_budget_left(cfg, saved["state"], run_dir)
+        check_resumable(cfg, recipe, saved, checkpoint_path)
         return saved
     if checkpoint_path.exists():
         raise CheckpointError(
@@ -406,54 +320,6 @@ def _open(cfg, recipe, directory: RunDirectory) -> dict | None:
             f"was overwritten."
         )
     return None
-
-
-TRAJECTORY_FIELDS = {
-    "workers": "collection is split differently between processes",
-    "ray": "collection runs elsewhere",
-    "device": "the arithmetic runs on other hardware",
-    "threads": "torch's reductions may add in another order",
-}
-"""Resumable fields that change what the rest of the run computes: a run resumed with
-another value goes on, but no longer ends as the uninterrupted run would."""
-
-
-def _changed_on_resume(cfg: TrainConfig, saved: dict) -> dict[str, list]:
-    """The resumable fields the resume changes (``{field: [stored, new]}``); says on
-    stderr which of them change the run's results."""
-    stored = type(cfg).as_run(saved["config"])
-    changed = {
-        key: [stored.get(key), value]
-        for key, value in config_dict(cfg).items()
-        if key in RESUMABLE_FIELDS and key not in ("resume", "run_dir")
-        and stored.get(key) != value
-    }  # fmt: skip
-    for key, why in TRAJECTORY_FIELDS.items():
-        if key in changed:
-            old, new = changed[key]
-            print(
-                f"Resuming with {key} {old!r} -> {new!r}: the run goes on, but {why}, so it "
-                f"will not end as the uninterrupted run would (the summary's sessions record "
-                f"the change).",
-                file=sys.stderr,
-            )
-    return changed
-
-
-def _check_budget_left(cfg: TrainConfig, state: dict, run_dir: Path) -> None:
-    """A resumed run must have something left to do: it never trains past its budget."""
-    if state["frames"] >= cfg.total_frames:
-        raise CheckpointError(
-            f"The run in {run_dir} has already trained {state['frames']} frames, and "
-            f"total_frames={cfg.total_frames} asks for no more. Raise --total-frames above "
-            f"{state['frames']} to continue it."
-        )
-    if cfg.total_updates is not None and state["updates"] >= cfg.total_updates:
-        raise CheckpointError(
-            f"The run in {run_dir} has already made {state['updates']} updates, and "
-            f"total_updates={cfg.total_updates} asks for no more. Raise --total-updates "
-            f"above {state['updates']} to continue it."
-        )
 
 
 def _earlier_sessions(run_dir: Path) -> list[dict[str, Any]]:

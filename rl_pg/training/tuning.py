@@ -15,7 +15,6 @@ command is run again; ``best.json`` holds the best settings found so far::
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import statistics
 import warnings
@@ -27,18 +26,21 @@ from rl_pg._checks import require_extra
 from rl_pg.checkpoint import write_atomically
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import read_run
-from rl_pg.training.config import Count, TrainConfig, config_dict
+from rl_pg.training.config import Count, TrainConfig
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import locked
 from rl_pg.training.seeds import replay_seed
+from rl_pg.training.studies import (
+    STUDY_LOCK,
+    TRIAL_LOCK,
+    abandoned,
+    open_study,
+    same_study,
+    study_settings,
+    trial_line,
+)
 
 __all__ = ["SEARCH_SPACE", "STUDY_LOCK", "TRIAL_LOCK", "TuneArgs", "tune"]
-
-STUDY_LOCK = ".study.lock"
-"""Held in the study directory while a search opens the study."""
-TRIAL_LOCK = ".trial.lock"
-"""Held in ``trial<N>/`` by the process running the trial: a trial left running whose
-lock is free was cut short (its process died) and is marked failed."""
 
 # What each tunable setting may take: ``trial -> value``. Ranges are those that make
 # sense for the recipes' MLP policies; a setting the config lacks cannot be tuned.
@@ -185,11 +187,11 @@ def tune(
     # One search at a time opens the study: two creating the SQLite tables at once
     # collide, and two would both fail a killed search's trial.
     with locked(study_dir / STUDY_LOCK, wait=True):
-        study = _open_study(recipe.name, study_dir / "study.db")
+        study = open_study(recipe.name, study_dir / "study.db")
         # Each search on the study (a second one beside it, or the same command run
         # again after a kill) draws its own settings: with one seed, its random first
         # trials would repeat the other's.
-        _same_study(study, _study_settings(recipe, base, params, seeds, objective,
+        same_study(study, study_settings(recipe, base, params, seeds, objective,
                                            held_out_episodes, seed_score), study_dir)  # fmt: skip
         searches = study.user_attrs.get("searches", 0)
         study.set_user_attr("searches", searches + 1)
@@ -211,7 +213,7 @@ def tune(
                 f"themselves (set it inside the range to have one)."
             )
         for running in study.get_trials(states=[optuna.trial.TrialState.RUNNING]):
-            if _abandoned(running, study_dir):  # not a live search's: a killed one's
+            if abandoned(running, study_dir):  # not a live search's: a killed one's
                 study.tell(running.number, state=optuna.trial.TrialState.FAIL)
 
     def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
@@ -262,7 +264,7 @@ def tune(
         # search running on the same directory (each finishes the trial it is in).
         done = [optuna.study.MaxTrialsCallback(trials, finished)]
         if report is not None:
-            done.append(lambda study, trial: report(_trial_line(study, trial, trials)))
+            done.append(lambda study, trial: report(trial_line(study, trial, trials)))
         study.optimize(run_trial, callbacks=done)
     best = study.best_trial
     result = {
@@ -284,103 +286,6 @@ def tune(
     }
     write_atomically(study_dir / "best.json", json.dumps(result, indent=2))
     return result
-
-
-UNSCORED_FIELDS = frozenset(
-    {"seed", "run_dir", "resume", "progress", "threads", "tensorboard", "wandb",
-     "wandb_project", "wandb_mode", "mlflow", "mlflow_uri"}
-)  # fmt: skip
-"""Config fields that do not change what a trial scores (where and how it is watched)."""
-
-
-def _study_settings(
-    recipe, base, params, seeds, objective, held_out_episodes, seed_score
-) -> dict[str, Any]:
-    """What makes two trials' scores comparable: the recipe, the searched settings,
-    the seeds, the objective and every other setting of the runs."""
-    fixed = {
-        key: value
-        for key, value in config_dict(base).items()
-        if key not in UNSCORED_FIELDS and key not in params
-    }
-    return {
-        "recipe": recipe.name,
-        "params": sorted(params),
-        "seeds": list(seeds),
-        "objective": objective,
-        "held_out_episodes": held_out_episodes if objective == "held_out" else None,
-        "seed_score": seed_score,
-        "fixed": fixed,
-    }
-
-
-def _open_study(name: str, path: Path):
-    """The study stored in ``path`` (created if absent), or a ValueError naming the file
-    when it is not one this Optuna can open (another file, a damaged one, a newer
-    Optuna's)."""
-    import optuna
-    from sqlalchemy.exc import SQLAlchemyError
-
-    try:
-        return optuna.create_study(
-            study_name=name, storage=f"sqlite:///{path}", load_if_exists=True,
-            direction="maximize",
-        )  # fmt: skip
-    except (SQLAlchemyError, RuntimeError) as err:  # RuntimeError: another schema version
-        reason = str(getattr(err, "orig", None) or err).splitlines()[0]
-        raise ValueError(
-            f"{path} is not a study this Optuna can open ({reason}). Move it away to start "
-            f"a new study there, or pass another --study-dir."
-        ) from err
-
-
-def _trial_line(study, trial, trials: int) -> str:
-    """One line when a trial ends: its score and settings, and the best so far."""
-    import optuna
-
-    states = optuna.trial.TrialState
-    finished = len(study.get_trials(states=(states.COMPLETE, states.PRUNED)))
-    settings = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                         for k, v in trial.user_attrs.get("settings", {}).items())  # fmt: skip
-    if trial.state == states.PRUNED:
-        at = trial.user_attrs.get("pruned_at", {})
-        return (
-            f"trial {trial.number} ({finished} of {trials} done) pruned at "
-            f"{at.get('frames', 0):,} frames of seed {at.get('seed')}: below the median "
-            f"of the trials before it ({settings})"
-        )
-    if trial.state != states.COMPLETE:
-        return f"trial {trial.number} {trial.state.name.lower()} ({settings})"
-    best = study.best_trial
-    return (
-        f"trial {trial.number} ({finished} of {trials} done): score {trial.value:.2f} "
-        f"with {settings}; best so far: trial {best.number}, {best.value:.2f}"
-    )
-
-
-def _same_study(study, settings: dict[str, Any], study_dir: Path) -> None:
-    """Records the settings of a new study; refuses a search that would join a study
-    made with other ones (its trials' scores would not compare)."""
-    stored = study.user_attrs.get("settings")
-    if stored is None:
-        if not study.trials:  # a new study: what every later search must match
-            study.set_user_attr("settings", settings)
-        return
-    changed = [f"{key}: {stored.get(key)!r} -> {settings[key]!r}" for key in
-               ("recipe", "params", "seeds", "objective", "held_out_episodes", "seed_score")
-               if stored.get(key) != settings[key]]  # fmt: skip
-    fixed = stored.get("fixed", {})
-    changed += [
-        f"--{key.replace('_', '-')}: {fixed.get(key)!r} -> {value!r}"
-        for key, value in settings["fixed"].items()
-        if key in fixed and fixed[key] != value
-    ]
-    if changed:
-        raise ValueError(
-            f"{study_dir} holds a study made with other settings ({'; '.join(changed)}): "
-            f"its trials' scores would not compare with this search's. Run it with the "
-            f"study's settings, or give this search another --run-dir."
-        )
 
 
 def _settings(trial, params: Sequence[str], base: TrainConfig) -> dict[str, Any]:
@@ -443,15 +348,3 @@ class _Pruning(Callback):
 def _is_reference(trial) -> bool:
     """Whether a trial runs the settings as given (enqueued first, never pruned)."""
     return bool(trial.user_attrs.get("reference"))
-
-
-def _abandoned(trial, study_dir: Path) -> bool:
-    """Whether a trial the study lists as running has no live process running it."""
-    lock = study_dir / f"trial{trial.number}" / TRIAL_LOCK
-    if lock.exists():
-        with locked(lock) as free:
-            return free
-    # No lock yet: a search that has just asked for it, or one killed before it
-    # locked (or older than trial locks). Only the first is young.
-    started = trial.datetime_start
-    return started is None or datetime.datetime.now() - started > datetime.timedelta(minutes=1)
