@@ -43,15 +43,18 @@ TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
     ],
     "rl_pg.baselines": ["tests/test_baselines.py"],
     "rl_pg.groups": ["tests/test_groups.py"],
+    "rl_pg.greedy_play": ["tests/test_groups.py"],
     "rl_pg.loss": ["tests/test_loss.py", "tests/test_loss_torchrl_compat.py"],
     "rl_pg.discretize": ["tests/test_discretize.py"],
     "rl_pg.training.seeds": ["tests/test_seeds.py"],
     "rl_pg.checkpoint": ["tests/test_checkpoint.py"],
     "rl_pg.gradient_noise": ["tests/test_gradient_statistics.py"],
     "rl_pg.gradient_statistics": ["tests/test_gradient_statistics.py"],
+    "rl_pg.step_log_prob": ["tests/test_gradient_statistics.py"],
     "rl_pg.training.selection": ["tests/test_selection.py"],
     "rl_pg.episode_workers": ["tests/test_evaluation.py"],
-    "rl_pg.collectors": ["tests/test_collectors.py"],
+    "rl_pg.collectors": ["tests/test_collectors.py", "tests/test_segment_collector.py"],
+    "rl_pg.episode_collector": ["tests/test_episode_collector.py"],
 }
 """The core's modules, each with the tests that answer for it."""
 

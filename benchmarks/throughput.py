@@ -51,7 +51,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
 from rl_pg.collectors import SegmentCollector
-from rl_pg.envs.vector import BOX_CAST_WARNING
+from rl_pg.envs.envpool import BOX_CAST_WARNING
 from rl_pg.functional import reward_to_go
 from rl_pg.lean import lean_policy
 from rl_pg.recipes import load

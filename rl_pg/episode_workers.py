@@ -101,17 +101,17 @@ class EpisodeWorkers:
     # the first one has it: each process plays one environment of this batch size.
     @property
     def batch_size(self) -> torch.Size:
-        return self._spec("batch_size")
+        return self._started_spec("batch_size")
 
     @property
     def observation_spec(self):
-        return self._spec("observation_spec")
+        return self._started_spec("observation_spec")
 
     @property
     def action_spec(self):
-        return self._spec("action_spec")
+        return self._started_spec("action_spec")
 
-    def _spec(self, name: str) -> Any:
+    def _started_spec(self, name: str) -> Any:
         self._start()
         return self._specs[name]
 

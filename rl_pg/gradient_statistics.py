@@ -3,12 +3,10 @@ noise ([`noise_statistics`][rl_pg.gradient_noise.noise_statistics])."""
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import CompositeDistribution
 from torchrl.objectives.value import GAE
 
 from rl_pg._checks import check_choice, check_real
@@ -16,6 +14,7 @@ from rl_pg.estimators import RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
 from rl_pg.gradient_noise import UNITS, noise_statistics, unit_index
 from rl_pg.groups import batch_group_advantage, greedy_flags
+from rl_pg.step_log_prob import StepLogProb, actor_parameters
 
 __all__ = ["ESTIMATORS", "GradientStatistics"]
 
@@ -292,7 +291,7 @@ class GradientStatistics:
             steps, index, psi = steps[order], index[order], psi[:, order]
         with torch.no_grad():  # refuses actions the policy cannot have taken, as the loss does
             self._log_prob(steps)
-        params = _actor_parameters(loss)
+        params = actor_parameters(loss)
         if self.method != "backward":
             try:
                 flat = self._by_steps(steps, index, units, psi, params)
@@ -314,7 +313,7 @@ class GradientStatistics:
         gradients sums them: dense for a few units (BLAS), sparse for many (it then
         does only the multiplications that count).
         """
-        one_step = _StepLogProb(self.loss)
+        one_step = StepLogProb(self.loss)
         detached = {f"actor.{name}": p.detach() for name, p in params.items()}
 
         def log_prob(values, step):
@@ -391,48 +390,3 @@ class GradientStatistics:
         gradients = self.unit_gradients(batch, self.weights(batch))
         stats = noise_statistics(torch.stack(list(gradients.values())))
         return TensorDict({name: stats[i] for i, name in enumerate(gradients)}, batch_size=[])
-
-
-def _actor_parameters(loss) -> dict[str, torch.Tensor]:
-    """The actor's trainable parameters by ``named_parameters`` name (for a functional
-    loss, the loss's own copies)."""
-    actor = loss.actor_network
-    context = (
-        loss.actor_network_params.to_module(actor) if loss.functional else contextlib.nullcontext()
-    )
-    with context:
-        params = {name: p for name, p in actor.named_parameters() if p.requires_grad}
-    if not params:
-        raise ValueError("The loss's actor has no trainable parameter: nothing to measure.")
-    return params
-
-
-class _StepLogProb(torch.nn.Module):
-    """``log π(a|s)`` of one step (the joint over action dimensions): what
-    ``torch.func`` differentiates per step. No checks here: ``vmap`` cannot branch on
-    data, and ``unit_gradients`` has run the loss's own checks on the whole batch."""
-
-    def __init__(self, loss) -> None:
-        super().__init__()
-        self.actor = loss.actor_network
-        self.action_key = loss.tensor_keys.action
-        # A composite distribution reads its actions under keys of its own: keep all.
-        self.composite = any(
-            isinstance(cls, type) and issubclass(cls, CompositeDistribution)
-            for cls in (getattr(m, "distribution_class", None) for m in self.actor.modules())
-        )
-
-    def inputs(self, steps: TensorDictBase) -> TensorDictBase:
-        """The entries of ``steps`` the policy and its log-probability read (``vmap``
-        splits every entry it is given, so the rest is left behind)."""
-        if self.composite:
-            return steps
-        keys = [k for k in (*self.actor.in_keys, self.action_key) if k in steps.keys(True)]
-        return steps.select(*keys)
-
-    def forward(self, step: TensorDictBase) -> torch.Tensor:
-        step = step.unsqueeze(0)  # a batch of one, as the policy expects
-        dist = self.actor.get_dist(step)
-        if isinstance(dist, CompositeDistribution):
-            return dist.log_prob(step).sum(dim="feature", reduce=True).sum()
-        return dist.log_prob(step.get(self.action_key)).sum()

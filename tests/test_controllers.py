@@ -77,8 +77,9 @@ class TestKLStepSize:
         # CartPole with Adam at a learning rate far too large (the first update moves
         # the policy by a KL above 1): within 20 updates the rate has come down and the
         # updates move the policy by about the target.
-        from rl_pg.collectors import EpisodeCollector, SegmentCollector
+        from rl_pg.collectors import SegmentCollector
         from rl_pg.envs import gym_env
+        from rl_pg.episode_collector import EpisodeCollector
         from rl_pg.models import mlp_actor
 
         torch.manual_seed(0)

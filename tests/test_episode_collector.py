@@ -7,8 +7,9 @@ import pytest
 import torch
 from torchrl.collectors import Collector
 
-from rl_pg.collectors import EpisodeCollector, SegmentCollector
+from rl_pg.collectors import SegmentCollector
 from rl_pg.envs import GridWorldEnv
+from rl_pg.episode_collector import EpisodeCollector
 from rl_pg.models import mlp_actor
 
 

@@ -769,7 +769,8 @@ class TestCollectedEpisodes:
         return logits, exact.T.contiguous(), mean_length
 
     def test_episode_collector_batches_give_the_exact_gradient(self, grid):
-        from rl_pg.collectors import EpisodeCollector, SegmentCollector
+        from rl_pg.collectors import SegmentCollector
+        from rl_pg.episode_collector import EpisodeCollector
         from rl_pg.lean import lean_policy
 
         def batches_of(env, actor):

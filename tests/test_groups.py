@@ -13,7 +13,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
-from rl_pg.groups import GROUP_BASELINES, GreedyInGroups, group_advantage
+from rl_pg.greedy_play import GreedyInGroups
+from rl_pg.groups import GROUP_BASELINES, group_advantage
 
 
 def reference_advantage(returns, group, baseline, greedy, scale, eps=1e-8):

@@ -211,8 +211,9 @@ class TestNaturalGradient:
         # 30 natural steps of 30 episodes each find the shortest path (return 0.5): the
         # greedy episode takes it, and the last batch's sampled episodes average near it
         # (the untrained policy's first batch: about -3.3).
-        from rl_pg.collectors import EpisodeCollector, SegmentCollector
+        from rl_pg.collectors import SegmentCollector
         from rl_pg.envs import GridWorldEnv
+        from rl_pg.episode_collector import EpisodeCollector
         from rl_pg.models import mlp_actor
 
         torch.manual_seed(0)
@@ -247,17 +248,17 @@ class TestKroneckerFactoredFisher:
         # A plain recomputation: A from the layer's inputs with a 1 for the bias, G from
         # the per-step gradient of log pi(a~|s) at the layer's outputs (a~ resampled
         # with the same random numbers), over the steps the loss learns from.
-        from rl_pg.natural_gradient import _kronecker_factors, _recording
+        from rl_pg.fisher import kronecker_factors, recording
 
         torch.manual_seed(4)
         actor = self._mlp_actor()
         update = NaturalGradient(ReinforceLoss(actor), fisher="kfac")
         batch = _batch(4)
         rows = update._fisher_rows(batch, None)
-        with _recording(update._layers) as seen:
+        with recording(update._layers) as seen:
             dist = actor.get_dist(batch)
         torch.manual_seed(5)
-        factors = _kronecker_factors(update._layers, seen, dist, batch.batch_size, rows)
+        factors = kronecker_factors(update._layers, seen, dist, batch.batch_size, rows)
         torch.manual_seed(5)
         flat = batch.reshape(-1)
         hidden = torch.tanh(actor.module[0].module[0](flat["observation"]))
@@ -277,7 +278,7 @@ class TestKroneckerFactoredFisher:
 
     def test_steps_left_out_count_in_no_factor(self):
         # Greedy and padding steps (valid False) change neither the factors nor the step.
-        from rl_pg.natural_gradient import _kronecker_factors, _recording
+        from rl_pg.fisher import kronecker_factors, recording
 
         torch.manual_seed(6)
         actor = self._mlp_actor()
@@ -290,10 +291,10 @@ class TestKroneckerFactoredFisher:
         changed["observation"][~valid] = 100.0
         factors = []
         for data in (batch, changed):
-            with _recording(update._layers) as seen:
+            with recording(update._layers) as seen:
                 dist = actor.get_dist(data)
             torch.manual_seed(7)
-            factors.append(_kronecker_factors(update._layers, seen, dist, data.batch_size, rows))
+            factors.append(kronecker_factors(update._layers, seen, dist, data.batch_size, rows))
         for (a, g), (a2, g2) in zip(*factors, strict=True):
             torch.testing.assert_close(a, a2)
             torch.testing.assert_close(g, g2)

@@ -80,7 +80,7 @@ def test_recipe_trains_to_a_complete_run(name, tmp_path):
 
 @pytest.mark.parametrize("recipe", [cartpole, lunarlander])
 def test_the_envpool_backend_is_used_for_any_number_of_environments(recipe):
-    from rl_pg.envs.vector import EnvPoolEnv
+    from rl_pg.envs.envpool import EnvPoolEnv
 
     pytest.importorskip("envpool")
     for num_envs in (1, 3):

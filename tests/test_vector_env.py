@@ -282,7 +282,7 @@ def test_envpool_steps_through_its_arrays_as_through_its_api(task_id, steps):
     pytest.importorskip("envpool")
     import envpool
 
-    from rl_pg.envs.vector import _direct_layout
+    from rl_pg.envs.envpool import _direct_layout
 
     env = EnvPoolEnv(task_id, num_envs=3, max_episode_steps=25)  # seeds 0, 1, 2
     assert env._env._direct[0] is not None  # the direct path is the one under test

@@ -29,8 +29,8 @@ import torch
 from torchrl.collectors import Collector
 
 from rl_pg import ReinforceLoss
-from rl_pg.collectors import EpisodeCollector
 from rl_pg.envs import gym_env
+from rl_pg.episode_collector import EpisodeCollector
 from rl_pg.gradient_statistics import GradientStatistics
 from rl_pg.groups import batch_group_advantage
 from rl_pg.models import mlp_actor

@@ -26,8 +26,8 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rl_pg import ReinforceLoss
-from rl_pg.collectors import EpisodeCollector
 from rl_pg.envs import GridWorldEnv
+from rl_pg.episode_collector import EpisodeCollector
 from rl_pg.gradient_statistics import GradientStatistics
 from rl_pg.models import mlp_actor_critic
 
@@ -88,7 +88,7 @@ for name, label in [
 # The noisiest weight against the quietest: 30 updates of 30 episodes, Adam at 0.02,
 # three seeds each (the settings of `rl-pg train gridworld --compare`, which runs all
 # four on five seeds). A TorchRL `Collector` steps the 30 grids in segments;
-# `rl_pg.collectors.EpisodeCollector` makes batches of exactly 30 complete episodes out
+# `rl_pg.episode_collector.EpisodeCollector` makes batches of exactly 30 complete episodes out
 # of them, one per grid, and restarts the grids after each batch, so that every episode
 # is played by the policy being updated. (Taking the first 30 episodes to end, as
 # `Collector(trajs_per_batch=30)` does, would favour short episodes: a grid whose

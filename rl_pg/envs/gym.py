@@ -18,8 +18,9 @@ from torchrl.envs import EnvBase, GymEnv, TransformedEnv
 
 from rl_pg._checks import check_int
 from rl_pg.discretize import DiscretizeAction
+from rl_pg.envs.envpool import EnvPoolEnv
 from rl_pg.envs.info import InfoFlags
-from rl_pg.envs.vector import EnvPoolEnv, VectorGymEnv
+from rl_pg.envs.vector import VectorGymEnv
 
 __all__ = ["DRIVING_ACTIONS", "driving_env", "gym_env"]
 

@@ -24,8 +24,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from rl_pg.collectors import DoubleBufferedCollector, EpisodeCollector, SegmentCollector
-from rl_pg.groups import GreedyInGroups
+from rl_pg.collectors import DoubleBufferedCollector, SegmentCollector
+from rl_pg.episode_collector import EpisodeCollector
+from rl_pg.greedy_play import GreedyInGroups
 from rl_pg.lean import lean_policy
 from rl_pg.training.seeds import training_seed
 from rl_pg.training.settings import CollectionSettings

@@ -7,7 +7,7 @@ Two ways to batch experience:
 
 * ``batch_mode="episodes"``: ``episodes_per_batch`` complete episodes per update,
   REINFORCE as the textbook states it: each an independent episode of the current
-  policy (an [`EpisodeCollector`][rl_pg.collectors.EpisodeCollector]: every environment
+  policy (an [`EpisodeCollector`][rl_pg.episode_collector.EpisodeCollector]: every environment
   plays a share fixed in advance, and the environments restart after each update, so
   no episode began under the previous policy). The dropped steps count as spent.
 * ``batch_mode="segments"``: ``segment_length`` steps from every environment per

@@ -21,7 +21,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 
 from rl_pg._process import FrozenInWorkers
-from rl_pg.collectors import EpisodeCollector
+from rl_pg.episode_collector import EpisodeCollector
 from rl_pg.training.cluster import start_ray
 from rl_pg.training.interrupt import MainProcessInterrupts
 from rl_pg.training.seeds import training_seed
