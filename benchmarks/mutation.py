@@ -54,6 +54,7 @@ TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
     "rl_pg.training.selection": ["tests/test_selection.py"],
     "rl_pg.episode_workers": ["tests/test_evaluation.py"],
     "rl_pg.collectors": ["tests/test_collectors.py", "tests/test_segment_collector.py"],
+    "rl_pg.segments": ["tests/test_collectors.py", "tests/test_segment_collector.py"],
     "rl_pg.episode_collector": ["tests/test_episode_collector.py"],
 }
 """The core's modules, each with the tests that answer for it."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -16,6 +16,7 @@ from rl_pg.envs.envpool import EnvPoolEnv
 from rl_pg.envs.vector import VectorGymEnv
 from rl_pg.episode_collector import EpisodeCollector  # noqa: F401 (its import path before)
 from rl_pg.lean import LeanCategoricalPolicy, hooked, hooked_globally
+from rl_pg.segments import cleared_flags, observations_of, root_of, segment_of
 
 __all__ = ["DoubleBufferedCollector", "SegmentCollector"]
 
@@ -106,7 +107,7 @@ class _Segments:
             root = {**observations, "done": clear, "terminated": clear, "truncated": clear}
             if self.policy.act(root) is not None:
                 return root
-        return self._act(_root(observations, clear, size, self.env.device))
+        return self._act(root_of(observations, clear, size, self.env.device))
 
     def _act(self, root: TensorDictBase) -> TensorDictBase:
         """The policy's outputs at ``root`` (on the policy's device, if it has one)."""
@@ -205,8 +206,8 @@ class SegmentCollector(_Segments):
             return torch.stack(steps, dim=len(self.env.batch_size))
         env = self.env
         if self._observations is None:
-            self._observations = _observations_of(env, self._reset_env())
-        observations, clear = self._observations, _cleared(env.batch_size, env.device)
+            self._observations = observations_of(env, self._reset_env())
+        observations, clear = self._observations, cleared_flags(env.batch_size, env.device)
         roots, nexts = [], []
         for _ in range(horizon):
             root = self._policy_at(observations, clear, env.batch_size)
@@ -214,73 +215,7 @@ class SegmentCollector(_Segments):
             roots.append(root)
             nexts.append(step)
         self._observations = observations
-        return _segment(roots, nexts, env.batch_size, env.device)
-
-
-def _observations_of(env: EnvBase, root: TensorDictBase) -> dict[str, torch.Tensor]:
-    return {key: root.get(key) for key in env.observation_spec.keys()}
-
-
-def _cleared(size: torch.Size, device) -> torch.Tensor:
-    """Done flags of a root: every root's are False (the environments that finished
-    were reset)."""
-    return torch.zeros((*size, 1), dtype=torch.bool, device=device)
-
-
-def _root(observations: dict, clear: torch.Tensor, size: torch.Size, device) -> TensorDictBase:
-    entries = {**observations, "done": clear, "terminated": clear, "truncated": clear}
-    return TensorDict._new_unsafe(entries, batch_size=size, device=device)
-
-
-def _segment(
-    roots: list[TensorDictBase | dict], nexts: list[dict], size: torch.Size, env_device
-) -> TensorDictBase:
-    """The batch ``[environments, T]`` of a segment's roots (with the policy's outputs;
-    TensorDicts, or dicts of tensors of batch size ``size`` on ``env_device``) and
-    ``"next"`` entries, as TorchRL's collectors lay it out."""
-    # On the policy's device.
-    batch = _stack(roots, size, env_device, cleared=("done", "terminated", "truncated"))
-    following = TensorDict._new_unsafe(
-        {key: torch.stack([step[key] for step in nexts], dim=1) for key in nexts[0]},
-        batch_size=batch.batch_size,
-        device=env_device,
-    )
-    return batch.set("next", following.to(batch.device) if batch.device else following)
-
-
-def _stack(
-    roots: list[TensorDictBase | dict], size: torch.Size, device, cleared: tuple[str, ...] = ()
-) -> TensorDictBase:
-    """``torch.stack(roots, dim=1)``, entry by entry when every entry is a tensor at the
-    top level (a tenth of the time for a batch of small steps). The ``cleared`` entries
-    are the same all-False tensor in every root (``_root``'s done flags): one new
-    tensor of the stacked shape stands for them. Roots that are dicts of tensors are
-    those of batch size ``size`` on ``device``."""
-    first = roots[0]
-    if isinstance(first, dict):
-        entries = roots
-    else:
-        # A plain TensorDict's own mapping: its entries without a get() call each, which
-        # for a segment of small steps cost more than the stacking.
-        entries = (
-            [root._tensordict for root in roots]
-            if all(type(root) is TensorDict for root in roots)
-            else [dict(root.items()) for root in roots]
-        )
-        size, device = first.batch_size, first.device
-    values = entries[0]
-    if not all(isinstance(value, torch.Tensor) for value in values.values()):
-        return torch.stack(roots, dim=1)
-    stacked = {}
-    for key, value in values.items():
-        if key in cleared and all(e.get(key) is value for e in entries) and not value.any():
-            shape = (value.shape[0], len(roots), *value.shape[1:])
-            stacked[key] = torch.zeros(shape, dtype=value.dtype, device=value.device)
-        else:
-            stacked[key] = torch.stack([e[key] for e in entries], dim=1)
-    return TensorDict._new_unsafe(
-        stacked, batch_size=torch.Size([size[0], len(roots)]), device=device
-    )
+        return segment_of(roots, nexts, env.batch_size, env.device)
 
 
 class DoubleBufferedCollector(_Segments):
@@ -364,12 +299,12 @@ class DoubleBufferedCollector(_Segments):
         if self._observations is None:
             root = self._reset_env()
             self._observations = [
-                _observations_of(env, part) for part in (root[: self._first], root[self._first :])
+                observations_of(env, part) for part in (root[: self._first], root[self._first :])
             ]
         # Each half's batch is built at its end.
         observations = self._observations
         sizes = [torch.Size([size]) for size in env.group_sizes]
-        cleared = [_cleared(size, env.device) for size in sizes]
+        cleared = [cleared_flags(size, env.device) for size in sizes]
         roots: tuple[list, list] = ([], [])
         nexts: tuple[list, list] = ([], [])
 
@@ -390,7 +325,7 @@ class DoubleBufferedCollector(_Segments):
                 send(0)  # ...while group 0 acts
             receive(1)
         return torch.cat(
-            [_segment(roots[g], nexts[g], sizes[g], env.device) for g in (0, 1)], dim=0
+            [segment_of(roots[g], nexts[g], sizes[g], env.device) for g in (0, 1)], dim=0
         )
 
     def _collect_tensordicts(self, horizon: int) -> TensorDictBase:

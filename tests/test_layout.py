@@ -21,11 +21,6 @@ MAX_LINES = 400
 LONGER = {"rl_pg.loss": 1130}
 """Modules allowed above ``MAX_LINES``, each at most this long: ``ReinforceLoss`` is one
 class, TorchRL's interface and its checks of every batch."""
-TO_SPLIT = {"rl_pg.collectors": 411}  # fmt: skip
-"""Modules still above ``MAX_LINES``, at most as long as they were when the limit came
-in (a ratchet: they may shrink, not grow; a module split below the limit leaves the
-list)."""
-
 FRAMEWORK = (torch.nn.Module, EnvBase, Transform, LossModule, TensorDictModuleBase,
              ValueEstimatorBase)  # fmt: skip
 """Classes whose underscored methods are hooks their subclasses define and callers use
@@ -180,7 +175,5 @@ def test_no_module_uses_another_modules_private_names():
 @pytest.mark.parametrize("name", sorted(MODULES))
 def test_modules_stay_short(name):
     lines = len(MODULES[name].read_text().splitlines())
-    limit = LONGER.get(name, TO_SPLIT.get(name, MAX_LINES))
+    limit = LONGER.get(name, MAX_LINES)
     assert lines <= limit, f"{MODULES[name]}: {lines} lines, more than {limit}"
-    if name in TO_SPLIT:  # once split, the module leaves the list
-        assert lines > MAX_LINES, f"{name} is {lines} lines now: take it off TO_SPLIT"

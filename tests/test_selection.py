@@ -100,6 +100,29 @@ class TestBestCheckpoint:
             env.set_seed(confirmation_seed(0))
             replays.append(evaluate(actor, env, episodes=6, deterministic=greedy_mode))
         assert min(r["mean_return"] for r in replays) == pytest.approx(scores[winner])
+        # each mode is what it says: the greedy replay plays greedily, the other samples
+        assert greedy[winner] == pytest.approx(replays[0]["mean_return"])
+        assert sampled[winner] == pytest.approx(replays[1]["mean_return"])
+        assert not np.allclose(greedy, sampled)  # or the line above would prove nothing
+
+    def test_evaluations_and_confirmations_log_the_seconds_they_took(self, tmp_path):
+        import time
+
+        from rl_pg.training.checkpoints import RunState
+        from rl_pg.training.seeds import run_streams
+        from rl_pg.training.selection import confirm, evaluate_run
+
+        cfg = _cfg(tmp_path, eval_episodes=3)
+        actor, _ = make_grid_models(make_grid())
+        state = RunState(streams=run_streams(cfg.seed))
+        logged = {}
+        logger = type("Kept", (), {"log_scalar": lambda self, k, v, step: logged.update({k: v})})()
+        start = time.perf_counter()
+        evaluate_run(cfg, cfg.torch_device(), actor, make_grid(), {}, state, logger)
+        confirm(cfg.torch_device(), actor, make_grid(), state, logger, episodes=3)
+        elapsed = time.perf_counter() - start
+        assert logged["time/eval_s"] > 0 and logged["time/confirm_s"] > 0
+        assert logged["time/eval_s"] + logged["time/confirm_s"] <= elapsed
 
     def test_confirmation_changes_the_checkpoint_kept_not_the_run(self, tmp_path):
         common = {"total_updates": 8, "eval_interval": 200}
