@@ -101,6 +101,48 @@ EQUIVALENT: dict[str, str] = {
         )
         for key in ("25:17 constant 1->2", "25:22 constant 21->22")
     },
+    **{
+        f"rl_pg.estimators:{key}": (
+            "how TorchRL is asked for the values (vmapped or in a loop, one call or two, the "
+            "parameters copied deep or shallow): the same values either way"
+        )
+        for key in (
+            "46:32 constant False->True",
+            "132:49 constant False->True",
+            "142:36 constant False->True",
+        )
+    },
+    **{
+        f"rl_pg.estimators:{key}": (
+            "whether a chunked value network takes the one-call path: chunking bounds "
+            "memory, the values are the same"
+        )
+        for key in ("160:11 bool Or->And", "161:19 constant False->True")
+    },
+    "rl_pg.estimators:171:64 constant False->True": (
+        "the default of _values' graph, which every call passes"
+    ),
+    "rl_pg.estimators:238:67 constant 0->1": (
+        "a batch without a time dimension is refused before (estimate checks batch_dims)"
+    ),
+    **{
+        f"rl_pg.estimators:{key}": (
+            "when a segment's values are worth reusing (its length, the work): the values "
+            "are the same either way"
+        )
+        for key in ("239:11 compare 0 Lt->LtE", "239:19 constant 2->3", "243:11 compare 0 Lt->LtE")
+    },
+    **{
+        f"rl_pg.estimators:{key}": (
+            "values are reused only where a next observation equals, entry by entry, the "
+            "one they were computed at: V is a function of the observation, so along any "
+            "dimension and for any shape the checks let through, the values are the same"
+        )
+        for key in ("239:11 bool Or->And", "253:15 bool Or->And")
+    },
+    "rl_pg.estimators:249:24 compare 0 Eq->NotEq": (
+        "done != 0 of a bool tensor is the tensor itself, and 0/1 numbers mark the same steps"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

@@ -125,6 +125,39 @@ class TestMonteCarloEstimators:
                 assert observation.grad is not None and observation.grad.abs().sum() > 0
                 assert all(p.grad is None for p in critic.parameters())
 
+    @pytest.mark.parametrize("given", ["both", "params"])
+    def test_the_parameters_given_are_the_ones_the_values_come_from(self, cls, fn, batch, given):
+        """TorchRL's ``params`` and ``target_params``: V(s_t) from ``params``, the
+        bootstrap V(s_{t+1}) from ``target_params`` (``params`` when only those are
+        given), never the value network's own parameters; ``target_params`` alone is
+        refused, as TorchRL refuses it (not silently ignored)."""
+        torch.manual_seed(0)
+        own, current, target = make_critic(), make_critic(), make_critic()
+        batch = _truncate(batch)
+        kwargs = {"params": current, "target_params": target}
+        if given == "params":
+            del kwargs["target_params"]
+        value, _, _ = _full_pass(fn, current, batch)
+        _, _, expected = _full_pass(fn, kwargs.get("target_params", current), batch)
+        as_params = {k: TensorDict.from_module(m).detach() for k, m in kwargs.items()}
+        cls(gamma=0.9, value_network=own)(batch, **as_params)
+        torch.testing.assert_close(batch["value_target"], expected)
+        torch.testing.assert_close(batch["advantage"], expected - value)
+        with pytest.raises(ValueError, match="both provided or not"):
+            cls(gamma=0.9, value_network=own)(batch, target_params=as_params["params"])
+        # The bootstrap is a target: a differentiable estimate carries no graph into
+        # the parameters it was read with.
+        data = batch.clone()
+        attached = {k: TensorDict.from_module(m) for k, m in kwargs.items()}
+        cls(gamma=0.9, value_network=own, differentiable=True)(data, **attached)
+        assert not data["value_target"].requires_grad
+
+    def test_without_differentiable_no_input_carries_a_graph_into_the_returns(self, cls, fn, batch):
+        batch["next", "reward"] = batch["next", "reward"].detach().requires_grad_(True)
+        cls(gamma=0.9)(batch)  # TorchRL's default: not differentiable
+        assert not batch["value_target"].requires_grad
+        assert not batch["advantage"].requires_grad
+
     @pytest.mark.parametrize("shape", ["batched", "flat"])
     def test_one_call_of_the_value_network_matches_torchrl_vmapped_pair(
         self, cls, fn, batch, shape
@@ -150,11 +183,15 @@ class TestMonteCarloEstimators:
         torch.testing.assert_close(batch["next", "state_value"], next_value, rtol=0, atol=1e-6)
         assert torch.isfinite(next_value).all()
 
-    def test_a_critic_with_hooks_is_called_as_a_module(self, cls, fn, batch):
+    @pytest.mark.parametrize("dims", [2, 3])
+    def test_a_critic_with_hooks_is_called_as_a_module(self, cls, fn, batch, dims):
         """Plain networks are run on tensors, without a TensorDict around them; a
-        critic whose module has a forward hook is called whole, so the hook runs."""
+        critic whose module has a forward hook is called whole, so the hook runs (on a
+        batch of environments in two dimensions too: [B, E, T])."""
         torch.manual_seed(0)
         critic = make_critic()
+        if dims == 3:
+            batch = batch.unsqueeze(1)
         plain = cls(gamma=0.9, value_network=critic)(batch.clone())
         critic.register_forward_hook(
             lambda module, args, out: out.set("state_value", out["state_value"] + 1.0)
@@ -166,7 +203,9 @@ class TestMonteCarloEstimators:
         )
 
     @pytest.mark.parametrize("graph", [False, True])
-    @pytest.mark.parametrize("broken", [None, "integer_done", "observation", "time_first"])
+    @pytest.mark.parametrize(
+        "broken", [None, "integer_done", "observation", "time_first", "two_batch_dims"]
+    )
     def test_next_values_taken_from_the_following_step_match_a_full_pass(
         self, cls, fn, monkeypatch, graph, broken
     ):
@@ -206,6 +245,10 @@ class TestMonteCarloEstimators:
             nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 1)), in_keys=["observation"]
         )
         value, next_value, expected = _full_pass(fn, critic, batch)
+        if broken == "two_batch_dims":  # environments in a grid: [2, 2, T], no less a segment
+            batch = batch.reshape(2, 2, steps)
+            value, next_value, expected = (x.reshape(2, 2, *x.shape[1:]) for x in
+                                           (value, next_value, expected))  # fmt: skip
         if broken == "time_first":
             batch = batch.transpose(0, 1).contiguous()
             batch.names = ["time", None]
@@ -224,7 +267,7 @@ class TestMonteCarloEstimators:
             assert attached.requires_grad
             torch.testing.assert_close(attached.detach(), value)
         rows = sum(seen)
-        if broken in (None, "integer_done"):  # every row's last step, and the ends before it
+        if broken in (None, "integer_done", "two_batch_dims"):  # each row's last step, the ends
             assert rows == envs * steps + envs + int(done[:, :-1].sum())
         else:
             assert rows == 2 * envs * steps
@@ -305,6 +348,36 @@ class TestMonteCarloEstimators:
         batch["next", "done"] = torch.zeros(3, 9, 2, dtype=torch.bool)
         with pytest.raises(ValueError, match=r"done of shape \(3, 9, 2\) does not match reward"):
             cls(gamma=0.9)(batch)
+
+    def test_flags_of_one_entry_answer_for_a_reward_of_several(self, cls, fn, batch):
+        # Two rewards per step (say, two objectives): each column's returns are those of
+        # its own reward under the step's one done and terminated flag.
+        batch = _truncate(batch)
+        two = torch.cat([batch["next", "reward"], -2.0 * batch["next", "reward"]], -1)
+        batch["next", "reward"] = two
+        cls(gamma=0.9)(batch)
+        for column in (0, 1):
+            expected = fn(
+                two[..., column : column + 1], batch["next", "done"], 0.9,
+                terminated=batch["next", "terminated"],
+            )  # fmt: skip
+            torch.testing.assert_close(batch["value_target"][..., column : column + 1], expected)
+
+    @pytest.mark.parametrize("done", ["missing", "two_flags"])
+    def test_a_malformed_done_gets_the_same_error_with_a_critic_that_could_reuse_values(
+        self, cls, fn, batch, done, monkeypatch
+    ):
+        # The check for values to reuse reads done first: it must leave a malformed one
+        # to the estimate's own check, not fail on it in its own way.
+        monkeypatch.setattr("rl_pg.estimators.REUSE_MIN_WORK", 0)
+        if done == "missing":
+            del batch["next", "done"]
+            error, match = KeyError, r"no entry \('next', 'done'\)"
+        else:
+            batch["next", "done"] = torch.zeros(3, 9, 2, dtype=torch.bool)
+            error, match = ValueError, r"done of shape \(3, 9, 2\) does not match reward"
+        with pytest.raises(error, match=match):
+            cls(gamma=0.9, value_network=make_critic())(batch)
 
 
 class TestRewardToGo:
