@@ -103,14 +103,10 @@ EQUIVALENT: dict[str, str] = {
     },
     **{
         f"rl_pg.estimators:{key}": (
-            "how TorchRL is asked for the values (vmapped or in a loop, one call or two, the "
-            "parameters copied deep or shallow): the same values either way"
+            "how TorchRL is asked for the values (vmapped or in a loop, the parameters "
+            "copied deep or shallow): the same values either way"
         )
-        for key in (
-            "46:32 constant False->True",
-            "132:49 constant False->True",
-            "142:36 constant False->True",
-        )
+        for key in ("46:32 constant False->True", "132:49 constant False->True")
     },
     **{
         f"rl_pg.estimators:{key}": (
@@ -143,6 +139,24 @@ EQUIVALENT: dict[str, str] = {
     "rl_pg.estimators:249:24 compare 0 Eq->NotEq": (
         "done != 0 of a bool tensor is the tensor itself, and 0/1 numbers mark the same steps"
     ),
+    "rl_pg.checkpoint:82:36 constant True->False": (
+        "the temporary file exists whenever the try fails: it is made before it, and only "
+        "os.replace, its last statement, takes it away"
+    ),
+    "rl_pg.checkpoint:99:25 constant 0->1": (
+        "the umask set while the old one is read is put back at once; the value read is the same"
+    ),
+    "rl_pg.checkpoint:114:30 constant True->False": (
+        "rglob yields files that exist, and nothing else removes them under the run's lock "
+        "(the function's stated condition)"
+    ),
+    **{
+        f"rl_pg.checkpoint:{key}": (
+            "the array and scalar that name numpy's constructors: any shape or value gives "
+            "the same functions"
+        )
+        for key in ("212:46 constant 1->2", "213:21 constant 0->1")
+    },
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

@@ -68,10 +68,31 @@ class TestCheckpoint:
             load_checkpoint(path)
 
     def test_file_shorter_than_its_header(self, tmp_path):
+        from rl_pg.checkpoint import _HEADER
+
         path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
-        path.write_bytes(path.read_bytes()[:20])
+        data = path.read_bytes()
+        path.write_bytes(data[:20])
         with pytest.raises(CheckpointError, match="shorter than its header"):
             load_checkpoint(path)
+        path.write_bytes(data[:_HEADER])  # the header whole, no payload: not shorter
+        with pytest.raises(CheckpointError, match="do not match the checksum"):
+            load_checkpoint(path)
+
+    def test_a_write_makes_the_folders_it_goes_in(self, tmp_path):
+        path = write_atomically(tmp_path / "new" / "deeper" / "c.json", "{}")
+        assert path.read_text() == "{}"
+
+    def test_a_weights_only_refusal_is_said_by_its_reason_in_one_line(self):
+        from rl_pg.checkpoint import _first_line
+
+        torch_message = (
+            "Weights only load failed. This file can still be loaded, to do so you have "
+            "two options.\n\nWeightsUnpickler error: Unsupported operand 149\n\nCheck the "
+            "documentation of torch.load to learn more."
+        )
+        assert _first_line(RuntimeError(torch_message)) == "Unsupported operand 149"
+        assert _first_line(ValueError("one\nline")) == "one line"
 
     def test_checkpoint_of_another_format_version(self, tmp_path):
         path = save_checkpoint({"a": 1}, tmp_path / "c.pt")
