@@ -157,6 +157,10 @@ EQUIVALENT: dict[str, str] = {
         )
         for key in ("212:46 constant 1->2", "213:21 constant 0->1")
     },
+    "rl_pg.gradient_noise:82:72 constant 1e-30->2e-30": (
+        "the cosine's floor for halves of zero length: halves whose norms multiply to more "
+        "than 2e-30 get the same cosine, and shorter ones 0 either way"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

@@ -57,6 +57,18 @@ class TestNoiseStatistics:
         stats = noise_statistics(torch.tensor([[1.0, 0.0], [-1.0, 0.0]]))
         assert stats["grad_norm_sq"].item() < 0
         assert torch.isnan(stats["noise_scale"])
+        # Two units a and b: |G|^2 is estimated as a.b, exactly 0 here (the spread is 4):
+        # no noise scale of a signal estimated at 0 either.
+        stats = noise_statistics(torch.tensor([[0.0, 0.0], [2.0, 2.0]], dtype=torch.float64))
+        assert stats["grad_norm_sq"].item() == 0 and torch.isnan(stats["noise_scale"])
+        # a small positive signal has one: 0.5 * 1 = 0.5 and (1 - 0.5)^2 / 2 = 0.125
+        stats = noise_statistics(torch.tensor([[1.0], [0.5]], dtype=torch.float64))
+        assert stats["noise_scale"].item() == pytest.approx(0.125 / 0.5)
+
+    def test_a_spread_that_overflows_is_refused(self):
+        # Finite gradients whose squared spread is beyond float32: not a number to log.
+        with pytest.raises(ValueError, match="NaN/inf"):
+            noise_statistics(torch.tensor([[3e19], [-3e19]], dtype=torch.float32))
 
     @pytest.mark.parametrize(
         ("bad", "match"),
@@ -104,12 +116,30 @@ class TestUnitIndex:
         assert index.tolist() == _plain_unit_index(done, unit)
         assert units == int(index.max()) + 1
 
+    @pytest.mark.parametrize("unit", ["episode", "row"])
+    def test_environments_in_two_dimensions_and_several_done_flags(self, unit):
+        # [2, 2, T]: the rows are the environments in order; a step is an episode's end
+        # when any of its flags says so.
+        generator = torch.Generator().manual_seed(0)
+        done = torch.rand(2, 2, 7, 2, generator=generator) < 0.2
+        batch = TensorDict({"next": {"done": done}}, [2, 2, 7])
+        index, units = unit_index(batch, unit=unit)
+        rows = done.any(-1).reshape(4, 7).tolist()
+        assert index.reshape(4, 7).tolist() == _plain_unit_index(rows, unit)
+        assert units == int(index.max()) + 1
+
     def test_time_dimension_by_name(self):
         done = torch.tensor([[False, True], [False, False], [True, False]])  # [T=3, B=2]
         batch = TensorDict({"next": {"done": done.unsqueeze(-1)}}, [3, 2], names=["time", None])
         index, units = unit_index(batch)
         assert index.T.tolist() == [[0, 0, 0], [1, 2, 2]]
         assert units == 3
+
+    def test_groups_of_a_batch_of_one_row(self):
+        group = torch.tensor([[4, 4, 2]]).unsqueeze(-1)
+        batch = TensorDict({"group": group, "next": {"done": torch.zeros(1, 3, 1)}}, [1, 3])
+        index, units = unit_index(batch, unit="group")
+        assert index.tolist() == [[1, 1, 0]] and units == 2
 
     def test_groups_are_numbered_by_id_wherever_their_steps_lie(self):
         done = torch.zeros(3, 2, 1, dtype=torch.bool)
