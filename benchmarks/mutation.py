@@ -161,6 +161,18 @@ EQUIVALENT: dict[str, str] = {
         "the cosine's floor for halves of zero length: halves whose norms multiply to more "
         "than 2e-30 get the same cosine, and shorter ones 0 either way"
     ),
+    "rl_pg.discretize:93:72 constant 1->2": (
+        "the ndim read of counts that have none (an int, a list): any default but 0 says "
+        "'not a 0-d array'"
+    ),
+    **{
+        f"rl_pg.discretize:{key}": "zip's strict check of lists equal in length by construction"
+        for key in ("196:82 constant True->False", "263:76 constant True->False")
+    },
+    "rl_pg.discretize:300:49 constant 1e-12->2e-12": (
+        "the scale of a dimension of zero width, where every table entry has the same value: "
+        "it scales every distance alike, and the nearest entry is the same"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

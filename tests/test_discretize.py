@@ -117,6 +117,41 @@ class TestDiscretizeAction:
         points = torch.tensor([[0.9, 0.5], [0.1, 1.5], [0.6, -10.0]])
         assert transform.to_index(points).tolist() == [1, 0, 1]
 
+    @pytest.mark.parametrize("mode", ["joint", "per_dim"])
+    def test_nearest_index_of_a_batch_of_segments(self, mode):
+        # [B, T, d] actions, as a collector's batch holds them: each step on its own.
+        transform = DiscretizeAction(counts=(3, 5), mode=mode)
+        _bound(transform, low=(-1.0, 0.0), high=(1.0, 4.0))
+        points = torch.rand(2, 4, 2) * torch.tensor([2.0, 4.0]) + torch.tensor([-1.0, 0.0])
+        index = transform.to_index(points)
+        assert index.shape == ((2, 4) if mode == "joint" else (2, 4, 2))
+        flat = transform.to_index(points.reshape(8, 2))
+        assert index.reshape(flat.shape).tolist() == flat.tolist()
+
+    def test_a_table_of_one_dimension(self):
+        transform = DiscretizeAction(actions=[[-1.0], [0.5]])
+        spec = _bound(transform, low=(-1.0,), high=(1.0,))
+        assert spec["action"].n == 2
+        assert transform.to_index(torch.tensor([[0.9], [-0.7]])).tolist() == [1, 0]
+
+    def test_counts_as_one_number_of_any_kind(self):
+        for counts in (3, np.int64(3), torch.tensor(3)):
+            transform = DiscretizeAction(counts=counts)
+            assert transform.counts == [3] and _bound(transform)["action"].n == 9
+
+    def test_what_the_spec_gives_is_no_state(self):
+        # The table and bounds come from the environment's spec: a state_dict holds
+        # none of them, so one saved before the spec was seen loads after, and back.
+        built, fresh = DiscretizeAction(counts=3), DiscretizeAction(counts=3)
+        _bound(built)
+        assert built.state_dict().keys() == fresh.state_dict().keys()
+        fresh.load_state_dict(built.state_dict())
+
+    def test_repr_names_what_the_actions_come_from(self):
+        assert repr(DiscretizeAction(counts=(2, 3))).startswith("DiscretizeAction(counts=[2, 3],")
+        table = repr(DiscretizeAction(actions=[[0.0, 1.0]]))
+        assert table.startswith("DiscretizeAction(actions=<table>,")
+
     def test_one_hot_spec(self):
         spec = _bound(DiscretizeAction(counts=3, one_hot=True))["action"]
         assert spec.shape == (9,) and spec.rand().sum() == 1
@@ -288,6 +323,20 @@ class TestDiscretizeActionErrors:
         _bound(transform)
         with pytest.raises(ValueError, match=r"One-hot actions have 4 columns, got shape \(1, 3\)"):
             transform.to_continuous(torch.tensor([[0, 1, 0]], dtype=torch.bool))
+
+    def test_index_one_past_the_last(self):
+        transform = DiscretizeAction(counts=(2, 2))
+        _bound(transform)
+        with pytest.raises(
+            ValueError, match=r"out of range: got values in \[4, 4\], expected \[0, 3\]"
+        ):
+            transform.to_continuous(torch.tensor([4]))
+
+    def test_per_dim_one_hot_of_the_wrong_width(self):
+        transform = DiscretizeAction(counts=(2, 3), mode="per_dim", one_hot=True)
+        _bound(transform)
+        with pytest.raises(ValueError, match=r"one-hot actions have 5 columns"):
+            transform.to_continuous(torch.tensor([[1, 0, 0, 1]], dtype=torch.bool))
 
     def test_per_dim_row_that_is_not_one_hot(self):
         transform = DiscretizeAction(counts=(2, 3), mode="per_dim", one_hot=True)
