@@ -548,3 +548,17 @@ def test_the_generic_recipe_learns_an_environment_it_was_not_written_for(tmp_pat
     summary = gym.train(cfg)
     assert summary["recipe"] == "gym" and summary["threshold"] == 90.0
     assert summary["best_eval_mean_return"] >= 90.0
+
+
+def test_every_recipe_has_its_page_in_the_docs():
+    # What adding a recipe takes: its module in rl_pg/recipes (NAMES finds it) and its
+    # page, in the site's navigation.
+    from pathlib import Path
+
+    from rl_pg.recipes import NAMES
+
+    docs = Path(__file__).parents[1] / "docs"
+    nav = (docs.parent / "mkdocs.yml").read_text()
+    for name in NAMES:
+        assert (docs / "recipes" / f"{name}.md").is_file(), f"docs/recipes/{name}.md is missing"
+        assert f"recipes/{name}.md" in nav, f"recipes/{name}.md is not in mkdocs.yml's nav"

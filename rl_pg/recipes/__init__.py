@@ -17,16 +17,39 @@ Examples:
 from __future__ import annotations
 
 import importlib
+import pkgutil
+from pathlib import Path
 
 from rl_pg.training.recipe import Recipe
 
-__all__ = ["NAMES", "load", "recipe_of"]
+__all__ = ["NAMES", "load", "recipe_modules", "recipe_of"]
 
-NAMES = (
+_SIMPLEST_FIRST = (
     "bandit", "gridworld", "cartpole", "pendulum", "lunarlander", "highway", "pong", "metadrive",
     "gym",
 )  # fmt: skip
-"""The built-in recipes, simplest first; ``gym`` takes any gymnasium id (``--env-id``)."""
+
+
+def recipe_modules(folder: str | Path, order: tuple[str, ...] = _SIMPLEST_FIRST) -> tuple[str, ...]:
+    """The recipe modules in ``folder``: those ``order`` names first, in its order, then
+    any other (a recipe file just added) by name; underscored modules are not recipes.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> for name in ("cartpole", "toy", "bandit", "_helpers"):
+        ...     _ = (folder / f"{name}.py").write_text("")
+        >>> recipe_modules(folder)
+        ('bandit', 'cartpole', 'toy')
+    """
+    found = {m.name for m in pkgutil.iter_modules([str(folder)]) if not m.name.startswith("_")}
+    return tuple(name for name in order if name in found) + tuple(sorted(found - set(order)))
+
+
+NAMES = recipe_modules(Path(__file__).parent)
+"""The built-in recipes, simplest first (a recipe file added to this package is one too,
+after them); ``gym`` takes any gymnasium id (``--env-id``)."""
 
 
 def load(name: str, module: str | None = None) -> Recipe:
