@@ -173,6 +173,20 @@ EQUIVALENT: dict[str, str] = {
         "the scale of a dimension of zero width, where every table entry has the same value: "
         "it scales every distance alike, and the nearest entry is the same"
     ),
+    **{
+        f"rl_pg.groups:{key}": (
+            "unsqueeze of a vector (one entry per episode or per group): dimension -1 is "
+            "dimension 1"
+        )
+        for key in (
+            "150:43 drop USub",
+            "153:31 drop USub",
+            "164:39 drop USub",
+            "166:90 drop USub",
+            "167:42 drop USub",
+            "169:50 drop USub",
+        )
+    },
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

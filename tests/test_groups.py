@@ -14,7 +14,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from rl_pg.greedy_play import GreedyInGroups
-from rl_pg.groups import GROUP_BASELINES, group_advantage
+from rl_pg.groups import GROUP_BASELINES, batch_group_advantage, group_advantage
 
 
 def reference_advantage(returns, group, baseline, greedy, scale, eps=1e-8):
@@ -126,6 +126,23 @@ class TestGroupAdvantage:
         args.update(kwargs)
         with pytest.raises(error, match=match):
             group_advantage(args.pop("returns"), args.pop("group"), **args)
+
+
+class TestBatchGroupAdvantage:
+    @pytest.mark.parametrize("baseline", ["leave_one_out", "group_mean"])
+    def test_rows_of_episodes_are_the_same_episodes_laid_end_to_end(self, baseline):
+        # Two rows of whole episodes, [2, 6], each step's end said by two flags
+        # (terminated, truncated): the advantages of the same steps laid out flat.
+        ends = torch.tensor([[0, 1, 1, 0, 0, 1], [1, 0, 1, 0, 1, 1]], dtype=torch.bool)
+        done = torch.stack([ends, torch.zeros_like(ends)], -1)
+        group = torch.tensor([[0, 0, 0, 1, 1, 1], [1, 0, 0, 1, 1, 0]]).unsqueeze(-1)
+        to_go = torch.randn(2, 6, 1, generator=torch.Generator().manual_seed(0))
+        rows = TensorDict({"group": group, "next": {"done": done}}, [2, 6])
+        flat = rows.reshape(-1)
+        by_rows = batch_group_advantage(rows, to_go, baseline=baseline)
+        laid_out = batch_group_advantage(flat, to_go.reshape(-1, 1), baseline=baseline)
+        assert by_rows.shape == (2, 6, 1)
+        torch.testing.assert_close(by_rows.reshape(-1, 1), laid_out)
 
 
 def _actor(n_actions=3):
