@@ -2,12 +2,15 @@
 turned round, a sign flipped, a constant moved by one, a condition negated), and the
 tests of that module run against it. A mutant the tests fail on is killed; one they pass
 on survived, and is either a gap in the tests or a change that cannot be told apart from
-the code (an equivalent mutant, argued in ``EQUIVALENT``).
+the code (an equivalent mutant, argued in ``EQUIVALENT``). A survivor no test on this
+machine can kill keeps its reason in ``ARGUED``.
 
     python benchmarks/mutation.py --modules functional training.seeds  # these modules
     python benchmarks/mutation.py                 # the whole core: hours
     python benchmarks/mutation.py --survivors     # the survivors again, once tests changed
     python benchmarks/mutation.py --targets       # the targets, their tests and mutants
+    python benchmarks/mutation.py --summary       # the scores again, after EQUIVALENT or
+                                                  # ARGUED changed
 
 Scores go to ``benchmarks/results/mutation.json`` after every mutant, so a stopped run
 continues where it was; a module whose source changed is scored afresh. The heavy
@@ -196,8 +199,38 @@ EQUIVALENT: dict[str, str] = {
         "(stream_seed gives the same four seeds under the mutant)"
     ),
 }
+
 """Mutants that change no behaviour (``module:line:col operator`` -> why), left out of
 the score."""
+
+ARGUED: dict[str, str] = {
+    "rl_pg.training.selection:149:40 compare 0 Is->IsNot": (
+        "the index of a CUDA device, read only where training runs on CUDA: this machine "
+        "has none to run the test on"
+    ),
+    **{
+        f"rl_pg.gradient_noise:{key}": (
+            "torch.unique sorts on the CPU whatever sorted= says; the units' numbering (and "
+            "the half-batch split) differ only on CUDA, which this machine cannot run"
+        )
+        for key in ("165:58 constant True->False", "180:54 constant True->False")
+    },
+    "rl_pg.checkpoint:84:7 negate condition": (
+        "the fsync that makes a rename survive a power cut: no test short of cutting the "
+        "machine's power sees it"
+    ),
+    "rl_pg.estimators:164:19 constant False->True": (
+        "a value network with recurrent state (is_init in its inputs) taking the one-call "
+        "path: rl_pg builds none, and the test needs one of TorchRL's recurrent modules"
+    ),
+    "rl_pg.estimators:166:12 bool And->Or": (
+        "an input that is a plain tensor at the root but not under 'next' (or the "
+        "reverse): TorchRL's collectors never write one, and both paths refuse it, by "
+        "different errors"
+    ),
+}
+"""Survivors that stay, each with why no test here kills it (they count as survivors)."""
+
 
 _FLIP_COMPARE = {
     ast.Lt: ast.LtE, ast.LtE: ast.Lt, ast.Gt: ast.GtE, ast.GtE: ast.Gt,
@@ -381,6 +414,9 @@ class Args:
     """Score the mutants that survived again (after the tests changed), and no others."""
     targets: bool = False
     """Print the targets, their tests and their mutants' counts, and stop."""
+    summary: bool = False
+    """Write the scores again from the stored outcomes (after EQUIVALENT or ARGUED
+    changed), scoring nothing."""
 
 
 def main(args: Args) -> dict:
@@ -395,6 +431,11 @@ def main(args: Args) -> dict:
             source = (REPO / (name.replace(".", "/") + ".py")).read_text()
             print(f"{name}: {len(mutants(source))} mutants; tests {' '.join(TARGETS[name])}")
         return {}
+    if args.summary:
+        results = json.loads(RESULTS.read_text())
+        _save(results)
+        print(f"mutation.py: {results['killed']} of {results['scored']} scored mutants killed.")
+        return results
     sys.dont_write_bytecode = True  # a mutant's bytecode must never be read for another's
     os.environ["RL_PG_MUTATION"] = "1"  # hypothesis: the same examples, none shrunk
     import numpy  # noqa: F401  (the heavy imports, once, before the forks)
@@ -483,6 +524,11 @@ def _summarise(results: dict) -> None:
     results["killed"], results["scored"] = killed, scored
     results["score"] = killed / scored if scored else None
     results["equivalent"] = EQUIVALENT
+    results["survivors"] = {
+        f"{name}:{key}": ARGUED.get(f"{name}:{key}", "no test kills it yet")
+        for name, entry in results["modules"].items()
+        for key in entry["survivors"]
+    }
 
 
 def _save(results: dict) -> None:
