@@ -190,6 +190,13 @@ EQUIVALENT: dict[str, str] = {
             "169:50 drop USub",
         )
     },
+    "rl_pg.groups:281:58 constant 1->2": (
+        "one more all-zero column in the episodes' table: each position is compared with "
+        "its own column (scaled too), and the extra one is never read back"
+    ),
+    "rl_pg.greedy_play:76:67 constant 1->2": (
+        "the row count of a batch without dimensions, which is refused on the next line"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

@@ -128,21 +128,76 @@ class TestGroupAdvantage:
             group_advantage(args.pop("returns"), args.pop("group"), **args)
 
 
+def _rows_of_episodes() -> TensorDict:
+    """Two rows of whole episodes, [2, 6], each step's end said by two flags (terminated,
+    truncated); groups 0 and 1, each with one greedy episode."""
+    ends = torch.tensor([[0, 1, 1, 0, 0, 1], [1, 0, 1, 0, 1, 1]], dtype=torch.bool)
+    group = torch.tensor([[0, 0, 0, 1, 1, 1], [1, 0, 0, 1, 1, 0]]).unsqueeze(-1)
+    greedy = torch.tensor([[0, 0, 1, 0, 0, 0], [1, 0, 0, 0, 0, 0]], dtype=torch.bool)
+    return TensorDict(
+        {"group": group, "greedy": greedy.unsqueeze(-1),
+         "next": {"done": torch.stack([ends, torch.zeros_like(ends)], -1)}},
+        [2, 6],
+    )  # fmt: skip
+
+
 class TestBatchGroupAdvantage:
-    @pytest.mark.parametrize("baseline", ["leave_one_out", "group_mean"])
-    def test_rows_of_episodes_are_the_same_episodes_laid_end_to_end(self, baseline):
-        # Two rows of whole episodes, [2, 6], each step's end said by two flags
-        # (terminated, truncated): the advantages of the same steps laid out flat.
-        ends = torch.tensor([[0, 1, 1, 0, 0, 1], [1, 0, 1, 0, 1, 1]], dtype=torch.bool)
-        done = torch.stack([ends, torch.zeros_like(ends)], -1)
-        group = torch.tensor([[0, 0, 0, 1, 1, 1], [1, 0, 0, 1, 1, 0]]).unsqueeze(-1)
+    @pytest.mark.parametrize("baseline", GROUP_BASELINES)
+    @pytest.mark.parametrize("scale", [False, True])
+    def test_rows_of_episodes_are_the_same_episodes_laid_end_to_end(self, baseline, scale):
+        # The advantages of the same steps laid out flat, and those of the episodes'
+        # table by group_advantage itself.
+        rows = _rows_of_episodes()
         to_go = torch.randn(2, 6, 1, generator=torch.Generator().manual_seed(0))
-        rows = TensorDict({"group": group, "next": {"done": done}}, [2, 6])
-        flat = rows.reshape(-1)
-        by_rows = batch_group_advantage(rows, to_go, baseline=baseline)
-        laid_out = batch_group_advantage(flat, to_go.reshape(-1, 1), baseline=baseline)
+        kwargs = {"baseline": baseline, "scale": scale}
+        by_rows = batch_group_advantage(rows, to_go, **kwargs)
+        laid_out = batch_group_advantage(rows.reshape(-1), to_go.reshape(-1, 1), **kwargs)
         assert by_rows.shape == (2, 6, 1)
         torch.testing.assert_close(by_rows.reshape(-1, 1), laid_out)
+        # episodes (row, start, length) in order, each step's return at its position
+        episodes = [(0, 0, 2), (0, 2, 1), (0, 3, 3), (1, 0, 1), (1, 1, 2), (1, 3, 2), (1, 5, 1)]
+        table = torch.zeros(len(episodes), 3)
+        for e, (row, start, length) in enumerate(episodes):
+            table[e, :length] = to_go[row, start : start + length, 0]
+        group = torch.tensor([rows["group"][r, t, 0] for r, t, _ in episodes])
+        greedy = torch.tensor([bool(rows["greedy"][r, t, 0]) for r, t, _ in episodes])
+        expected = group_advantage(
+            table, group, greedy=greedy if baseline == "greedy" else None, **kwargs
+        )
+        for e, (row, start, length) in enumerate(episodes):
+            torch.testing.assert_close(
+                by_rows[row, start : start + length, 0], expected[e, :length]
+            )
+
+    def test_a_batch_of_one_row(self):
+        rows = _rows_of_episodes()[1:]  # two episodes of each group
+        to_go = torch.arange(6.0).reshape(1, 6, 1)
+        assert batch_group_advantage(rows, to_go).shape == (1, 6, 1)
+
+    @pytest.mark.parametrize(
+        ("key", "value", "error", "match"),
+        [
+            ("group", torch.zeros(2, 6, 2, dtype=torch.long), ValueError, "one value per step"),
+            ("group", torch.zeros(2, 6, 1), TypeError, r"group ids, got dtype torch\.float32"),
+            ("group", torch.zeros(2, 6, 1, dtype=torch.bool), TypeError, "integer group ids"),
+            ("greedy", torch.zeros(2, 6, 1, dtype=torch.long), TypeError,
+             r"must be boolean, got dtype torch\.int64"),
+        ],
+    )  # fmt: skip
+    def test_steps_that_do_not_carry_one_id_or_flag_each_are_refused(
+        self, key, value, error, match
+    ):
+        rows = _rows_of_episodes().set(key, value)
+        with pytest.raises(error, match=match):
+            batch_group_advantage(rows, torch.zeros(2, 6, 1), baseline="greedy")
+
+    def test_what_is_refused_is_named_by_its_kind(self):
+        with pytest.raises(TypeError, match="returns must be a floating-point tensor, got list"):
+            group_advantage([[1.0]], torch.zeros(1, dtype=torch.long))
+        with pytest.raises(
+            TypeError, match=r"group must be an integer tensor, got a torch\.float32 tensor"
+        ):
+            group_advantage(torch.ones(2, 1), torch.zeros(2))
 
 
 def _actor(n_actions=3):
