@@ -197,6 +197,10 @@ EQUIVALENT: dict[str, str] = {
     "rl_pg.greedy_play:76:67 constant 1->2": (
         "the row count of a batch without dimensions, which is refused on the next line"
     ),
+    "rl_pg.episode_workers:135:83 constant True->False": (
+        "zip's strict check of the workers, their shares and seeds: one of each per worker "
+        "by construction"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

@@ -350,6 +350,36 @@ def test_episode_workers_repeat_a_sampled_evaluation_from_its_seed():
     assert lengths[:10].tolist() != lengths[10:].tolist()
 
 
+def test_process_i_plays_from_the_seed_plus_i():
+    # What set_seed documents: the second process of two seeded with 7 plays the episodes
+    # a lone process seeded with 8 plays.
+    from functools import partial
+
+    make = partial(GridWorldEnv, max_steps=30)
+    policy = _fixed_actor(16, [0.0, 0.0, 0.0, 0.0])  # uniform: every step is a draw
+    request = EpisodeRequest(10, False, 30, [], [])
+    pair, alone = EpisodeWorkers([make] * 2), EpisodeWorkers([make])
+    try:
+        pair.set_seed(7)
+        both = pair.play(policy, request._replace(episodes=20))
+        alone.set_seed(8)
+        second = alone.play(policy, request)
+    finally:
+        pair.close()
+        alone.close()
+    assert both["length"][10:].tolist() == second["length"].tolist()
+    assert both["return"][10:].tolist() == second["return"].tolist()
+
+
+def test_only_the_ray_backend_asks_for_ray(monkeypatch):
+    asked = []
+    monkeypatch.setattr("rl_pg.episode_workers.require_extra", lambda *args: asked.append(args[0]))
+    EpisodeWorkers([GridWorldEnv])
+    assert asked == []
+    EpisodeWorkers([GridWorldEnv], backend="ray")
+    assert asked == ["ray"]
+
+
 def test_action_stats_read_one_hot_actions():
     from torchrl.envs import GymEnv
     from torchrl.modules import OneHotCategorical
