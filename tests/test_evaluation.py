@@ -251,7 +251,11 @@ def test_episode_workers_spawn_unless_a_start_method_is_set(monkeypatch):
     import multiprocessing
     from functools import partial
 
-    monkeypatch.setattr(multiprocessing, "get_start_method", lambda allow_none=False: None)
+    # As multiprocessing's own with no method set: None if asked so, else it fixes its
+    # platform default (fork on Linux) and returns that.
+    monkeypatch.setattr(
+        multiprocessing, "get_start_method", lambda allow_none=False: None if allow_none else "fork"
+    )
     env = EpisodeWorkers([partial(_Scenarios, 10)])
     try:
         result = evaluate(_fixed_actor(1, [0.0, 1.0]), env, episodes=1)  # scenario 10
