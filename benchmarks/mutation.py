@@ -201,6 +201,12 @@ EQUIVALENT: dict[str, str] = {
         "zip's strict check of the workers, their shares and seeds: one of each per worker "
         "by construction"
     ),
+    **{
+        f"rl_pg.episode_workers:{key}": (
+            "how long to wait for a worker process asked to stop, which stops at once"
+        )
+        for key in ("150:33 constant 30->31", "179:33 constant 5->6")
+    },
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),
@@ -230,6 +236,29 @@ ARGUED: dict[str, str] = {
         "the fsync that makes a rename survive a power cut: no test short of cutting the "
         "machine's power sees it"
     ),
+    "rl_pg.episode_workers:151:15 negate condition": (
+        "killing a worker process that has not stopped 30 s after it was asked to: a test "
+        "of it waits those 30 s"
+    ),
+    "rl_pg.episode_workers:167:93 constant True->False": (
+        "worker processes as daemons, ended with this one if it exits without closing them: "
+        "seen only in a process that exits with workers left open"
+    ),
+    **{
+        f"rl_pg.episode_workers:{key}": (
+            "how a Ray instance started for the workers alone logs and is owned: the tests "
+            "evaluate on the suite's shared Ray instance, which this branch never starts"
+        )
+        for key in ("194:39 constant False->True", "195:29 constant True->False")
+    },
+    **{
+        f"rl_pg.episode_workers:{key}": (
+            "how actors are placed over a cluster's nodes (CPU reservations, hard node "
+            "affinity): one node places them alike; tests/test_ray_cluster.py checks the "
+            "two-node placement, outside the module's tests"
+        )
+        for key in ("202:16 bool Or->And", "206:25 constant 0->1", "210:48 constant False->True")
+    },
     "rl_pg.estimators:164:19 constant False->True": (
         "a value network with recurrent state (is_init in its inputs) taking the one-call "
         "path: rl_pg builds none, and the test needs one of TorchRL's recurrent modules"
