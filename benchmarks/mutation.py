@@ -203,10 +203,23 @@ EQUIVALENT: dict[str, str] = {
     ),
     **{
         f"rl_pg.episode_workers:{key}": (
-            "how long to wait for a worker process asked to stop, which stops at once"
+            "how long to wait for a worker process or actor asked to stop, which stops at once"
         )
-        for key in ("150:33 constant 30->31", "179:33 constant 5->6")
+        for key in ("150:33 constant 30->31", "179:33 constant 5->6", "243:55 constant 30->31")
     },
+    **{
+        f"rl_pg.episode_workers:{key}": (
+            "a worker's torch threads: it plays the same episodes on one or two (the tests "
+            "compare the workers' episodes with those played in this process)"
+        )
+        for key in ("280:30 constant 1->2", "300:26 constant 1->2")
+    },
+    "rl_pg.episode_workers:225:80 constant True->False": (
+        "zip's strict check of the actors, their shares and seeds: one of each per actor"
+    ),
+    "rl_pg.episode_workers:248:29 constant False->True": (
+        "ownership of a Ray instance already shut down: shutting it down again does nothing"
+    ),
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),

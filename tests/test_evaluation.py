@@ -375,6 +375,18 @@ def test_process_i_plays_from_the_seed_plus_i():
     assert both["return"][10:].tolist() == second["return"].tolist()
 
 
+def test_workers_dropped_without_closing_are_stopped():
+    import gc
+
+    env = EpisodeWorkers([GridWorldEnv])
+    _ = env.batch_size  # starts the process
+    ((process, _),) = env._workers
+    del env
+    gc.collect()
+    process.join(timeout=30)
+    assert not process.is_alive()
+
+
 def test_only_the_ray_backend_asks_for_ray(monkeypatch):
     asked = []
     monkeypatch.setattr("rl_pg.episode_workers.require_extra", lambda *args: asked.append(args[0]))
