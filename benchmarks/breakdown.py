@@ -54,7 +54,8 @@ from tensordict import TensorDictBase
 from throughput import PlainLoop
 from torchrl.envs.utils import set_exploration_type
 
-from rl_pg.collectors import SegmentCollector, _cleared, _observations_of, _segment
+from rl_pg.collectors import SegmentCollector
+from rl_pg.segments import cleared_flags, observations_of, segment_of
 from rl_pg.envs import VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
@@ -144,9 +145,9 @@ def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
     the batch's building timed apart."""
     env = collector.env
     if collector._observations is None:
-        collector._observations = _observations_of(env, env.reset())
+        collector._observations = observations_of(env, env.reset())
     observations, roots, nexts = collector._observations, [], []
-    clear = _cleared(env.batch_size, env.device)
+    clear = cleared_flags(env.batch_size, env.device)
     with torch.no_grad(), set_exploration_type(collector.exploration_type):
         for _ in range(collector.frames_per_batch // env.batch_size.numel()):
             t = time.perf_counter_ns()
@@ -158,7 +159,7 @@ def timed_segment(collector: SegmentCollector, timer: _Timer) -> TensorDictBase:
             roots.append(root)
             nexts.append(next_step)
         t = time.perf_counter_ns()
-        batch = _segment(roots, nexts, env.batch_size, env.device)
+        batch = segment_of(roots, nexts, env.batch_size, env.device)
         timer.add("collection: building the batch", t)
     collector._observations = observations
     collector._frames += collector.frames_per_batch
