@@ -55,10 +55,10 @@ from throughput import PlainLoop
 from torchrl.envs.utils import set_exploration_type
 
 from rl_pg.collectors import SegmentCollector
-from rl_pg.segments import cleared_flags, observations_of, segment_of
 from rl_pg.envs import VectorGymEnv
 from rl_pg.lean import LeanCategoricalPolicy, lean_policy
 from rl_pg.recipes import load
+from rl_pg.segments import cleared_flags, observations_of, segment_of
 from rl_pg.training.loggers import BufferedCSVLogger
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import make_loss, make_optimizer, update, warm_up
