@@ -9,12 +9,14 @@ the wrong kind, ``ValueError`` for one of the right kind out of its range.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.util
 import inspect
 import math
 import numbers
 import types
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -293,7 +295,8 @@ def check_field(
     return _check_value(name, value, base, bounds)
 
 
-def _field_annotations(cls: type) -> dict[str, tuple[Any, list[Range]]]:
+@functools.cache  # a class's hints, once: evaluating them is most of a config's making
+def _field_annotations(cls: type) -> dict[str, tuple[Any, tuple[Range, ...]]]:
     """``name -> (type of the most derived declaration, bounds from every declaration)``."""
     out: dict[str, tuple[Any, list[Range]]] = {}
     for klass in cls.__mro__:
@@ -306,7 +309,7 @@ def _field_annotations(cls: type) -> dict[str, tuple[Any, list[Range]]]:
                 out[name][1].extend(bounds)
             else:
                 out[name] = (base, bounds)
-    return out
+    return {name: (base, tuple(bounds)) for name, (base, bounds) in out.items()}
 
 
 def _split(hint: Any) -> tuple[Any, list[Range]]:
@@ -322,7 +325,7 @@ def _split(hint: Any) -> tuple[Any, list[Range]]:
     return hint, []
 
 
-def _check_value(name: str, value: Any, base: Any, bounds: list[Range]) -> Any:
+def _check_value(name: str, value: Any, base: Any, bounds: Sequence[Range]) -> Any:
     options = typing.get_args(base) if _is_union(base) else (base,)
     optional = type(None) in options
     kinds = [kind for kind in options if kind is not type(None)]
