@@ -150,10 +150,15 @@ def backward_scan(
     if threads == 1:
         finite_check = _scan_kernels.scan_serial(*args)
     else:
+        # numba's first thread call in a process starts its OpenMP threads, which are
+        # torch's too: that sets torch's thread count to numba's (every core), for good.
+        torch_threads = torch.get_num_threads()
         previous = numba.get_num_threads()
         numba.set_num_threads(threads)
         try:
             finite_check = _scan_kernels.scan_parallel(*args)
         finally:
             numba.set_num_threads(previous)
+            if torch.get_num_threads() != torch_threads:
+                torch.set_num_threads(torch_threads)
     return out, bool(np.isfinite(finite_check))

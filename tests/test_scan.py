@@ -157,6 +157,28 @@ def test_a_batch_past_the_parallel_threshold_runs_the_parallel_kernel_and_matche
         assert used == [("scan_serial", 1)]
 
 
+def test_the_parallel_kernel_leaves_torchs_threads_as_it_found_them():
+    # numba's OpenMP threads are torch's: starting them (once per process) set torch's
+    # thread count to numba's. A fresh process, numba's count other than torch's.
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import torch; torch.set_num_threads(2)\n"
+        "from rl_pg._scan import backward_scan, kernel_threads\n"
+        "reward = torch.randn(64, 4096)\n"
+        "assert kernel_threads(64, 4096) == 2\n"
+        "backward_scan(reward, torch.zeros(64, 4096, dtype=torch.bool), None, None, 0.9,"
+        " whole_episode=False)\n"
+        "print(torch.get_num_threads())\n"
+    )
+    env = {**os.environ, "NUMBA_NUM_THREADS": "3"}
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["2"]
+
+
 def test_a_non_finite_result_is_flagged_from_any_block():
     # A NaN reward in the last, partial block: the flag sums over every block.
     reward = torch.randn(2 * ROWS_PER_BLOCK + 3, 10, dtype=torch.float64)
