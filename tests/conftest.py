@@ -165,6 +165,17 @@ def pytest_runtest_teardown(item, nextitem):
             ray.shutdown()
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Each test leaves this process with one torch thread, as it found it. Closing
+    TorchRL's ParallelEnv, or numba starting its OpenMP threads in a test that calls a
+    kernel itself, set it to the core count, and every later test in this process then
+    spent two to six times the CPU (two processes of two threads on two cores)."""
+    yield
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+
+
 @pytest.fixture
 def local_ray():
     """Ray, initialised (for the tests of SHARED_FIXTURES["ray"])."""
@@ -184,9 +195,11 @@ def pytest_collection_finish(session):
     gc.freeze()
 
 
-def make_categorical_actor(n_obs: int = N_OBS, n_act: int = N_ACT) -> ProbabilisticActor:
+def make_categorical_actor(
+    n_obs: int = N_OBS, n_act: int = N_ACT, observation_key="observation"
+) -> ProbabilisticActor:
     return ProbabilisticActor(
-        TensorDictModule(nn.Linear(n_obs, n_act), ["observation"], ["logits"]),
+        TensorDictModule(nn.Linear(n_obs, n_act), [observation_key], ["logits"]),
         in_keys=["logits"],
         distribution_class=torch.distributions.Categorical,
         return_log_prob=True,
@@ -219,8 +232,39 @@ def make_gaussian_actor(
     )
 
 
-def make_critic(n_obs: int = N_OBS) -> ValueOperator:
-    return ValueOperator(nn.Linear(n_obs, 1), in_keys=["observation"])
+class _TwoHeads(nn.Module):
+    def __init__(self, n_obs: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(n_obs, 5)
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.linear(observation)
+        return out[..., :2], out[..., 2:]
+
+
+def make_composite_actor(n_obs: int = N_OBS, action: str | None = "action"):
+    """Two categorical heads, of 2 and 3 choices, as one action (tensordict's
+    CompositeDistribution): the action is ``(action, "a")`` and ``(action, "b")``, or
+    ``"a"`` and ``"b"`` with ``action=None``."""
+    from tensordict.nn import CompositeDistribution
+    from tensordict.nn import ProbabilisticTensorDictModule as Head
+    from tensordict.nn import ProbabilisticTensorDictSequential as Policy
+
+    heads = {"a": torch.distributions.Categorical, "b": torch.distributions.Categorical}
+    names = {k: k if action is None else (action, k) for k in heads}
+    return Policy(
+        TensorDictModule(_TwoHeads(n_obs), ["observation"],
+                         [("params", k, "logits") for k in heads]),
+        Head(
+            in_keys=["params"], out_keys=[names[k] for k in heads],
+            distribution_class=CompositeDistribution,
+            distribution_kwargs={"distribution_map": heads, "name_map": names},
+        ),
+    )  # fmt: skip
+
+
+def make_critic(n_obs: int = N_OBS, observation_key="observation") -> ValueOperator:
+    return ValueOperator(nn.Linear(n_obs, 1), in_keys=[observation_key])
 
 
 def make_batch(
