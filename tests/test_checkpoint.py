@@ -192,6 +192,16 @@ class TestTemporaryFiles:
         assert path.read_bytes() == b"second"
         assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
 
+    @pytest.mark.skipif(not hasattr(os, "O_DIRECTORY"), reason="POSIX folders")
+    def test_the_bytes_then_the_rename_are_flushed_to_disk(self, tmp_path, monkeypatch):
+        # What a power cut would show; here, that each is asked of the disk, in order.
+        synced, fsync = [], os.fsync
+        monkeypatch.setattr(os, "fsync", lambda fd: (
+            synced.append(stat.S_ISDIR(os.fstat(fd).st_mode)), fsync(fd)
+        ))  # fmt: skip
+        write_atomically(tmp_path / "s.json", "{}")
+        assert synced == [False, True]  # the file's bytes, then the folder's entry for it
+
     @pytest.mark.skipif(not hasattr(os, "fchmod"), reason="POSIX permissions")
     def test_an_atomic_write_gets_the_permissions_of_an_ordinary_one(self, tmp_path):
         (tmp_path / "plain.txt").write_text("x")  # what open() gives under this umask

@@ -59,8 +59,9 @@ def test_every_batch_begins_new_episodes_unless_the_caller_resets():
     env = GridWorldEnv(batch_size=3, max_steps=8)
     actor = mlp_actor(env, hidden=(8,))
     for reset in (True, False):
+        kwargs = {} if reset else {"reset": False}  # resetting is the default
         collector = EpisodeCollector(
-            SegmentCollector(env, actor, frames_per_batch=3 * 5), episodes=3, reset=reset
+            SegmentCollector(env, actor, frames_per_batch=3 * 5), episodes=3, **kwargs
         )
         starts = []
         for _ in range(6):
@@ -222,6 +223,19 @@ def test_the_groups_seeds_are_reproducible():
         firsts.append(_starts(collector.next())["observation"])
         collector.shutdown()
     assert torch.equal(*firsts)
+
+
+def test_a_seed_given_when_made_fixes_the_groups_starts():
+    from rl_pg.envs import gym_env
+
+    firsts = []
+    for seed in (0, 0, 1):  # 0 is a seed like any other
+        env = gym_env("CartPole-v1", num_envs=4)
+        segments = SegmentCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 8)
+        collector = EpisodeCollector(segments, 4, group_size=2, seed=seed)
+        firsts.append(_starts(collector.next())["observation"])
+        collector.shutdown()
+    assert torch.equal(firsts[0], firsts[1]) and not torch.equal(firsts[0], firsts[2])
 
 
 @pytest.mark.parametrize(

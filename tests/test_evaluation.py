@@ -239,6 +239,10 @@ def test_episode_workers_on_ray_actors_play_each_share_in_order_and_report_a_fai
         with pytest.raises(RuntimeError, match=r"a Ray actor\) failed:(.|\n)*no such scenario"):
             evaluate(TensorDictModule(fail, ["observation"], ["action"]), env, episodes=2)
         assert env.is_closed and ray.is_initialized()  # Ray stays: these did not start it
+        alone = EpisodeWorkers([partial(_Scenarios, 3)], backend="ray")  # a single actor
+        out = evaluate(RandomPolicy(alone.action_spec), alone, episodes=2)
+        assert out["mean_return"] == pytest.approx((3 * 4 + 4 * 1) / 2)  # scenarios 3, 4
+        alone.close()
     finally:
         ray.cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     with pytest.raises(ValueError, match="backend must be 'process' or 'ray'"):

@@ -6,7 +6,14 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import N_ACT, make_batch, make_categorical_actor, make_critic, make_gaussian_actor
+from conftest import (
+    N_ACT,
+    make_batch,
+    make_categorical_actor,
+    make_composite_actor,
+    make_critic,
+    make_gaussian_actor,
+)
 from hypothesis import given
 from hypothesis import strategies as st
 from tensordict import TensorDict
@@ -228,15 +235,29 @@ class TestGradientStatistics:
         assert stats["reward_to_go", "mean_gradient"].shape == (n_params,)
 
     @pytest.mark.parametrize("functional", [True, False])
-    @pytest.mark.parametrize("policy", ["categorical", "gaussian"])
+    @pytest.mark.parametrize(
+        "policy", ["categorical", "gaussian", "composite", "composite-apart", "nested"]
+    )
     def test_both_methods_agree_and_vmap_needs_no_fallback(self, functional, policy):
         torch.manual_seed(0)
+        observation = ("agent", "observation") if policy == "nested" else "observation"
         if policy == "categorical":
             actor, batch = make_categorical_actor(), _segment_batch()
-        else:
+        elif policy == "gaussian":
             actor = make_gaussian_actor(distribution_class=Normal)
             batch = make_batch(torch.randn(4, 10, N_ACT), p_done=0.2)
-        loss = ReinforceLoss(actor, make_critic(), functional=functional)
+        elif policy.startswith("composite"):  # two heads, two actions, one distribution
+            # their actions under "action", or each under a key of its own
+            actor = make_composite_actor(action=None if policy.endswith("apart") else "action")
+            batch = _segment_batch()
+            del batch["action"]
+            with torch.no_grad():
+                actor(batch)
+        else:  # an observation under a nested key, as multi-agent environments give it
+            actor, batch = make_categorical_actor(observation_key=observation), _segment_batch()
+            batch[observation] = batch.pop("observation")
+            batch["next", "agent", "observation"] = batch.pop(("next", "observation"))
+        loss = ReinforceLoss(actor, make_critic(observation_key=observation), functional=functional)
         by_steps = GradientStatistics(loss, method="auto", chunk=7)  # several chunks
         by_units = GradientStatistics(loss, method="backward", chunk=7)
         weights = by_steps.weights(batch)

@@ -11,6 +11,7 @@ from conftest import (
     N_ACT,
     make_batch,
     make_categorical_actor,
+    make_composite_actor,
     make_critic,
     make_gaussian_actor,
     make_one_hot_actor,
@@ -842,32 +843,10 @@ def test_malformed_batches_give_a_correct_loss_or_a_clear_error(problem):
 def test_a_composite_action_weights_the_sum_of_its_parts_log_probabilities():
     """Two categorical heads (tensordict's CompositeDistribution): log pi(a) is the sum
     of the heads' log-probabilities, and so is the entropy."""
-    from tensordict.nn import CompositeDistribution
-    from tensordict.nn import ProbabilisticTensorDictModule as Head
-    from tensordict.nn import ProbabilisticTensorDictSequential as Policy
-
     from rl_pg.functional import reward_to_go
 
-    class TwoHeads(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.linear = torch.nn.Linear(3, 5)
-
-        def forward(self, observation):
-            out = self.linear(observation)
-            return out[..., :2], out[..., 2:]
-
     torch.manual_seed(0)
-    heads = {"a": torch.distributions.Categorical, "b": torch.distributions.Categorical}
-    actor = Policy(
-        TensorDictModule(TwoHeads(), ["observation"], [("params", k, "logits") for k in heads]),
-        Head(
-            in_keys=["params"], out_keys=[("action", k) for k in heads],
-            distribution_class=CompositeDistribution,
-            distribution_kwargs={"distribution_map": heads,
-                                 "name_map": {k: ("action", k) for k in heads}},
-        ),
-    )  # fmt: skip
+    actor = make_composite_actor()
     batch = make_batch(torch.zeros(2, 6, dtype=torch.long), n_obs=3, seed=1)
     del batch["action"]
     with torch.no_grad():

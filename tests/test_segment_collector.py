@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from tensordict import LazyStackedTensorDict, TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import StepCounter, TransformedEnv
 
@@ -11,6 +12,7 @@ from rl_pg.collectors import SegmentCollector
 from rl_pg.envs import GridWorldEnv, gym_env
 from rl_pg.lean import lean_policy
 from rl_pg.models import mlp_actor
+from rl_pg.segments import stacked
 
 
 def _envs(kind: str, num_envs: int):
@@ -74,6 +76,65 @@ def test_sampled_batches_are_those_of_torchrls_collector(kind, num_envs, steps, 
     assert collector.state_dict()["frames"] == 6 * num_envs * steps
     reference.shutdown()
     collector.shutdown()
+
+
+@pytest.mark.parametrize("lean", [True, False], ids=["lean-policy", "actor"])
+def test_segments_of_one_step_are_those_of_torchrls_collector(lean):
+    reference_env, env = _envs("CartPole-v1:gymnasium", 4)
+    torch.manual_seed(0)
+    actor = mlp_actor(env, hidden=(8,))
+    policy = lean_policy(actor) if lean else actor
+    reference = Collector(reference_env, policy, frames_per_batch=4, total_frames=-1,
+                          track_traj_ids=False)  # fmt: skip
+    collector = SegmentCollector(env, policy, frames_per_batch=4)
+    reference.set_seed(2)
+    reference.reset()
+    collector.set_seed(2)
+    ends = 0
+    for step in range(60):
+        torch.manual_seed(step)  # the same random stream for both
+        expected = next(iter(reference))
+        torch.manual_seed(step)
+        batch = next(iter(collector))
+        assert batch.batch_size == (4, 1)
+        for key in expected.keys(True, True):
+            assert torch.equal(batch[key], expected[key]), key
+        ends += int(batch["next", "done"].sum())
+    assert ends > 0  # across episode ends and resets
+    reference.shutdown()
+    collector.shutdown()
+
+
+def _lazy(root: TensorDict):
+    return LazyStackedTensorDict.lazy_stack(list(root.unbind(0)), 0)
+
+
+@pytest.mark.parametrize("form", ["tensordict", "lazy", "dict"])
+def test_stacked_roots_are_torch_stack_of_them(form):
+    """``stacked`` builds what ``torch.stack(roots, dim=1)`` does, faster: nested entries,
+    lazily stacked roots, and the done flags that every root shares (all-False, one tensor
+    for all: built as zeros) or not (a shared flag that is set is stacked as it is)."""
+    torch.manual_seed(0)
+    clear, raised = torch.zeros(3, 1, dtype=torch.bool), torch.ones(3, 1, dtype=torch.bool)
+    nested = form == "tensordict"
+    roots = [
+        TensorDict({
+            "observation": torch.randn(3, 2), "done": clear, "truncated": raised,
+            "terminated": torch.zeros(3, 1, dtype=torch.bool),
+            **({"agent": {"hidden": torch.randn(3, 4)}} if nested else {}),
+        }, batch_size=[3])
+        for _ in range(4)
+    ]  # fmt: skip
+    expected = torch.stack(roots, dim=1)
+    given = {
+        "tensordict": roots, "lazy": [_lazy(root) for root in roots],
+        "dict": [dict(root.items()) for root in roots],
+    }[form]  # fmt: skip
+    batch = stacked(given, torch.Size([3]), None, cleared=("done", "terminated", "truncated"))
+    assert batch.batch_size == (3, 4)
+    assert set(batch.keys(True, True)) == set(expected.keys(True, True))
+    for key in expected.keys(True, True):
+        assert torch.equal(batch[key], expected[key]), key
 
 
 def test_a_batch_size_that_does_not_divide_is_refused():
