@@ -9,11 +9,12 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives.value import GAE
 
-from rl_pg._checks import check_choice, check_real
+from rl_pg._checks import check_choice, check_int, check_real
 from rl_pg.estimators import RewardToGo
 from rl_pg.functional import discounted_return, reward_to_go
 from rl_pg.gradient_noise import UNITS, noise_statistics, unit_index
 from rl_pg.groups import batch_group_advantage, greedy_flags
+from rl_pg.loss import ReinforceLoss
 from rl_pg.step_log_prob import StepLogProb, actor_parameters
 
 __all__ = ["ESTIMATORS", "GradientStatistics"]
@@ -129,7 +130,13 @@ class GradientStatistics:
         chunk: int | None = None,
         method: str = "auto",
     ) -> None:
-        has_critic = bool(getattr(loss, "has_critic", False))
+        if not isinstance(loss, ReinforceLoss):
+            raise TypeError(
+                f"GradientStatistics measures an rl_pg.ReinforceLoss's policy term, got "
+                f"{type(loss).__name__}: build the loss with rl_pg.ReinforceLoss (the same "
+                f"arguments as TorchRL's)."
+            )
+        has_critic = loss.has_critic
         self._default = estimators is None
         if estimators is None:
             estimators = [
@@ -155,10 +162,7 @@ class GradientStatistics:
                 f"group, which makes them dependent: measure them with unit='group' (on "
                 f"batches collected in groups), not unit={unit!r}."
             )
-        if chunk is not None and (
-            isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1
-        ):
-            raise ValueError(f"chunk must be a positive integer, got {chunk!r}.")
+        chunk = check_int("chunk", chunk, low=1, optional=True)
         self.method = check_choice("method", method, _METHODS)
         estimator = loss.value_estimator
         gamma = float(estimator.gamma)

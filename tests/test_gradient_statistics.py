@@ -313,7 +313,7 @@ class TestGradientStatistics:
             ({"estimators": ["gae"]}, "has no critic"),
             ({"estimators": ["advantage"]}, "estimators must be names"),
             ({"unit": "step"}, "unit must be one of"),
-            ({"chunk": 0}, "chunk must be a positive integer"),
+            ({"chunk": 0}, "chunk must be an integer >= 1"),
             ({"gae_lambda": 1.5}, "gae_lambda"),
         ],
     )
@@ -321,6 +321,52 @@ class TestGradientStatistics:
         loss = ReinforceLoss(make_categorical_actor())
         with pytest.raises(ValueError, match=match):
             GradientStatistics(loss, **kwargs)
+
+    def test_chunks_of_one_unit_and_other_losses(self):
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor())
+        batch = _segment_batch()
+        whole = GradientStatistics(loss, estimators=["reward_to_go"])(batch)
+        one = GradientStatistics(loss, estimators=["reward_to_go"], chunk=1)(batch)
+        torch.testing.assert_close(
+            one["reward_to_go", "mean_gradient"], whole["reward_to_go", "mean_gradient"]
+        )
+        for chunk in (True, 2.5):
+            with pytest.raises(TypeError, match="chunk must be an integer"):
+                GradientStatistics(loss, chunk=chunk)
+        from torchrl.objectives import ReinforceLoss as TorchRLLoss
+
+        with pytest.raises(TypeError, match=r"an rl_pg\.ReinforceLoss's policy term, got Rein"):
+            GradientStatistics(TorchRLLoss(make_categorical_actor(), make_critic()))
+
+    def test_each_estimators_weights_are_its_definition(self):
+        from rl_pg.functional import discounted_return, reward_to_go
+
+        torch.manual_seed(0)
+        critic = make_critic()
+        loss = ReinforceLoss(make_categorical_actor(), critic)
+        batch = _segment_batch()
+        reward, done = batch["next", "reward"], batch["next", "done"]
+        terminated = batch["next", "terminated"]
+        with torch.no_grad():
+            value = critic(batch.clone())["state_value"]
+            next_value = critic(batch["next"].clone())["state_value"]
+        gamma = float(loss.value_estimator.gamma)
+        common = {"terminated": terminated, "next_value": next_value}
+        to_go = reward_to_go(reward, done, gamma, **common)
+        first = torch.cat([torch.ones_like(done[:, :1]), done[:, :-1]], dim=1)  # starts
+        expected = {
+            "episode_return": discounted_return(reward, done, gamma, **common),
+            "reward_to_go": to_go,
+            "reward_to_go_minus_mean": to_go - to_go[first].mean(),
+            "reward_to_go_minus_value": to_go - value,
+        }
+        weights = GradientStatistics(loss, estimators=list(expected)).weights(batch)
+        for name, definition in expected.items():
+            torch.testing.assert_close(weights[name], definition.squeeze(-1), msg=name)
+        fixed = GradientStatistics(loss, estimators=["reward_to_go_minus_mean"],
+                                   scalar_baseline=2.5).weights(batch)  # fmt: skip
+        torch.testing.assert_close(fixed["reward_to_go_minus_mean"], (to_go - 2.5).squeeze(-1))
 
     def test_group_estimators_need_group_units(self):
         loss = ReinforceLoss(make_categorical_actor())
@@ -399,13 +445,17 @@ class TestGroupEstimators:
                 expected = self._loss_gradient(actor, part, baseline, scale)
                 torch.testing.assert_close(gradients[name][unit], expected, msg=name)
 
-    def test_greedy_episodes_count_in_no_estimator(self):
+    @pytest.mark.parametrize("key", ["greedy", ("collector", "greedy")])
+    def test_greedy_episodes_count_in_no_estimator(self, key):
         torch.manual_seed(0)
         actor = make_categorical_actor()
         batch = _grouped(self.LENGTHS, self.GROUPS, self.GREEDY)
-        sampled = batch[~torch.tensor(self.GREEDY)].exclude("greedy")
+        batch[key] = batch.pop("greedy")
+        sampled = batch[~torch.tensor(self.GREEDY)].exclude(key)
         estimators = ["episode_return", "reward_to_go", "leave_one_out", "group_mean"]
-        stats = GradientStatistics(ReinforceLoss(actor), unit="group", estimators=estimators)
+        loss = ReinforceLoss(actor)
+        loss.set_keys(greedy=key)
+        stats = GradientStatistics(loss, unit="group", estimators=estimators)
         got, expected = stats(batch), stats(sampled)
         for name in estimators:
             torch.testing.assert_close(got[name, "mean_gradient"], expected[name, "mean_gradient"])
