@@ -223,6 +223,26 @@ EQUIVALENT: dict[str, str] = {
     "rl_pg._scan:103:34 constant 0->1": (
         "reward[:0] is read for its dtype alone, which reward[:1] has too"
     ),
+    **{
+        f"rl_pg.segments:{key}": (
+            "which entries are made as new zeros instead of stacked: only ones whose every "
+            "step is the same all-False tensor, which stack to those zeros (the values are "
+            "the same; a shared flag that is set is stacked, test_stacked_roots_are_torch_"
+            "stack_of_them)"
+        )
+        for key in ("71:11 compare 0 In->NotIn", "71:34 compare 0 Is->IsNot")
+    },
+    "rl_pg.gradient_statistics:49:15 constant 8->9": (
+        "the unit count below which the per-unit product is taken dense rather than sparse: "
+        "the same product either way"
+    ),
+    **{
+        f"rl_pg.gradient_statistics:{key}": (
+            "where the padding mask of [E, T] gets its trailing dimension: batch_group_"
+            "advantage reads it flattened, in the same order either way"
+        )
+        for key in ("243:66 drop USub", "243:67 constant 1->2")
+    },
     "rl_pg.training.seeds:105:11 compare 0 LtE->Lt": (
         "a training span that ends exactly at 2**31 (runs 2**31 - 1 and 2**32 - 1) then "
         "also claims the members past it; both runs' streams lie elsewhere either way "
@@ -245,10 +265,6 @@ ARGUED: dict[str, str] = {
         )
         for key in ("165:58 constant True->False", "180:54 constant True->False")
     },
-    "rl_pg.checkpoint:84:7 negate condition": (
-        "the fsync that makes a rename survive a power cut: no test short of cutting the "
-        "machine's power sees it"
-    ),
     "rl_pg.episode_workers:151:15 negate condition": (
         "killing a worker process that has not stopped 30 s after it was asked to: a test "
         "of it waits those 30 s"

@@ -460,6 +460,9 @@ class TestGroupEstimators:
         for name in estimators:
             torch.testing.assert_close(got[name, "mean_gradient"], expected[name, "mean_gradient"])
         assert got["reward_to_go", "units"].item() == 4
+        # By default, the greedy baseline is measured where the batch has greedy episodes.
+        assert "greedy" in GradientStatistics(loss, unit="group")(batch).keys()
+        assert "greedy" not in GradientStatistics(loss, unit="group")(sampled).keys()
 
     def test_the_greedy_estimator_needs_greedy_episodes_when_asked_for(self):
         loss = ReinforceLoss(make_categorical_actor())
