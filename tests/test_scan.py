@@ -163,6 +163,7 @@ def test_the_parallel_kernel_leaves_torchs_threads_as_it_found_them():
     import os
     import subprocess
     import sys
+    from pathlib import Path
 
     script = (
         "import torch; torch.set_num_threads(2)\n"
@@ -173,7 +174,12 @@ def test_the_parallel_kernel_leaves_torchs_threads_as_it_found_them():
         " whole_episode=False)\n"
         "print(torch.get_num_threads())\n"
     )
-    env = {**os.environ, "NUMBA_NUM_THREADS": "3"}
+    # The child imports the rl_pg under test (under benchmarks/mutation.py, a mutated
+    # copy, whose bytecode must not be kept for the next mutant's).
+    package = str(Path(_scan.__file__).parents[1])
+    path = os.pathsep.join([package, *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = {**os.environ, "NUMBA_NUM_THREADS": "3", "PYTHONPATH": path,
+           "PYTHONDONTWRITEBYTECODE": "1"}  # fmt: skip
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["2"]
