@@ -59,9 +59,10 @@ class EpisodeCollector:
             (``episodes`` a multiple of the number of environments ``n``): episode
             ``i`` of round ``r`` is the batch's episode ``e = r·n + i`` and belongs
             to its group ``e // group_size``. Before each round the environments are
-            reset with their groups' seeds, one fresh seed per group
-            (``collector.reset(seed=[...])``, which TorchRL's ``Collector`` hands to
-            the environment's ``reset``: a gymnasium vector environment seeds
+            reset with their groups' seeds, one fresh seed per group: an int in
+            ``[0, 2**31 - 1)``, which any simulator with signed 32-bit seeds takes. They
+            go through ``collector.reset(seed=[...])``, which TorchRL's ``Collector``
+            hands to the environment's ``reset`` (a gymnasium vector environment seeds
             environment ``i`` with ``seed[i]``; an environment of batch size ``[]``
             gets the one seed). With as many environments as episodes that is one
             round; with one environment (a simulator that runs one engine per

@@ -495,6 +495,9 @@ def test_mutation_makes_one_small_bug_at_a_time_outside_messages_and_docs():
             if _outcome(namespace["f"], x, y) != _outcome(original["f"], x, y)
         ]  # fmt: skip
         assert changed, mutant.key
+    # each key is its own bug, even where two operations start at one place (5:11)
+    applied = [mutation.apply(source, mutant) for mutant in mutation.mutants(source)]
+    assert len(set(applied)) == len(applied)
     outcomes = {"3:7 bool And->Or": "killed", "5:16 constant 2->3": "survived", "4:1 x": "timeout"}
     results = {"modules": {"rl_pg.m": {"total": 3, "mutants": outcomes}}}
     mutation._summarise(results)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.collectors import Collector
 
 from rl_pg.collectors import SegmentCollector
@@ -108,6 +109,23 @@ def test_what_it_cannot_use_is_refused():
         EpisodeCollector(segments, episodes=0)
     with pytest.raises(TypeError, match="reset"):
         EpisodeCollector(segments, episodes=2, reset="yes")
+
+
+@pytest.mark.parametrize("flags", [(), (1,), (2,)], ids=["[E,T]", "[E,T,1]", "[E,T,2]"])
+def test_a_step_ends_its_episode_when_any_of_its_done_flags_is_set(flags):
+    # Any collector of [E, T] batches will do, whatever shape its done has: several
+    # flags a step (one per agent, say) end the episode when any one is set.
+    def segments():
+        generator = torch.Generator().manual_seed(0)
+        while True:
+            done = torch.rand(2, 5, *flags, generator=generator) < 0.3
+            yield TensorDict({"next": {"done": done}}, batch_size=[2, 5])
+
+    collector = EpisodeCollector(segments(), episodes=4, reset=False)
+    for _ in range(3):
+        batch = collector.next()
+        ended = batch["next", "done"].reshape(batch.numel(), -1).any(-1)
+        assert int(ended.sum()) == 4 and bool(ended[-1])
 
 
 def _starts(batch):
@@ -215,14 +233,32 @@ def test_the_groups_seeds_are_reproducible():
     from rl_pg.envs import gym_env
 
     firsts = []
-    for _ in range(2):
+    for seed in (0, 0, 5):  # 0 is a seed like any other
         env = gym_env("CartPole-v1", num_envs=4)
         segments = SegmentCollector(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 8)
         collector = EpisodeCollector(segments, 4, group_size=2)
-        collector.set_seed(5)
+        collector.set_seed(seed)
         firsts.append(_starts(collector.next())["observation"])
         collector.shutdown()
-    assert torch.equal(*firsts)
+    assert torch.equal(firsts[0], firsts[1]) and not torch.equal(firsts[0], firsts[2])
+
+
+def test_the_groups_seeds_are_fresh_32_bit_integers():
+    seen = []
+
+    class Recording(SegmentCollector):
+        def reset(self, **kwargs):
+            seen.extend(kwargs.get("seed", []))
+            super().reset(**kwargs)
+
+    env = GridWorldEnv(batch_size=4, max_steps=5)
+    segments = Recording(env, mlp_actor(env, hidden=(8,)), frames_per_batch=4 * 5)
+    collector = EpisodeCollector(segments, 8, group_size=2, seed=0)
+    for _ in range(5):
+        collector.next()
+    # Four groups a batch, two rounds of four environments: each seed given twice.
+    assert len(seen) == 5 * 2 * 4 and len(set(seen)) == 5 * 4
+    assert all(type(seed) is int and 0 <= seed < 2**31 - 1 for seed in seen)
 
 
 def test_a_seed_given_when_made_fixes_the_groups_starts():

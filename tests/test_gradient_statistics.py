@@ -8,6 +8,7 @@ import pytest
 import torch
 from conftest import (
     N_ACT,
+    N_OBS,
     make_batch,
     make_categorical_actor,
     make_composite_actor,
@@ -17,7 +18,10 @@ from conftest import (
 from hypothesis import given
 from hypothesis import strategies as st
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
 from torch.distributions import Normal
+from torchrl.modules import ProbabilisticActor
 
 from rl_pg import ReinforceLoss
 from rl_pg.gradient_noise import noise_statistics, unit_index
@@ -238,7 +242,10 @@ class TestGradientStatistics:
     @pytest.mark.parametrize(
         "policy", ["categorical", "gaussian", "composite", "composite-apart", "nested"]
     )
-    def test_both_methods_agree_and_vmap_needs_no_fallback(self, functional, policy):
+    # chunks of 7 steps: a few units each, one unit per backward pass; the default: every
+    # unit in one chunk (a sparse product) and ten units per backward pass
+    @pytest.mark.parametrize("chunk", [7, None])
+    def test_both_methods_agree_and_vmap_needs_no_fallback(self, functional, policy, chunk):
         torch.manual_seed(0)
         observation = ("agent", "observation") if policy == "nested" else "observation"
         if policy == "categorical":
@@ -258,13 +265,61 @@ class TestGradientStatistics:
             batch[observation] = batch.pop("observation")
             batch["next", "agent", "observation"] = batch.pop(("next", "observation"))
         loss = ReinforceLoss(actor, make_critic(observation_key=observation), functional=functional)
-        by_steps = GradientStatistics(loss, method="auto", chunk=7)  # several chunks
-        by_units = GradientStatistics(loss, method="backward", chunk=7)
+        by_steps = GradientStatistics(loss, method="auto", chunk=chunk)
+        by_units = GradientStatistics(loss, method="backward", chunk=chunk)
         weights = by_steps.weights(batch)
         expected = by_units.unit_gradients(batch, weights)
         for name, value in by_steps.unit_gradients(batch, weights).items():
             torch.testing.assert_close(value, expected[name], rtol=1e-4, atol=1e-5)
         assert by_steps.method == "auto"  # torch.func handled it: no fallback was taken
+
+    @pytest.mark.parametrize(("p_done", "chunk"), [(0.6, 30), (1.0, 8)])
+    def test_chunks_of_many_short_episodes_agree_with_autograd(self, p_done, chunk):
+        # Chunks of more units than the dense product takes (16 to 20), or exactly as
+        # many (8 one-step episodes), all but the first starting past unit 0: the
+        # products' rows and columns count from the chunk's first unit and step.
+        torch.manual_seed(0)
+        loss = ReinforceLoss(make_categorical_actor(), make_critic())
+        actions = torch.randint(N_ACT, (4, 30), generator=torch.Generator().manual_seed(1))
+        batch = make_batch(actions, p_done=p_done)
+        index, _ = unit_index(batch, unit="episode")
+        spans = [len(part.unique()) for part in index.reshape(-1).split(chunk)]
+        assert min(spans[:-1]) > 8 if p_done < 1 else spans[:-1] == [8] * 14
+        by_steps = GradientStatistics(loss, method="vmap", chunk=chunk)
+        weights = by_steps.weights(batch)
+        expected = GradientStatistics(loss, method="backward").unit_gradients(batch, weights)
+        for name, value in by_steps.unit_gradients(batch, weights).items():
+            torch.testing.assert_close(value, expected[name], rtol=1e-4, atol=1e-5)
+
+    def test_a_policy_torch_func_cannot_map_falls_back_to_autograd(self):
+        # A policy that branches on its input's values: vmap refuses it. "auto" takes the
+        # backward passes, and from then on; "vmap" says so.
+        class Branching(nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.linear = nn.Linear(N_OBS, N_ACT)
+
+            def forward(self, observation):
+                logits = self.linear(observation)
+                return logits if bool((observation > 1e6).any()) else logits * 1.5
+
+        torch.manual_seed(0)
+        actor = ProbabilisticActor(
+            TensorDictModule(Branching(), ["observation"], ["logits"]),
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+            return_log_prob=True,
+        )
+        loss = ReinforceLoss(actor)
+        batch = _segment_batch()
+        auto = GradientStatistics(loss, estimators=["reward_to_go"], method="auto")
+        weights = auto.weights(batch)
+        got = auto.unit_gradients(batch, weights)["reward_to_go"]
+        assert auto.method == "backward"
+        expected = GradientStatistics(loss, method="backward").unit_gradients(batch, weights)
+        torch.testing.assert_close(got, expected["reward_to_go"])
+        with pytest.raises(RuntimeError, match="data-dependent"):
+            GradientStatistics(loss, method="vmap").unit_gradients(batch, weights)
 
     def test_a_time_dimension_first_gives_the_same_units(self):
         torch.manual_seed(0)
