@@ -47,7 +47,11 @@ TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
     "rl_pg.baselines": ["tests/test_baselines.py"],
     "rl_pg.groups": ["tests/test_groups.py"],
     "rl_pg.greedy_play": ["tests/test_groups.py"],
-    "rl_pg.loss": ["tests/test_loss.py", "tests/test_loss_torchrl_compat.py"],
+    "rl_pg.loss": [
+        "tests/test_loss.py",
+        "tests/test_loss_torchrl_compat.py",
+        "tests/test_popart.py",  # the loss's value_norm
+    ],
     "rl_pg.discretize": ["tests/test_discretize.py"],
     "rl_pg.training.seeds": ["tests/test_seeds.py"],
     "rl_pg.checkpoint": ["tests/test_checkpoint.py"],

@@ -233,7 +233,10 @@ class TestReinforceLoss:
         error = estimates.std() / estimates.numel() ** 0.5
         assert abs(estimates.mean().item() - exact) < 5 * error.item(), (estimates.mean(), exact)
 
-    def test_normalize_advantage(self, categorical_actor, categorical_batch):
+    # returns of spread 1, and of spread 1e-6, where the divisor's 1e-8 counts
+    @pytest.mark.parametrize("scale", [1.0, 1e-6])
+    def test_normalize_advantage(self, categorical_actor, categorical_batch, scale):
+        categorical_batch["next", "reward"] *= scale
         out = ReinforceLoss(categorical_actor, normalize_advantage=True)(categorical_batch)
         returns = categorical_batch["value_target"]
         weights = (returns - returns.mean()) / (returns.std(unbiased=False) + 1e-8)
@@ -251,6 +254,20 @@ class TestReinforceLoss:
         expected = _surrogate(categorical_actor, categorical_batch, returns - baseline)
         torch.testing.assert_close(out["loss_actor"], expected)
 
+    def test_without_done_flags_the_scalar_baseline_averages_every_kept_step(
+        self, categorical_actor, categorical_batch
+    ):
+        # Returns given and no ("next", "done"): no episode's first step can be found, so
+        # each step the padding keeps counts once.
+        batch = categorical_batch.clone()
+        batch["value_target"] = torch.randn(*batch.shape, 1)
+        del batch["next", "done"], batch["next", "terminated"]
+        mask = torch.ones(*batch.shape, 1, dtype=torch.bool)
+        mask[0, -3:] = False
+        batch["collector", "mask"] = mask
+        out = ReinforceLoss(categorical_actor, baseline="batch_mean")(batch.clone())
+        torch.testing.assert_close(out["baseline"], batch["value_target"][mask].mean())
+
     def test_baseline_state_is_in_state_dict(self, categorical_actor, categorical_batch):
         loss = ReinforceLoss(categorical_actor, baseline="running_mean")
         loss(categorical_batch)
@@ -266,6 +283,9 @@ class TestReinforceLoss:
         plain = ReinforceLoss(categorical_actor, critic)(categorical_batch.clone())
         weighted = ReinforceLoss(categorical_actor, critic, critic_coeff=2.0)(categorical_batch)
         torch.testing.assert_close(weighted["loss_value"], 2 * plain["loss_value"])
+
+    def test_the_moving_averages_default_rate(self, categorical_actor):
+        assert ReinforceLoss(categorical_actor, baseline="ema").baseline_module.rate == 0.01
 
     def test_eval_mode_does_not_update_the_baseline(self, categorical_actor, categorical_batch):
         loss = ReinforceLoss(categorical_actor, baseline="ema", baseline_rate=0.5).eval()
@@ -339,20 +359,23 @@ class TestReinforceLoss:
         torch.testing.assert_close(padded_out["advantage_mean"], flat_out["advantage_mean"])
         assert padded_count == flat_count == 2
 
+    @pytest.mark.parametrize("baseline", ["running_mean", None])
     def test_what_measurements_read_of_the_loss_leaves_its_state_alone(
-        self, categorical_actor, categorical_batch
+        self, categorical_actor, categorical_batch, baseline
     ):
         # The public reads the gradient statistics and the natural gradient build on.
         batch = categorical_batch.clone()
         mask = torch.ones(*batch.shape, 1, dtype=torch.bool)
         mask[0, -2:] = False
         batch["collector", "mask"] = mask
-        loss = ReinforceLoss(categorical_actor, baseline="running_mean")
+        loss = ReinforceLoss(categorical_actor, baseline=baseline)
         loss(categorical_batch.clone())  # the baseline has a state
         state = {k: v.clone() for k, v in loss.state_dict().items()}
         as_they_are = loss.weights_as_they_are(batch.clone())
         for key, value in loss.state_dict().items():
             assert torch.equal(value, state[key]), key
+        if baseline is not None:  # and it goes on learning from the batches the loss takes
+            assert loss.baseline_module.training
         weights, valid = loss.policy_weights(batch.clone())  # takes the batch in
         torch.testing.assert_close(as_they_are, weights)
         assert torch.equal(valid, mask) and torch.equal(loss.valid_steps(batch), mask)
@@ -965,6 +988,11 @@ class TestReinforceLossGroupBaselines:
         expected = -(dist.log_prob(batch["action"]).double() * weights)[sampled].mean()
         torch.testing.assert_close(out["loss_actor"].double(), expected, rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(out["loss_entropy"], -0.1 * dist.entropy()[sampled].mean())
+        torch.testing.assert_close(out["entropy"], dist.entropy()[sampled].mean())
+        assert torch.equal(loss.valid_steps(batch).squeeze(-1), sampled)
+        padding = loss.valid_steps(batch, greedy=True).squeeze(-1)
+        assert torch.equal(padding, batch["collector", "mask"].reshape(padding.shape))
+        assert {"greedy", "group"} <= set(loss.in_keys)
         # The greedy steps' observations and actions reach no loss term.
         changed = batch.clone()
         on_greedy = changed["greedy"].squeeze(-1)

@@ -357,10 +357,11 @@ class TestTorchRLScenarios:
         assert ("value_clip_fraction" in out.keys()) == (clip_value is not None)
         assert "loss_value" in out.keys()
 
-    def test_value_clipping_rejects_a_bool(self, loss_class):
+    @pytest.mark.parametrize("clip_value", [True, torch.tensor([0.5, 1.0])])
+    def test_value_clipping_rejects_what_is_not_one_number(self, loss_class, clip_value):
         actor, critic = _modules()
         with pytest.raises(ValueError, match="clip_value must be a float or a scalar tensor"):
-            loss_class(actor, critic, clip_value=True)
+            loss_class(actor, critic, clip_value=clip_value)
 
 
 class TestParityWithTorchRL:
@@ -384,6 +385,18 @@ class TestParityWithTorchRL:
         torch.testing.assert_close(ours.to_dict(), theirs.to_dict())
         for mine, reference in zip(our_grads, their_grads, strict=True):
             torch.testing.assert_close(mine, reference)
+
+    @pytest.mark.parametrize(("delay_value", "functional"), [(False, True), (True, True),
+                                                             (False, False)])  # fmt: skip
+    def test_the_state_of_either_loads_into_the_other(self, delay_value, functional):
+        actor, critic = _modules()
+        kwargs = {"delay_value": delay_value, "functional": functional}
+        ours = rl_pg.ReinforceLoss(actor, critic, **kwargs)
+        theirs = torchrl.objectives.ReinforceLoss(actor, critic, **kwargs)
+        ours(_flat_batch()), theirs(_flat_batch())  # as in training: the estimators made
+        assert ours.state_dict().keys() == theirs.state_dict().keys()
+        theirs.load_state_dict(ours.state_dict())
+        ours.load_state_dict(theirs.state_dict())
 
     def test_rl_pg_loss_is_a_torchrl_reinforce_loss(self):
         actor, critic = _modules()
