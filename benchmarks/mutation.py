@@ -13,7 +13,8 @@ machine can kill keeps its reason in ``ARGUED``.
                                                   # ARGUED changed
 
 Scores go to ``benchmarks/results/mutation.json`` after every mutant, so a stopped run
-continues where it was; a module whose source changed is scored afresh. The heavy
+continues where it was; a module whose source changed is scored afresh. Runs on
+different modules may share the file (one per core: each writes its own modules). The heavy
 imports (torch, TorchRL, pytest) happen once: each mutant's tests run in a fork of this
 process, on a copy of the package, so a mutant costs what its tests take.
 """
@@ -21,6 +22,7 @@ process, on a copy of the package, so a mutant costs what its tests take.
 from __future__ import annotations
 
 import ast
+import fcntl
 import hashlib
 import json
 import os
@@ -52,6 +54,7 @@ TARGETS: dict[str, list[str]] = {  # each also answers with its doctests
         "tests/test_loss_torchrl_compat.py",
         "tests/test_popart.py",  # the loss's value_norm
     ],
+    "rl_pg.loss_checks": ["tests/test_loss.py", "tests/test_loss_torchrl_compat.py"],
     "rl_pg.discretize": ["tests/test_discretize.py"],
     "rl_pg.training.seeds": ["tests/test_seeds.py"],
     "rl_pg.checkpoint": ["tests/test_checkpoint.py"],
@@ -637,7 +640,7 @@ def _score_module(
         finally:
             path.write_text(original)
         entry["mutants"][mutant.key] = outcome
-        _save(results)
+        _save(results, [name])
         took = time.monotonic() - began
         print(f"  [{number}/{len(todo)}] {mutant.key}: {outcome} ({took:.0f} s)", flush=True)
 
@@ -671,12 +674,20 @@ def _summarise(results: dict) -> None:
     }
 
 
-def _save(results: dict) -> None:
-    _summarise(results)
+def _save(results: dict, names: list[str] | None = None) -> None:
+    """Writes the scores. With ``names``, only those modules' entries go over the stored
+    file's: runs on different modules (one per core) share the file."""
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    tmp = RESULTS.with_suffix(".tmp")
-    tmp.write_text(json.dumps(results, indent=1) + "\n")
-    os.replace(tmp, RESULTS)
+    with open(Path(tempfile.gettempdir()) / "rl_pg-mutation.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one writer at a time; released on close
+        if names is not None and RESULTS.is_file():
+            stored = json.loads(RESULTS.read_text())
+            stored["modules"].update({n: results["modules"][n] for n in names})
+            results = stored
+        _summarise(results)
+        tmp = RESULTS.with_suffix(".tmp")
+        tmp.write_text(json.dumps(results, indent=1) + "\n")
+        os.replace(tmp, RESULTS)
 
 
 if __name__ == "__main__":

@@ -10,14 +10,12 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, is_tensor_collection
 from tensordict.nn import (
     CompositeDistribution,
-    ProbabilisticTensorDictModule,
     ProbabilisticTensorDictSequential,
     TensorDictModule,
     TensorDictModuleBase,
     dispatch,
 )
-from torchrl.data import Bounded, Composite
-from torchrl.modules import OneHotCategorical, ValueNorm
+from torchrl.modules import ValueNorm
 from torchrl.objectives import LossModule
 from torchrl.objectives import ReinforceLoss as TorchRLReinforceLoss
 from torchrl.objectives.utils import (
@@ -32,12 +30,20 @@ from rl_pg._checks import check_bool, check_key, check_real
 from rl_pg.baselines import BASELINES, make_baseline
 from rl_pg.estimators import DiscountedReturn, MonteCarloReturn
 from rl_pg.groups import GROUP_BASELINES, batch_group_advantage, greedy_flags
+from rl_pg.loss_checks import (
+    check_action_shape,
+    check_not_empty,
+    check_support,
+    declares_bounds,
+    per_step,
+    required,
+    step_column,
+)
 
 __all__ = ["ReinforceLoss"]
 
 _BASELINE_CHOICES = ("none", "critic", *BASELINES, *GROUP_BASELINES)
 _LOSS_CRITIC_TYPES = ("l1", "l2", "smooth_l1")
-_ONE_HOT_DISTRIBUTIONS = (torch.distributions.OneHotCategorical, OneHotCategorical)
 _REDUCTIONS = (None, "none", "mean", "sum")
 
 
@@ -329,7 +335,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         self.critic_coeff = critic_coeff
         self.value_norm = value_norm
         self._deferred_key_error: KeyError | None = None
-        self._declares_bounds = _declares_bounds(actor_network)
+        self._declares_bounds = declares_bounds(actor_network)
         out_keys = ["loss_actor"]
         if self.has_critic:
             out_keys.append("loss_value")
@@ -526,7 +532,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         statistics. For measurements that must leave the loss as they found it (the
         gradient statistics). Computes the returns when the batch has none, written
         into it as ``forward`` does."""
-        _check_not_empty(tensordict)
+        check_not_empty(tensordict)
         baseline = self.baseline_module
         training = baseline.training if baseline is not None else False
         if baseline is not None:
@@ -598,7 +604,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
     def _take_in(self, tensordict: TensorDictBase):
         """``_policy_weights``, once per batch: the checks, the returns, the baselines'
         and ``value_norm``'s statistics."""
-        _check_not_empty(tensordict)
+        check_not_empty(tensordict)
         taken = self._policy_weights(tensordict)
         if self.value_norm is not None:
             self._update_value_norm(tensordict)
@@ -617,7 +623,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         log_prob = self._log_prob(dist, tensordict, weights)
         out = {"loss_actor": -log_prob * weights}
         if self.entropy_coeff is not None:
-            entropy = _per_step(self._entropy(dist), log_prob.shape, "entropies")
+            entropy = per_step(self._entropy(dist), log_prob.shape, "entropies")
             out["loss_entropy"] = -self.entropy_coeff * entropy
             entropy = entropy.detach()
             out["entropy"] = (entropy if valid is None else entropy[valid]).mean()
@@ -689,7 +695,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"The value estimator {type(self.value_estimator).__name__} did not write "
                     f"{key!r}; align the keys with loss.set_keys(...)."
                 )
-        psi = _step_column(psi.detach(), tensordict.batch_size, key)
+        psi = step_column(psi.detach(), tensordict.batch_size, key)
         padding = self._padding_mask(tensordict, psi)
         valid = self._valid_steps(tensordict, psi, padding)
         if valid is not None and not bool(valid.any()):
@@ -839,12 +845,9 @@ class ReinforceLoss(TorchRLReinforceLoss):
                     f"The input tensordict has no action entry {self.tensor_keys.action!r}; "
                     f"collect it or rename the key with loss.set_keys(action=...)."
                 )
-            _check_support(dist, action, self.tensor_keys.action, self._declares_bounds)
-        if (
-            type(dist) is torch.distributions.Categorical
-            and not action.is_floating_point()
-            and action.shape == dist.batch_shape
-        ):
+            check_action_shape(dist, action, self.tensor_keys.action, tensordict.batch_size)
+            check_support(dist, action, self.tensor_keys.action, self._declares_bounds)
+        if type(dist) is torch.distributions.Categorical and not action.is_floating_point():
             # What Categorical.log_prob computes, without broadcasting the actions
             # against the logits first (their shapes match) or re-checking the support.
             log_prob = dist.logits.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
@@ -852,7 +855,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             log_prob = dist.log_prob(action)
         if is_tensor_collection(log_prob):
             log_prob = log_prob.sum(dim="feature", reduce=True)  # over the action's entries
-        log_prob = _per_step(log_prob, weights.shape, "log-probabilities")
+        log_prob = per_step(log_prob, weights.shape, "log-probabilities")
         if not bool(torch.isfinite(log_prob).all()):
             raise ValueError(
                 f"The policy gave {int((~torch.isfinite(log_prob)).sum())} non-finite "
@@ -875,7 +878,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
         )
 
     def loss_critic(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
-        target = _required(
+        target = required(
             tensordict,
             self.tensor_keys.value_target,
             "Make sure you provided the right key and the value_target (i.e. the target "
@@ -888,7 +891,7 @@ class ReinforceLoss(TorchRLReinforceLoss):
             )
         old_value = None
         if self.clip_value is not None:
-            old_value = _required(
+            old_value = required(
                 tensordict,
                 self.tensor_keys.value,
                 "Make sure that the value_key passed to Reinforce exists in the input tensordict.",
@@ -1018,106 +1021,3 @@ class ReinforceLoss(TorchRLReinforceLoss):
         if is_tensor_collection(entropy):
             entropy = entropy.sum(dim="feature", reduce=True)
         return entropy
-
-
-def _check_not_empty(tensordict: TensorDictBase) -> None:
-    # ``TensorDict.numel()`` is 1 for a batch of zero rows: count the batch itself.
-    if tensordict.batch_size.numel() == 0:
-        raise ValueError(
-            f"ReinforceLoss got an empty batch (batch_size={tuple(tensordict.batch_size)}):"
-            " there is no step to learn from. Collect at least one step."
-        )
-
-
-def _required(tensordict: TensorDictBase, key, hint: str, lead: str = "") -> torch.Tensor:
-    """``tensordict[key]``, or a KeyError in TorchRL's words (``lead``, then ``hint``)."""
-    value = tensordict.get(key, None)
-    if value is None:
-        raise KeyError(f"{lead}the key {key} was not found in the input tensordict. {hint}")
-    return value
-
-
-def _step_column(value: torch.Tensor, batch_size: torch.Size, key) -> torch.Tensor:
-    """A per-step quantity as ``[*batch_size, ..., 1]`` (one column per step)."""
-    if value.shape == batch_size:
-        return value.unsqueeze(-1)
-    if value.shape[: len(batch_size)] == batch_size and value.shape[len(batch_size) :][-1:] == (1,):
-        return value
-    raise ValueError(
-        f"{key!r} has shape {tuple(value.shape)}, but the batch is {tuple(batch_size)}: "
-        f"expected {(*batch_size, 1)} (or {tuple(batch_size)}), one value per step."
-    )
-
-
-def _declares_bounds(actor) -> bool:
-    """Whether the policy declares action bounds: a bounded action spec, or ``low`` /
-    ``high`` given to its distribution.
-
-    TorchRL's own tests score actions drawn from ``randn`` under a ``TanhNormal`` whose
-    spec is unbounded; only bounds the user stated are enforced, so that they pass.
-    """
-    spec = getattr(actor, "spec", None)
-    if spec is not None and any(
-        isinstance(leaf, Bounded) and leaf.dtype.is_floating_point
-        for leaf in (spec.values(True, True) if isinstance(spec, Composite) else [spec])
-    ):
-        return True
-    return any(
-        {"low", "high"} & set(getattr(module, "distribution_kwargs", None) or {})
-        for module in actor.modules()
-        if isinstance(module, ProbabilisticTensorDictModule)
-    )
-
-
-def _check_support(dist, action: torch.Tensor, key, declared_bounds: bool) -> None:
-    """Refuses stored actions the policy cannot have taken.
-
-    ``log_prob`` does not: a categorical policy truncates ``1.7`` to ``1`` and a bounded
-    continuous policy scores an action beyond its bounds as if it were on them.
-    """
-    if type(dist) is torch.distributions.Categorical and not action.is_floating_point():
-        # Integer indices: inside the support iff within [0, K); one pass over them
-        # instead of the support's three comparisons (the full check below names a miss).
-        low, high = action.aminmax()
-        if bool((low >= 0) & (high < dist.logits.shape[-1])):
-            return
-    low, high = getattr(dist, "low", None), getattr(dist, "high", None)
-    if isinstance(dist, _ONE_HOT_DISTRIBUTIONS):
-        # TorchRL's one-hot categorical reports Categorical's integer support.
-        inside = ((action == 0) | (action == 1)).all(-1) & (action.sum(-1) == 1)
-        expected = "one-hot rows (a single 1, zeros elsewhere)"
-    elif isinstance(low, torch.Tensor) and isinstance(high, torch.Tensor):
-        if not declared_bounds:
-            return
-        inside = (action >= low) & (action <= high)
-        expected = f"inside the policy's bounds [{low.min().item():g}, {high.max().item():g}]"
-    else:
-        try:
-            inside = dist.support.check(action)
-        except (NotImplementedError, TypeError, AttributeError, RuntimeError):
-            return  # no usable support: nothing to check against
-        expected = f"in the policy's support ({dist.support})"
-    if not bool(inside.all()):
-        bad = action.reshape(-1, *action.shape[inside.ndim :])[~inside.reshape(-1)]
-        raise ValueError(
-            f"{int((~inside).sum())} stored action(s) at {key!r} are not {expected}: for "
-            f"example {bad[0].tolist()}. log pi would be meaningless. Store the actions the "
-            f"policy sampled (integer indices for a categorical policy, one-hot rows for "
-            f"a one-hot one, values within the action bounds for a continuous one)."
-        )
-
-
-def _per_step(values: torch.Tensor, shape: torch.Size, what: str) -> torch.Tensor:
-    """Brings per-step policy quantities to the ``[*B, 1]`` shape of the returns."""
-    batch_shape = shape[:-1]
-    if values.shape == batch_shape:
-        values = values.unsqueeze(-1)
-    elif values.shape[: len(batch_shape)] == batch_shape and values.ndim > len(batch_shape):
-        # One number per independent action dimension: the joint is their sum.
-        values = values.flatten(len(batch_shape)).sum(-1, keepdim=True)
-    if values.shape == shape:
-        return values
-    raise ValueError(
-        f"The policy's {what} have shape {tuple(values.shape)} but the returns have shape "
-        f"{tuple(shape)}: there must be one action per step."
-    )

@@ -506,6 +506,20 @@ def test_mutation_makes_one_small_bug_at_a_time_outside_messages_and_docs():
     assert results["modules"]["rl_pg.m"]["survivors"] == ["5:16 constant 2->3"]
 
 
+def test_mutation_runs_on_different_modules_share_the_results_file(tmp_path, monkeypatch):
+    mutation = _script("mutation")
+    monkeypatch.setattr(mutation, "RESULTS", tmp_path / "mutation.json")
+    first = {"modules": {"rl_pg.a": {"total": 1, "mutants": {"1:1 x": "killed"}}}}
+    second = {"modules": {"rl_pg.b": {"total": 1, "mutants": {"2:2 y": "survived"}}}}
+    mutation._save(first, ["rl_pg.a"])
+    mutation._save(second, ["rl_pg.b"])  # a run that started before the first saved
+    first["modules"]["rl_pg.a"]["mutants"]["1:1 x"] = "survived"  # its module again
+    mutation._save(first, ["rl_pg.a"])
+    stored = json.loads((tmp_path / "mutation.json").read_text())
+    assert sorted(stored["modules"]) == ["rl_pg.a", "rl_pg.b"]
+    assert (stored["killed"], stored["scored"]) == (0, 2)
+
+
 def _outcome(f, *args):
     try:
         return f(*args)

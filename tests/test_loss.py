@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
 import torch
 from conftest import (
     N_ACT,
+    N_OBS,
     make_batch,
     make_categorical_actor,
     make_composite_actor,
@@ -21,7 +23,7 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torchrl.data import Bounded
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import MaskedOneHotCategorical, ProbabilisticActor, TanhNormal
 from torchrl.objectives.value import GAE
 
 from rl_pg import DiscountedReturn, ReinforceLoss, RewardToGo
@@ -76,6 +78,16 @@ class TestReinforceLoss:
         # A critic that predicts every return explains all of it.
         batch["value_target"] = batch["state_value"].detach()
         assert loss(batch)["explained_variance"].item() == pytest.approx(1.0)
+        # Values the batch brings with their graph (the critic run by the caller): the
+        # diagnostic is detached all the same.
+        batch["state_value"] = critic(batch.select("observation"))["state_value"]
+        assert batch["state_value"].requires_grad
+        assert not loss(batch)["explained_variance"].requires_grad
+        # Returns all alike: their variance, the divisor, is floored at 1e-8.
+        batch["value_target"] = torch.full_like(batch["value_target"], 2.0)
+        batch["state_value"] = 2.0 + 1e-5 * torch.randn_like(batch["value_target"])
+        error = (batch["state_value"] - 2.0)[valid].var(unbiased=False)
+        torch.testing.assert_close(loss(batch)["explained_variance"], 1 - error / 1e-8)
 
     def test_diagnostics_are_detached(self, categorical_actor, critic, categorical_batch):
         out = ReinforceLoss(categorical_actor, critic, entropy_coeff=0.1)(categorical_batch)
@@ -185,6 +197,25 @@ class TestReinforceLoss:
         out = ReinforceLoss(actor)(batch.clone())
         returns = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.99)
         torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
+
+    def test_masked_one_hot_actor_scores_the_stored_action(self):
+        torch.manual_seed(0)
+        actor = ProbabilisticActor(
+            TensorDictModule(torch.nn.Linear(N_OBS, N_ACT), ["observation"], ["logits"]),
+            in_keys={"logits": "logits", "mask": "action_mask"},
+            distribution_class=MaskedOneHotCategorical,
+        )
+        allowed = torch.rand(3, 7, N_ACT, generator=torch.Generator().manual_seed(1)) < 0.7
+        allowed[..., 0] = True
+        index = torch.multinomial(allowed.reshape(-1, N_ACT).float(), 1).reshape(3, 7)
+        batch = make_batch(torch.nn.functional.one_hot(index, N_ACT))
+        batch["action_mask"] = allowed
+        out = ReinforceLoss(actor)(batch.clone())
+        returns = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.99)
+        torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
+        batch["action"][0, 0] = 1  # a row of ones: no action the policy takes
+        with pytest.raises(ValueError, match="not one-hot rows"):
+            ReinforceLoss(actor)(batch)
 
     @pytest.mark.parametrize("distribution", ["tanh_normal", "normal"])
     def test_continuous_actor_scores_the_stored_action(self, distribution):
@@ -482,6 +513,34 @@ class TestReinforceLossBadInput:
         with pytest.raises((ValueError, TypeError), match=match):
             ReinforceLoss(categorical_actor, critic, **kwargs)
 
+    @pytest.mark.parametrize(
+        ("policy", "action", "distribution", "expected"),
+        [
+            ("categorical", torch.randint(N_ACT, (4, 4, 1)), "Categorical", (4, 4)),
+            ("gaussian", torch.rand(4, 4, 1) - 0.5, "TanhNormal", (4, 4, N_ACT)),
+            ("normal", torch.randn(4, 4, 1), "Normal", (4, 4, N_ACT)),
+            ("one_hot", torch.randint(N_ACT, (4, 4)), "OneHotCategorical", (4, 4, N_ACT)),
+        ],
+    )
+    def test_actions_shaped_unlike_the_policys_are_refused(
+        self, policy, action, distribution, expected
+    ):
+        # log_prob would broadcast them against the policy's batch: a [*B, 1] categorical
+        # action on a [4, 4] batch gave a finite, wrong loss.
+        torch.manual_seed(0)
+        actor = {
+            "categorical": make_categorical_actor,
+            "gaussian": make_gaussian_actor,
+            "normal": lambda: make_gaussian_actor(distribution_class=torch.distributions.Normal),
+            "one_hot": make_one_hot_actor,
+        }[policy]()
+        message = (
+            f"The stored actions at 'action' have shape {tuple(action.shape)}, but the "
+            f"policy's {distribution} scores actions of shape {expected}"
+        )
+        with pytest.raises(ValueError, match=re.escape(message)):
+            ReinforceLoss(actor)(make_batch(action))
+
     @pytest.mark.parametrize("name", ["functional", "delay_value", "normalize_advantage"])
     def test_flags_must_be_booleans(self, categorical_actor, name):
         with pytest.raises(TypeError, match=f"{name} must be True or False"):
@@ -772,10 +831,21 @@ def test_invalid_distribution_parameters_name_the_input(categorical_actor, categ
     categorical_batch["observation"][0, 0, 0] = float("inf")
     torch.distributions.Distribution.set_default_validate_args(True)
     try:
-        with pytest.raises(ValueError, match=r"invalid distribution .* input 'observation'"):
+        # the first line of torch's own message, and the input named
+        match = r"invalid distribution from this batch \(Expected parameter logits .*invalid "
+        match += r"values:\)\. The policy's input 'observation'"
+        with pytest.raises(ValueError, match=match):
             ReinforceLoss(categorical_actor)(categorical_batch)
     finally:
         torch.distributions.Distribution.set_default_validate_args(False)
+
+
+def test_a_policy_that_diverged_on_finite_inputs_is_named_so(categorical_actor, categorical_batch):
+    with torch.no_grad():
+        categorical_actor.module[0].module.weight[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite log-probabilities") as raised:
+        ReinforceLoss(categorical_actor)(categorical_batch)
+    assert "weights diverged" in str(raised.value) and "holds" not in str(raised.value)
 
 
 # ---------------------------------------------------------------------------------------
