@@ -307,6 +307,20 @@ EQUIVALENT: dict[str, str] = {
         f"rl_pg.episode_collector:{key}": "torch.cat of one batch is that batch"
         for key in ("211:45 compare 0 Gt->GtE", "237:36 compare 0 Gt->GtE")
     },
+    "rl_pg.loss:537:66 constant False->True": (
+        "the training flag kept for a baseline that does not exist: read only when there is one"
+    ),
+    "rl_pg.loss_checks:72:39 constant True->False": (
+        "a spec's values with its composite nodes as well as its leaves: the Bounded leaves "
+        "are among them either way"
+    ),
+    **{
+        f"rl_pg.loss_checks:{key}": (
+            "the fast path for integer indices of a categorical policy: an index it "
+            "sends to the full support check is accepted there as well"
+        )
+        for key in ("113:17 compare 0 GtE->Gt", "113:24 constant 0->1")
+    },
     "rl_pg.training.seeds:105:11 compare 0 LtE->Lt": (
         "a training span that ends exactly at 2**31 (runs 2**31 - 1 and 2**32 - 1) then "
         "also claims the members past it; both runs' streams lie elsewhere either way "
@@ -360,6 +374,10 @@ ARGUED: dict[str, str] = {
         )
         for key in ("220:30 binary Sub->Add", "220:38 constant 1->2")
     },
+    "rl_pg.loss_checks:120:9 bool And->Or": (
+        "a distribution with one bound a tensor and the other not: none in torch or "
+        "TorchRL has such bounds"
+    ),
     "rl_pg.estimators:164:19 constant False->True": (
         "a value network with recurrent state (is_init in its inputs) taking the one-call "
         "path: rl_pg builds none, and the test needs one of TorchRL's recurrent modules"

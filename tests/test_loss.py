@@ -22,12 +22,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
-from torchrl.data import Bounded
+from torchrl.data import Bounded, Composite
 from torchrl.modules import MaskedOneHotCategorical, ProbabilisticActor, TanhNormal
 from torchrl.objectives.value import GAE
 
 from rl_pg import DiscountedReturn, ReinforceLoss, RewardToGo
 from rl_pg.functional import reward_to_go
+from rl_pg.loss_checks import per_step
 
 
 def _surrogate(actor, batch, weights):
@@ -197,6 +198,24 @@ class TestReinforceLoss:
         out = ReinforceLoss(actor)(batch.clone())
         returns = reward_to_go(batch["next", "reward"], batch["next", "done"], 0.99)
         torch.testing.assert_close(out["loss_actor"], _surrogate(actor, batch, returns))
+
+    def test_returns_of_each_agent_weight_its_own_action(self):
+        # Two agents a step, each with its action and its return ([*B, agents, 1]):
+        # each agent's log π is weighted by its own return.
+        torch.manual_seed(0)
+        heads = torch.nn.Sequential(
+            torch.nn.Linear(N_OBS, 2 * N_ACT), torch.nn.Unflatten(-1, (2, N_ACT))
+        )
+        actor = ProbabilisticActor(
+            TensorDictModule(heads, ["observation"], ["logits"]),
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+        )
+        batch = make_batch(torch.randint(N_ACT, (3, 7, 2)))
+        batch["value_target"] = torch.randn(3, 7, 2, 1)
+        out = ReinforceLoss(actor)(batch.clone())
+        log_prob = actor.get_dist(batch).log_prob(batch["action"]).unsqueeze(-1)
+        torch.testing.assert_close(out["loss_actor"], -(log_prob * batch["value_target"]).mean())
 
     def test_masked_one_hot_actor_scores_the_stored_action(self):
         torch.manual_seed(0)
@@ -478,6 +497,15 @@ class TestReinforceLossErrors:
             ReinforceLoss(categorical_actor)(categorical_batch)
 
 
+def test_per_step_quantities_of_another_shape_are_named_as_they_came():
+    # Two agents' log-probabilities per step against three agents' returns: refused, and
+    # the message quotes the shape the policy gave, not one summed from it.
+    with pytest.raises(ValueError, match=r"have shape \(3, 7, 2, 4\) but the returns have shape"):
+        per_step(torch.zeros(3, 7, 2, 4), torch.Size([3, 7, 3, 1]), "log-probabilities")
+    summed = per_step(torch.ones(3, 7, 2, 4), torch.Size([3, 7, 2, 1]), "log-probabilities")
+    assert torch.equal(summed, torch.full((3, 7, 2, 1), 4.0))  # independent dimensions
+
+
 def _bounded_actor(low, high):
     """A TanhNormal policy that declares its bounds through a Bounded spec."""
     low, high = torch.as_tensor(low), torch.as_tensor(high)
@@ -627,6 +655,36 @@ class TestReinforceLossBadInput:
         actions[2, 6] = torch.tensor(action)
         with pytest.raises(ValueError, match=r"1 stored action.* not inside the policy's bounds"):
             ReinforceLoss(_bounded_actor(low, high))(make_batch(actions))
+
+    @pytest.mark.parametrize("declared", ["spec", "distribution_kwargs", "nested_spec"])
+    def test_bounds_declared_either_way_are_enforced(self, declared):
+        # A Bounded spec alone (at the action's key, nested or not), or low and high
+        # given to the distribution alone: both declare the bounds [-1, 1].
+        torch.manual_seed(0)
+        low, high = torch.tensor([-1.0]), torch.tensor([1.0])
+        key = ("agent", "action") if declared == "nested_spec" else "action"
+        if declared == "distribution_kwargs":
+            declaration = {"distribution_kwargs": {"low": low, "high": high}}
+        elif declared == "spec":
+            declaration = {"spec": Bounded(low, high, shape=(1,))}
+        else:
+            declaration = {"spec": Composite({key: Bounded(low, high, shape=(1,))})}
+        net = torch.nn.Sequential(torch.nn.Linear(3, 2), NormalParamExtractor())
+        actor = ProbabilisticActor(
+            TensorDictModule(net, ["observation"], ["loc", "scale"]),
+            in_keys=["loc", "scale"],
+            out_keys=[key],
+            distribution_class=TanhNormal,
+            **declaration,
+        )
+        actions = torch.zeros(3, 7, 1)
+        actions[2, 6] = 1.5
+        batch = make_batch(actions)
+        batch[key] = batch.pop("action")
+        loss = ReinforceLoss(actor)
+        loss.set_keys(action=key)
+        with pytest.raises(ValueError, match=r"1 stored action.* not inside the policy's bounds"):
+            loss(batch)
 
     def test_actions_on_the_declared_bounds_are_scored(self):
         torch.manual_seed(0)
@@ -936,8 +994,6 @@ def test_malformed_batches_give_a_correct_loss_or_a_clear_error(problem):
 def test_a_composite_action_weights_the_sum_of_its_parts_log_probabilities():
     """Two categorical heads (tensordict's CompositeDistribution): log pi(a) is the sum
     of the heads' log-probabilities, and so is the entropy."""
-    from rl_pg.functional import reward_to_go
-
     torch.manual_seed(0)
     actor = make_composite_actor()
     batch = make_batch(torch.zeros(2, 6, dtype=torch.long), n_obs=3, seed=1)
