@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 import torch
 from tensordict import LazyStackedTensorDict, TensorDict
@@ -10,6 +12,7 @@ from torchrl.envs import StepCounter, TransformedEnv
 
 from rl_pg.collectors import SegmentCollector
 from rl_pg.envs import GridWorldEnv, gym_env
+from rl_pg.envs.vector import VectorGymEnv
 from rl_pg.lean import lean_policy
 from rl_pg.models import mlp_actor
 from rl_pg.segments import stacked
@@ -137,14 +140,15 @@ def test_stacked_roots_are_torch_stack_of_them(form):
         assert torch.equal(batch[key], expected[key]), key
 
 
-def test_a_batch_size_that_does_not_divide_is_refused():
+@pytest.mark.parametrize("frames", [10, 0, -4])
+def test_a_batch_size_that_is_no_positive_multiple_is_refused(frames):
     env = gym_env("CartPole-v1", num_envs=4)
-    with pytest.raises(ValueError, match="multiple of the 4"):
-        SegmentCollector(env, mlp_actor(env, hidden=(4,)), frames_per_batch=10)
+    with pytest.raises(ValueError, match=f"positive multiple of the 4 .* got {frames}"):
+        SegmentCollector(env, mlp_actor(env, hidden=(4,)), frames_per_batch=frames)
 
 
 def test_one_environment_gives_batches_of_its_steps():
-    """Batch size []: the batch is [T], as TorchRL's Collector gives it."""
+    """Batch size []: the batch is [T], as TorchRL's Collector gives it (down to one step)."""
     reference_env, env = gym_env("CartPole-v1"), gym_env("CartPole-v1")
     torch.manual_seed(0)
     actor = mlp_actor(env, hidden=(8,))
@@ -163,6 +167,10 @@ def test_one_environment_gives_batches_of_its_steps():
             assert torch.equal(batch[key], expected[key]), key
     reference.shutdown()
     collector.shutdown()
+    env = gym_env("CartPole-v1")
+    single = SegmentCollector(env, actor, frames_per_batch=1)
+    assert single.next().batch_size == (1,)
+    single.shutdown()
 
 
 def test_a_policy_without_an_action_is_named():
@@ -176,10 +184,32 @@ def test_a_policy_without_an_action_is_named():
 
 def test_total_frames_ends_the_iteration():
     env = gym_env("CartPole-v1", num_envs=2)
-    collector = SegmentCollector(env, mlp_actor(env, hidden=(4,)), 8, total_frames=24)
+    actor = mlp_actor(env, hidden=(4,))
+    collector = SegmentCollector(env, actor, 8, total_frames=24)
     assert [b.batch_size for b in collector] == [torch.Size([2, 4])] * 3
+    assert list(SegmentCollector(env, actor, 8, total_frames=0)) == []
+    endless = iter(SegmentCollector(env, actor, 8))  # the default: -1, no end
+    assert len(list(itertools.islice(endless, 4))) == 4
     collector.shutdown()
     assert env.is_closed
+
+
+def test_shutdown_closes_the_environments_it_steps():
+    import gymnasium
+
+    vector = gymnasium.make_vec(
+        "CartPole-v1",
+        num_envs=2,
+        vectorization_mode="sync",
+        vector_kwargs={"autoreset_mode": gymnasium.vector.AutoresetMode.DISABLED},
+    )
+    env = VectorGymEnv(vector)
+    assert not env.is_closed
+    collector = SegmentCollector(env, mlp_actor(env, hidden=(4,)), 8)
+    collector.next()
+    collector.shutdown()
+    assert env.is_closed and vector.closed
+    collector.shutdown()  # again: nothing is left to close
 
 
 def test_done_flags_a_policy_writes_into_its_input_are_kept():

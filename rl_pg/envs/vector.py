@@ -72,6 +72,7 @@ class VectorGymEnv(EnvBase):
         n = env.num_envs
         super().__init__(batch_size=torch.Size([n]), device=device)
         self._env = env
+        self.is_closed = False  # it holds the vector environment until close()
         self._n = n
         spaces, action_space = self._spaces(env)
         if isinstance(spaces, gym.spaces.Box):
