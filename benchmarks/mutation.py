@@ -321,6 +321,39 @@ EQUIVALENT: dict[str, str] = {
         )
         for key in ("113:17 compare 0 GtE->Gt", "113:24 constant 0->1")
     },
+    "rl_pg.loss_checks:146:61 compare 0 Gt->GtE": (
+        "per-step values with as many dimensions as the batch and its prefix: those are "
+        "the batch's shape, taken by the branch before"
+    ),
+    **{
+        f"rl_pg.loss:{key}": (
+            "how the parameters are put into the module for the call (registered as "
+            "before, or replaced): the same values and gradients, the module restored after"
+        )
+        for key in ("823:90 constant False->True", "900:72 constant False->True")
+    },
+    "rl_pg.loss:850:61 drop Not": (
+        "float actions of a categorical policy through the gather rather than log_prob: "
+        "the support check let only whole numbers through, which both score alike"
+    ),
+    **{
+        f"rl_pg.loss:{key}": (
+            "gather's [*B, 1] squeezed at another dimension of 1 or not at all: per_step "
+            "brings [*B] and [*B, 1] to the same column"
+        )
+        for key in ("853:83 drop USub", "853:84 constant 1->2")
+    },
+    "rl_pg.collectors:34:29 constant 1->2": (
+        "the default total_frames, -1 or -2: any negative count collects without end"
+    ),
+    **{
+        f"rl_pg.collectors:{key}": (
+            "which of two paths steps an EnvPoolEnv, its plain tensors or the TensorDicts "
+            "of any other two-group environment: the same batches (the tests compare "
+            "both with TorchRL's collector)"
+        )
+        for key in ("297:11 compare 0 IsNot->Is", "297:11 negate condition")
+    },
     "rl_pg.training.seeds:105:11 compare 0 LtE->Lt": (
         "a training span that ends exactly at 2**31 (runs 2**31 - 1 and 2**32 - 1) then "
         "also claims the members past it; both runs' streams lie elsewhere either way "
@@ -374,6 +407,23 @@ ARGUED: dict[str, str] = {
         )
         for key in ("220:30 binary Sub->Add", "220:38 constant 1->2")
     },
+    **{
+        f"rl_pg.collectors:{key}": (
+            "whether batches are copied to a device the user named: on this machine's "
+            "only device, the CPU, a copy changes nothing; a GPU would tell them apart"
+        )
+        for key in (
+            "50:11 compare 0 Eq->NotEq",
+            "50:11 negate condition",
+            "50:27 bool Or->And",
+            "95:24 compare 0 Is->IsNot",
+            "114:35 compare 0 Is->IsNot",
+        )
+    },
+    "rl_pg.collectors:273:34 constant 1->2": (
+        "an environment with step_send but no groups attribute, accepted as two groups: "
+        "none exists (EnvPoolEnv has both, and any other is refused for want of step_send)"
+    ),
     "rl_pg.loss_checks:120:9 bool And->Or": (
         "a distribution with one bound a tensor and the other not: none in torch or "
         "TorchRL has such bounds"

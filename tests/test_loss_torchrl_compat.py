@@ -320,12 +320,16 @@ class TestTorchRLScenarios:
         # tensordict turns a class-level ``out_keys`` list into a property only when that
         # class is first instantiated: this must work before TorchRL's class ever is.
         # One fresh interpreter per implementation, both at once.
+        # The rl_pg under test (the checkout's, or a mutated copy's) before the installed one.
         tests_dir = str(Path(__file__).parent)
+        package = str(Path(rl_pg.__file__).parents[1])
+        path = os.pathsep.join([tests_dir, package])
+        env = {**os.environ, "PYTHONPATH": path, "PYTHONDONTWRITEBYTECODE": "1"}
         processes = {
             name: subprocess.Popen(
                 [sys.executable, "-c", _FRESH_SELECT_OUT_KEYS.format(name=name)],
                 cwd=tests_dir,
-                env={**os.environ, "PYTHONPATH": tests_dir},
+                env=env,
                 stderr=subprocess.PIPE,
                 text=True,
             )

@@ -180,7 +180,11 @@ def test_the_parallel_kernel_leaves_torchs_threads_as_it_found_them():
     path = os.pathsep.join([package, *filter(None, [os.environ.get("PYTHONPATH")])])
     env = {**os.environ, "NUMBA_NUM_THREADS": "3", "PYTHONPATH": path,
            "PYTHONDONTWRITEBYTECODE": "1"}  # fmt: skip
-    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    # Run from the package's folder: ``python -c`` puts the working folder first on the
+    # path, where another rl_pg (the checkout a mutation run starts from) would win.
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=package, capture_output=True, text=True
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["2"]
 
