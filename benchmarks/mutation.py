@@ -189,15 +189,15 @@ EQUIVALENT: dict[str, str] = {
             "dimension 1"
         )
         for key in (
-            "150:43 drop USub",
-            "153:31 drop USub",
-            "164:39 drop USub",
-            "166:90 drop USub",
-            "167:42 drop USub",
-            "169:50 drop USub",
+            "151:43 drop USub",
+            "154:31 drop USub",
+            "165:39 drop USub",
+            "167:90 drop USub",
+            "168:42 drop USub",
+            "170:50 drop USub",
         )
     },
-    "rl_pg.groups:281:58 constant 1->2": (
+    "rl_pg.groups:282:58 constant 1->2": (
         "one more all-zero column in the episodes' table: each position is compared with "
         "its own column (scaled too), and the extra one is never read back"
     ),

@@ -37,6 +37,7 @@ from tensordict import TensorDictBase
 
 from rl_pg.gradient_noise import unit_index
 from rl_pg.greedy_play import GreedyInGroups  # noqa: F401 (its import path before)
+from rl_pg.loss_checks import required
 
 __all__ = [
     "GROUP_BASELINES",
@@ -227,7 +228,7 @@ def batch_group_advantage(
         tensor([ 0.2500, -0.2500, -0.7500,  3.2500,  2.7500, -2.7500])
     """
     lead = f"baseline={baseline!r}: "
-    group = _required(
+    group = required(
         batch,
         group_key,
         f"A group baseline ({baseline!r}) compares each episode with the others "
@@ -301,7 +302,7 @@ def greedy_flags(batch: TensorDictBase, key="greedy") -> torch.Tensor:
         KeyError: the batch has no flags at ``key``.
         TypeError, ValueError: flags that are not boolean, or not one per step.
     """
-    flags = _required(
+    flags = required(
         batch,
         key,
         "baseline='greedy' reads which steps belong to each group's greedy episode "
@@ -310,14 +311,6 @@ def greedy_flags(batch: TensorDictBase, key="greedy") -> torch.Tensor:
         "baseline='greedy': ",
     )
     return _per_step(batch, key, flags, torch.bool)
-
-
-def _required(batch: TensorDictBase, key, hint: str, lead: str = "") -> torch.Tensor:
-    """``batch[key]``, or a KeyError in TorchRL's words (``lead``, then ``hint``)."""
-    value = batch.get(key, None)
-    if value is None:
-        raise KeyError(f"{lead}the key {key} was not found in the input tensordict. {hint}")
-    return value
 
 
 def _per_step(batch: TensorDictBase, key, value: torch.Tensor, dtype) -> torch.Tensor:
