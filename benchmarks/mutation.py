@@ -677,12 +677,17 @@ def main(args: Args) -> dict:
     return results
 
 
+def source_digest(source: str) -> str:
+    """What a module's stored scores were measured on: its scores hold while it matches."""
+    return hashlib.sha256(source.encode()).hexdigest()[:16]
+
+
 def _score_module(
     name: str, root: Path, results: dict, limit: int | None, *, again: bool = False
 ) -> None:
     path = root / (name.replace(".", "/") + ".py")
     original = path.read_text()
-    digest = hashlib.sha256(original.encode()).hexdigest()[:16]
+    digest = source_digest(original)
     entry = results["modules"].get(name)
     if entry is None or entry.get("source") != digest:
         entry = results["modules"][name] = {"source": digest, "tests": TARGETS[name], "mutants": {}}
