@@ -365,7 +365,7 @@ EQUIVALENT: dict[str, str] = {
 the score."""
 
 ARGUED: dict[str, str] = {
-    "rl_pg.training.selection:149:40 compare 0 Is->IsNot": (
+    "rl_pg.training.selection:162:40 compare 0 Is->IsNot": (
         "the index of a CUDA device, read only where training runs on CUDA: this machine "
         "has none to run the test on"
     ),

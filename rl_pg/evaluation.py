@@ -25,6 +25,7 @@ __all__ = [
     "first_episodes",
     "play_episodes",
     "policy_device",
+    "reported",
 ]
 
 
@@ -180,6 +181,22 @@ def evaluate(
     if action_stats and "action_counts" in stats:
         out.update(describe_actions(stats))
     return out
+
+
+def reported(flags: Sequence[str] = (), values: Sequence[str] = ()) -> tuple[str, ...]:
+    """The entries [`evaluate`][rl_pg.evaluation.evaluate] reports for these ``flags``
+    and ``values`` (its action statistics aside), when the episodes carry them.
+
+    Examples:
+        >>> from rl_pg.evaluation import reported
+        >>> reported(flags=["crashed"], values=["route_completion"])
+        ('mean_return', 'std_return', 'mean_length', 'crashed_rate', 'mean_route_completion')
+    """
+    flags, values = check_names("flags", flags), check_names("values", values)
+    return (
+        "mean_return", "std_return", "mean_length",
+        *(f"{flag}_rate" for flag in flags), *(f"mean_{key}" for key in values),
+    )  # fmt: skip
 
 
 def episode_shares(episodes: int, n: int) -> list[int]:

@@ -939,6 +939,38 @@ def test_a_reported_evaluation_shows_its_crash_rate():
     assert "21.50 ± 2.20 (100), 2% crashed" in row and "37% crashed" in row
 
 
+def test_a_report_names_the_metric_a_run_picked_its_checkpoint_by_and_judges_it_so():
+    """MetaDrive's best.pt is its best success rate: the table shows it, and whether the
+    checkpoint holds its threshold both ways is judged on it too."""
+    from rl_pg.app.stores import holds
+    from rl_pg.app.tables import format_report
+
+    record = {"mean_return": 250.0, "std_return": 90.0, "episodes": 100,
+              "arrive_dest_rate": 0.61, "mean_route_completion": 0.81}  # fmt: skip
+    report = {"recipe": "metadrive", "seed": 0, "frames": 2_000_000, "train_wall_s": 9000.0,
+              "threshold": 0.5, "solved_at_frames": None, "best_eval_mean_return": 240.0,
+              "best_at_frames": 1_250_000, "select_by": "arrive_dest_rate",
+              "select_mode": "max", "best_eval_value": 0.58, "greedy": record,
+              "sampled": {**record, "arrive_dest_rate": 0.45}}  # fmt: skip
+    row = format_report([report], ["seed0"]).splitlines()[2]
+    assert "arrive_dest_rate 58% at 1,250,000" in row  # the kept evaluation, by its metric
+    assert "(100), arrive_dest_rate 61%" in row and "arrive_dest_rate 45%" in row
+    assert holds(report) is False  # sampled 45 % < 50 %, though both returns are high
+    assert holds({**report, "threshold": 0.45}) is True
+    crashes = {
+        **report,
+        "select_by": "crash_rate",
+        "select_mode": "min",
+        "threshold": 0.2,
+        "greedy": {**record, "crash_rate": 0.1},
+        "sampled": {**record, "crash_rate": 0.3},
+    }
+    assert holds(crashes) is False and holds({**crashes, "threshold": 0.3}) is True
+    # a run from before the choice reads as picked by its return
+    old = {k: v for k, v in report.items() if not k.startswith(("select", "best_eval_v"))}
+    assert "240.00 at 1,250,000" in format_report([old], ["seed0"]).splitlines()[2]
+
+
 def test_every_way_of_starting_the_command_freezes_its_heap():
     """The console script, ``python -m rl_pg.app`` and a checkout's recipe scripts
     start at ``run`` (the heap frozen), not at ``main``, which tests call in-process."""

@@ -302,6 +302,15 @@ def test_runs_stored_before_the_failure_penalty_resume_with_metadrives_own():
     assert recipe.config.from_stored(stored, failure_penalty=50.0).failure_penalty == 50.0
 
 
+def test_runs_stored_before_the_selection_metric_keep_their_best_return():
+    from rl_pg.training.config import config_dict
+
+    stored = config_dict(recipe.config())
+    del stored["select_by"]  # as a version that picked best.pt by the return wrote it
+    assert recipe.config.from_stored(stored).select_by == "mean_return"
+    assert recipe.config().select_by == "arrive_dest_rate"
+
+
 @needs_metadrive
 def test_training_reward_flags_shape_the_training_reward_and_no_evaluation():
     from rl_pg.evaluation import evaluate as score
@@ -379,6 +388,10 @@ def test_recipe_trains_evaluates_in_its_own_process_and_plays_a_gif(tmp_path):
     # shares of 2 episodes, each of which ended some way; 40 steps (4 s) arrive nowhere
     assert all(rate * 2 == round(rate * 2) for rate in rates.values()), rates
     assert sum(rates.values()) >= 1.0 and rates["arrive_dest_rate"] == 0.0
+    # best.pt is picked by success, the target's metric, not by the return
+    assert summary["select_by"] == "arrive_dest_rate"
+    assert summary["best_eval_value"] == rates["arrive_dest_rate"]
+    assert read_run(run, which="best")["state"]["best_eval"]["eval/arrive_dest_rate"] == 0.0
     assert 0.0 < summary["eval_mean_route_completion"] < 0.5
     assert BaseEngine.singleton is None  # training closed its engine
     # The deployed agent standardises what it sees as it did in training.

@@ -16,7 +16,7 @@ from PIL import Image, ImageSequence
 
 from rl_pg.app import evaluate, play
 from rl_pg.envs import GridWorldEnv
-from rl_pg.recipes import load
+from rl_pg.recipes import NAMES, load
 from rl_pg.training import load_models, read_run
 from rl_pg.training.seeds import evaluation_seed, fresh_seed
 
@@ -562,3 +562,45 @@ def test_every_recipe_has_its_page_in_the_docs():
     for name in NAMES:
         assert (docs / "recipes" / f"{name}.md").is_file(), f"docs/recipes/{name}.md is missing"
         assert f"recipes/{name}.md" in nav, f"recipes/{name}.md is not in mkdocs.yml's nav"
+
+
+def _picked_by() -> dict[str, str]:
+    """The recipe index's "best.pt picked by" column: the metric each recipe's target
+    is judged by, as the docs tell users."""
+    from pathlib import Path
+
+    index = (Path(__file__).parents[1] / "docs" / "recipes" / "index.md").read_text()
+    head = next(line for line in index.splitlines() if line.startswith("| recipe |"))
+    column = [cell.strip() for cell in head.strip("|").split("|")].index("best.pt picked by")
+    rows = re.findall(r"^\| \[(\w[\w-]*)\]\(\1\.md\) \|(.*)$", index, flags=re.M)
+    return {
+        name: re.search(r"`(\w+)`", rest.split("|")[column - 1]).group(1) for name, rest in rows
+    }
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_best_pt_is_picked_by_the_metric_the_recipes_target_names(name):
+    # Two evaluations that disagree: the first has the better return, the second the
+    # better value of the recipe's metric. The run keeps the second, unless its metric is
+    # the return (then the two cannot disagree, and the first is kept).
+    from rl_pg.evaluation import reported
+    from rl_pg.training.checkpoints import RunState
+    from rl_pg.training.metric import Metric
+
+    recipe = load(name)
+    metric = Metric.of(recipe.config)
+    assert metric.key == _picked_by()[name]  # what the docs say it is
+    assert metric.key in reported(recipe.eval_flags, recipe.eval_values)
+    good, bad = (0.9, 0.1) if metric.mode == "max" else (0.1, 0.9)
+    entries = {f"eval/{key}": 0.5 for key in reported(recipe.eval_flags, recipe.eval_values)}
+    first = {**entries, "eval/mean_return": 10.0}
+    second = {**entries, "eval/mean_return": 5.0}
+    if metric.key != "mean_return":
+        first[metric.logged], second[metric.logged] = bad, good
+    state = RunState()
+    for frames, evaluation in ((100, first), (200, second)):
+        state.frames, state.last_eval = frames, evaluation
+        state.is_best(metric)
+    kept = 100 if metric.key == "mean_return" else 200
+    assert state.best_at_frames == kept
+    assert state.best(metric) == (10.0 if kept == 100 else good)

@@ -5,6 +5,7 @@ trained weights."""
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor
-from rl_pg.training import load_models, read_run
+from rl_pg.training import load_models, read_run, train
 from rl_pg.training.curves import read_curve
 from rl_pg.training.seeds import confirmation_seed, evaluation_seed
 
@@ -29,7 +30,7 @@ class TestBestCheckpoint:
         assert len(evaluations) >= 3
         best = read_run(tmp_path / "run", which="best")
         first_best = evaluations.index(max(evaluations))
-        assert best["state"]["best_mean_return"] == max(evaluations)
+        assert best["state"]["best_eval"]["eval/mean_return"] == max(evaluations)
         assert summary["best_eval_mean_return"] == max(evaluations)
         assert summary["best_at_frames"] == best["state"]["frames"]
         assert best["state"]["frames"] == frames[first_best]
@@ -75,7 +76,8 @@ class TestBestCheckpoint:
         env = make_grid()
         env.set_seed(evaluation_seed(0))
         result = evaluate(actor, env, episodes=1)
-        assert result["mean_return"] == pytest.approx(best["state"]["best_mean_return"])
+        kept = best["state"]["best_eval"]["eval/mean_return"]
+        assert result["mean_return"] == pytest.approx(kept)
 
     def test_confirmation_keeps_the_checkpoint_whose_replays_score_best(self, tmp_path):
         cfg = _cfg(tmp_path, total_updates=30, eval_interval=200, confirm_episodes=6)
@@ -182,3 +184,130 @@ class TestBestCheckpoint:
         (tmp_path / "run" / "best.pt").unlink()
         with pytest.raises(CheckpointError, match=r"has no best\.pt .* which='last'"):
             read_run(tmp_path / "run", which="best")
+
+
+class TestSelectionMetric:
+    """A run keeps, confirms and judges its threshold on the evaluation entry it selects
+    by (``--select-by``, ``--select-mode``), not always the mean return."""
+
+    def test_best_is_the_best_evaluation_of_the_metric_even_where_the_return_disagrees(
+        self, tmp_path
+    ):
+        # The longest evaluation episodes: the return's worst policy, the metric's best.
+        cfg = _cfg(tmp_path, total_updates=12, eval_interval=200, select_by="mean_length")
+        summary = _train(cfg)
+        run = tmp_path / "run"
+        frames, lengths = read_curve(run, "eval/mean_length")
+        _, returns = read_curve(run, "eval/mean_return")
+        kept = int(np.argmax(lengths))  # the first of the longest
+        assert int(np.argmax(returns)) != kept  # the two disagree: the test tells them apart
+        best = read_run(run, which="best")
+        assert best["state"]["frames"] == summary["best_at_frames"] == frames[kept]
+        assert summary["select_by"] == "mean_length" and summary["select_mode"] == "max"
+        assert summary["best_eval_value"] == best["state"]["best_eval"]["eval/mean_length"]
+        assert summary["best_eval_value"] == lengths[kept]
+        assert summary["best_eval_mean_return"] == returns[kept]  # the return it was kept at
+        assert summary["eval_value"] == lengths[-1]
+
+    def test_the_lowest_is_best_when_the_mode_says_so(self, tmp_path):
+        cfg = _cfg(tmp_path, total_updates=12, eval_interval=200, select_mode="min")
+        summary = _train(cfg)
+        frames, returns = read_curve(tmp_path / "run", "eval/mean_return")
+        assert returns.min() < returns.max()
+        assert summary["best_at_frames"] == frames[int(np.argmin(returns))]
+        assert summary["best_eval_value"] == summary["best_eval_mean_return"] == returns.min()
+
+    def test_confirmations_score_the_worse_of_greedy_and_sampled_on_the_metric(self, tmp_path):
+        cfg = _cfg(tmp_path, total_updates=10, eval_interval=200, confirm_episodes=4,
+                   select_by="mean_length", select_mode="min")  # fmt: skip
+        summary = _train(cfg)
+        run = tmp_path / "run"
+        _, scores = read_curve(run, "confirm/score")
+        _, greedy = read_curve(run, "confirm/greedy_mean_length")
+        _, sampled = read_curve(run, "confirm/sampled_mean_length")
+        assert len(scores) >= 1
+        torch.testing.assert_close(scores, np.maximum(greedy, sampled))  # lower is better
+        assert summary["best_confirmed"] == scores.min()
+        assert not (run / "logs/csv/scalars/confirm/greedy_mean_return.csv").exists()
+
+    def test_the_threshold_is_judged_on_the_metric(self, tmp_path):
+        # Lengths of at most 30 steps: every evaluation is at or below the threshold.
+        cfg = _cfg(tmp_path, total_updates=12, eval_interval=200, select_by="mean_length",
+                   select_mode="min", threshold=30.0)  # fmt: skip
+        summary = _train(cfg)
+        assert summary["updates"] < 12 and summary["solved_at_frames"] is not None
+        frames, _ = read_curve(tmp_path / "run", "eval/mean_length")
+        assert summary["solved_at_frames"] == frames[0]
+
+    def test_an_entry_the_evaluations_do_not_report_is_refused_before_any_environment(
+        self, tmp_path
+    ):
+        def never(*args):  # an environment that must not be built
+            raise AssertionError("an environment was built")
+
+        cfg = _cfg(tmp_path, select_by="crashed_rate")
+        with pytest.raises(ValueError, match=r"--select-by crashed_rate.*mean_return, std_return"):
+            train(cfg, recipe="grid", make_env=never, make_models=make_grid_models)
+        assert not (tmp_path / "run").exists()
+
+    def test_an_entry_the_environment_never_sets_is_named_at_the_first_evaluation(self, tmp_path):
+        cfg = _cfg(tmp_path, total_updates=2, eval_interval=100, select_by="crashed_rate")
+        with pytest.raises(KeyError, match=r"reported no crashed_rate.*never set"):
+            _train(cfg, eval_flags=("crashed",))
+
+    def test_checkpoints_of_runs_that_kept_their_best_return_resume_with_it(self, tmp_path):
+        from rl_pg.training.checkpoints import restore
+        from rl_pg.training.metric import Metric
+
+        _train(_cfg(tmp_path, total_updates=4, eval_interval=200))
+        saved = read_run(tmp_path / "run")
+        kept = saved["state"]["best_eval"]["eval/mean_return"]
+        del saved["state"]["best_eval"]
+        saved["state"]["best_mean_return"] = kept  # as checkpoints were written before
+        cfg = _cfg(tmp_path)
+        actor, critic = make_grid_models(make_grid())
+        from rl_pg.training.optimisation import make_loss, make_optimizer
+
+        loss = make_loss(cfg, actor, critic)
+        state = restore(saved, loss, make_optimizer(cfg, loss), tmp_path / "run")
+        assert state.best(Metric()) == kept
+        state.last_eval = {"eval/mean_return": kept}
+        assert not state.is_best(Metric())  # a tie keeps the earlier one
+        state.last_eval = {"eval/mean_return": kept + 1}
+        assert state.is_best(Metric()) and state.best(Metric()) == kept + 1
+
+
+class TestMetric:
+    def test_better_reaches_and_worst_follow_the_mode(self):
+        from rl_pg.training.metric import Metric
+
+        high, low = Metric("mean_return"), Metric("crashed_rate", "min")
+        assert high.better(2.0, than=1.0) and not high.better(1.0, than=1.0)
+        assert low.better(0.1, than=0.2) and not low.better(0.2, than=0.1)
+        assert high.better(-5.0, than=None) and low.better(5.0, than=None)
+        assert not high.better(float("nan"), than=None)
+        assert high.reaches(1.0, 1.0) and not high.reaches(0.9, 1.0)
+        assert low.reaches(0.2, 0.2) and not low.reaches(0.3, 0.2)
+        assert high.worst([1.0, 3.0]) == 1.0 and low.worst([0.1, 0.3]) == 0.3
+
+    @pytest.mark.parametrize(
+        ("key", "mode", "match"),
+        [("", "max", "evaluation entry's name"), ("mean_return", "highest", "'max'.*'min'")],
+    )
+    def test_a_malformed_metric_is_refused(self, key, mode, match):
+        from rl_pg.training.metric import Metric
+
+        with pytest.raises((TypeError, ValueError), match=match):
+            Metric(key, mode)
+
+    def test_the_mode_is_a_choice_of_the_config(self):
+        with pytest.raises(ValueError, match="select_mode"):
+            _cfg(Path("."), select_mode="highest")
+
+    def test_reports_and_summaries_of_runs_before_the_choice_read_as_the_return(self):
+        from rl_pg.training.metric import Metric
+
+        assert Metric.of_summary({"best_eval_mean_return": 1.0}) == Metric("mean_return", "max")
+        assert Metric.of_summary({"select_by": "crash_rate", "select_mode": "min"}) == Metric(
+            "crash_rate", "min"
+        )

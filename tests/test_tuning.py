@@ -264,3 +264,28 @@ def test_a_study_file_that_is_not_a_study_is_named(tmp_path, capsys, content):
         tune(gridworld, _base(), params=["lr"], trials=1, study_dir=tmp_path)
     with pytest.raises(SystemExit, match=r"rl-pg tune: .*study\.db is not a study"):
         main(["tune", "gridworld", "--trials", "1", "--params", "lr", "--run-dir", str(tmp_path)])
+
+
+def test_a_study_scores_the_metric_the_runs_select_by_and_keeps_its_direction(tmp_path):
+    # The shortest evaluation episodes are best here: the study minimises their length.
+    base = _base(select_by="mean_length", select_mode="min", eval_episodes=2)
+    result = tune(gridworld, base, params=["lr"], trials=2, study_dir=tmp_path,
+                  objective="best", pruner="none", report=None)  # fmt: skip
+    study = _study(tmp_path)
+    assert study.direction.name == "MINIMIZE"
+    scores = {t.number: t.value for t in study.trials}
+    for number, value in scores.items():
+        summary = json.loads((tmp_path / f"trial{number}" / "seed0" / "summary.json").read_text())
+        assert value == summary["best_eval_value"]
+        assert summary["select_by"] == "mean_length"
+    assert result["best_score"] == min(scores.values())
+    # The same study asked to maximise: refused, naming both directions.
+    highest = _base(eval_episodes=2, select_by="mean_length")
+    with pytest.raises(ValueError, match=r"minimizes its score.*maximize it"):
+        tune(gridworld, highest, params=["lr"], trials=3, study_dir=tmp_path,
+             objective="best", pruner="none", report=None)  # fmt: skip
+    # An entry the recipe's evaluations do not report: refused before any trial.
+    with pytest.raises(ValueError, match=r"--select-by crashed_rate"):
+        tune(gridworld, _base(select_by="crashed_rate"), params=["lr"], trials=1,
+             study_dir=tmp_path / "other", report=None)  # fmt: skip
+    assert not (tmp_path / "other").exists()

@@ -167,7 +167,11 @@ def export_agent(
         "recipe_module": saved.get("recipe_module"),
         "config": saved["config"],
         "loss": weights,
-        "state": {k: state.get(k) for k in ("frames", "updates", "best_mean_return")},
+        "state": {
+            k: state.get(k)
+            for k in ("frames", "updates", "best_eval", "best_mean_return")
+            if k in state
+        },
         "agent": {
             "exported_from": Path(run).resolve().name,  # the run directory's (or file's) name
             "checkpoint": which if Path(run).is_dir() else Path(run).name,

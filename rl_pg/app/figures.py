@@ -18,6 +18,7 @@ from rl_pg.training.curves import (
     plot_solved,
     plot_solved_settings,
 )
+from rl_pg.training.metric import Metric
 
 __all__ = ["plot_profile", "plot_stored"]
 
@@ -81,9 +82,10 @@ def plot_stored(
         }
         for stem, group in settings.items()
     }
+    judged = {Metric.of_summary(run["report"]).logged for run in runs}  # what thresholds judge
     draw = dict(
         ylabel=metric, title=title, ylim=ylim,
-        threshold=shared if metric == "eval/mean_return" else None,
+        threshold=shared if judged == {metric} else None,
     )  # fmt: skip
     if len(paths) == 1:
         return plot_seeds(curves[stems[0]], Path(figure), **draw)

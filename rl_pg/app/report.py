@@ -37,6 +37,7 @@ from rl_pg.training.curves import (
     is_png,
     plot_runs,
 )
+from rl_pg.training.metric import Metric
 
 __all__ = ["Args", "main"]
 
@@ -57,11 +58,12 @@ class Args:
     """Also draw every run's ``metric`` into this PNG file. By frame; with --stored,
     each stored curve and their interquartile mean with a 95 % bootstrap band, one
     colour per file."""
-    metric: str = "eval/mean_return"
+    metric: str | None = None
     """With plot or store: the logged scalar to draw or keep. A CSV under
     RUN/logs/csv/scalars, without .csv, e.g. train/episode_return or
     eval/mean_route_completion; stored, a curve of more than 200 points is kept as the
-    means of 200 windows."""
+    means of 200 windows. None: the evaluation entry the runs chose best.pt by
+    (eval/mean_return unless their recipe selects by another)."""
     ylim: tuple[float, float] | None = None
     """With plot: the vertical range, LOW HIGH. For when a few early values squash the
     rest."""
@@ -142,8 +144,12 @@ def main(args: Args) -> str:
     names = run_names(args.runs)
     table = format_report(reports, names)
     print(table)
+    selected = {Metric.of_summary(r).logged for r in reports}
+    # the runs' own metric, when they share one; what their thresholds are judged on
+    judged = selected.pop() if len(selected) == 1 else "eval/mean_return"
+    metric = args.metric or judged
     if args.store is not None:
-        store_report(args.runs, args.store, metric=args.metric)
+        store_report(args.runs, args.store, metric=metric)
         print(f"stored: {args.store}")
     if args.plot is not None:
         thresholds = {r.get("threshold") for r in reports}
@@ -151,9 +157,9 @@ def main(args: Args) -> str:
         figure = plot_runs(
             dict(zip(names, args.runs, strict=True)),
             args.plot,
-            metric=args.metric,
+            metric=metric,
             title=", ".join(sorted({r["recipe"] for r in reports})),
-            threshold=shared if args.metric == "eval/mean_return" else None,
+            threshold=shared if metric == judged else None,
             ylim=args.ylim,
         )
         print(f"curves: {figure}")

@@ -17,6 +17,7 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.training.curves import (
     read_curve,
 )
+from rl_pg.training.metric import Metric
 from rl_pg.training.records import (
     EVALUATION_RECORD,
     RUN_SUMMARY,
@@ -209,13 +210,16 @@ STORED_CURVE = {"metric?": "text", "frames?": "list of numbers", "values": "list
 
 
 def holds(report: dict[str, Any]) -> bool | None:
-    """Whether a run's best checkpoint scores at least its threshold both greedily and by
-    sampling (its lower mean return of the two); None without a threshold or without
-    both evaluations."""
+    """Whether a run's best checkpoint reaches its threshold both greedily and by
+    sampling (the worse of the two on the metric the run selected by); None without a
+    threshold or without both evaluations."""
     if report.get("threshold") is None or not report.get("greedy") or not report.get("sampled"):
         return None
-    lower = min(report["greedy"]["mean_return"], report["sampled"]["mean_return"])
-    return lower >= report["threshold"]
+    metric = Metric.of_summary(report)
+    values = [report[mode].get(metric.key) for mode in ("greedy", "sampled")]
+    if None in values:  # evaluated before the recipe reported its metric
+        return None
+    return metric.reaches(metric.worst(values), report["threshold"])
 
 
 MODES = ("greedy", "sampled")

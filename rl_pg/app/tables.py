@@ -12,6 +12,7 @@ import numpy as np
 
 from rl_pg.app.stores import MODES, holds, stored_runs
 from rl_pg.training.aggregates import seed_aggregate
+from rl_pg.training.metric import Metric
 
 __all__ = ["RECORD_ABOUT", "format_curves", "format_evaluations", "format_report"]
 
@@ -190,17 +191,13 @@ def format_report(reports: list[dict[str, Any]], names: list[str]) -> str:
     lines = [head, "|---|---|---:|---:|---:|---:|---|---|---|"]
     for name, r in zip(names, reports, strict=True):
         solved = "—" if r.get("solved_at_frames") is None else f"{r['solved_at_frames']:,}"
-        best = (
-            "—"
-            if r.get("best_eval_mean_return") is None
-            else f"{r['best_eval_mean_return']:.2f} at {r['best_at_frames']:,}"
-        )
+        metric = Metric.of_summary(r)
         lines.append(
             f"| {name} | {r['recipe']} | {r['seed']} | {r['frames']:,}"
             + (" (interrupted)" if r.get("interrupted") else "")
             + " | "
-            f"{_seconds(r['train_wall_s'])} | {solved} | {best} | {_result(r['greedy'])} | "
-            f"{_result(r['sampled'])} |"
+            f"{_seconds(r['train_wall_s'])} | {solved} | {_best(r, metric)} | "
+            f"{_result(r['greedy'], metric)} | {_result(r['sampled'], metric)} |"
         )
     with_threshold = [r for r in reports if r.get("threshold") is not None]
     if with_threshold:
@@ -246,10 +243,24 @@ def _seconds(seconds: float) -> str:
     return f"{seconds:.1f}" if seconds < 10 else f"{seconds:.0f}"
 
 
-def _result(record: dict[str, Any] | None) -> str:
+def _best(report: dict[str, Any], metric: Metric) -> str:
+    """The evaluation best.pt was kept at: its mean return, or the metric the run
+    selected by, named."""
+    if metric.key == "mean_return":
+        value = report.get("best_eval_mean_return")
+        return "—" if value is None else f"{value:.2f} at {report['best_at_frames']:,}"
+    value = report.get("best_eval_value")
+    if value is None:
+        return "—"
+    return f"{metric.key} {metric.text(value)} at {report['best_at_frames']:,}"
+
+
+def _result(record: dict[str, Any] | None, metric: Metric | None = None) -> str:
     if record is None:
         return "—"
     text = f"{record['mean_return']:.2f} ± {record['std_return']:.2f} ({record['episodes']})"
     if record.get("crashed_rate") is not None:  # part of the driving recipes' targets
         text += f", {record['crashed_rate']:.0%} crashed"
+    if metric is not None and metric.key != "mean_return" and metric.key in record:
+        text += f", {metric.key} {metric.text(record[metric.key])}"  # what best.pt was kept by
     return text

@@ -21,6 +21,7 @@ from rl_pg._checks import check_field
 from rl_pg.controllers import EntropyTarget, KLStepSize
 from rl_pg.gradient_statistics import GradientStatistics
 from rl_pg.training.learning import LossSettings, OptimiserSettings, check_kl_lr_range
+from rl_pg.training.metric import Metric
 from rl_pg.training.optimisation import scale_rewards
 from rl_pg.training.settings import CheckpointSettings, EvaluationSettings, LoggingSettings
 
@@ -367,28 +368,32 @@ class EntropyByTarget(Callback):
 
 
 class StopWhenSolved(Callback):
-    """Ends the run after an evaluation whose mean return reaches ``threshold``
-    (``--stop-when-solved`` with a recipe's ``threshold``); with ``confirmed``, once a
-    checkpoint is confirmed at the threshold both greedily and by sampling (the run's
-    ``best_confirmed``, kept by ``--confirm-episodes``): what the run keeps is then
-    done, not only its greedy play.
+    """Ends the run after an evaluation whose ``metric`` (the mean return by default)
+    reaches ``threshold`` (``--stop-when-solved`` with a recipe's ``threshold``); with
+    ``confirmed``, once a checkpoint is confirmed at the threshold both greedily and by
+    sampling (the run's ``best_confirmed``, kept by ``--confirm-episodes``): what the
+    run keeps is then done, not only its greedy play.
 
     Args:
-        threshold (float): the evaluation mean return that counts as solved.
+        threshold (float): the value of ``metric`` that counts as solved.
         confirmed (bool): solved means a confirmed checkpoint at the threshold.
+        metric (Metric, optional): the entry judged. Defaults to the mean return.
     """
 
-    def __init__(self, threshold: float, *, confirmed: bool = False) -> None:
+    def __init__(
+        self, threshold: float, *, confirmed: bool = False, metric: Metric | None = None
+    ) -> None:
         self.threshold = check_field(EvaluationSettings, "threshold", threshold)
         self.confirmed = confirmed
+        self.metric = metric or Metric()
         self._solved = False
 
     def on_evaluation(self, run: Run, result: dict[str, float]) -> None:
         if self.confirmed:  # the confirmation ran in this evaluation, before this call
             best = run.state.best_confirmed
-            self._solved = best is not None and best >= self.threshold
+            self._solved = best is not None and self.metric.reaches(best, self.threshold)
         else:
-            self._solved = result["eval/mean_return"] >= self.threshold
+            self._solved = self.metric.reaches(self.metric.read(result), self.threshold)
 
     def stop_training(self, run: Run) -> bool:
         solved, self._solved = self._solved, False

@@ -15,6 +15,7 @@ from torch import nn
 from rl_pg.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from rl_pg.normalization import popart_output
 from rl_pg.training.config import config_dict
+from rl_pg.training.metric import Metric
 from rl_pg.training.records import check_values
 from rl_pg.training.seeds import run_streams
 
@@ -51,39 +52,44 @@ class RunState:
     train_time: float = 0.0
     solved_at_frames: int | None = None
     last_eval: dict[str, float] = field(default_factory=dict)
-    best_mean_return: float | None = None
+    best_eval: dict[str, float] = field(default_factory=dict)
+    """The evaluation ``best.pt`` was kept at (empty until one was kept)."""
     best_at_frames: int | None = None
     best_confirmed: float | None = None
     streams: dict[str, int] = field(default_factory=dict)
     """The seeds of the run's evaluations and confirmations
     ([`run_streams`][rl_pg.training.seeds.run_streams]), fixed when the run starts."""
 
-    def is_best(self) -> bool:
-        """Takes in the last evaluation; True if it beat every earlier one (and no
-        confirmed evaluation has been kept: from the first on, only confirmations count)."""
-        mean = self.last_eval["eval/mean_return"]
-        if self.best_confirmed is not None or (
-            self.best_mean_return is not None and mean <= self.best_mean_return
+    def best(self, metric: Metric) -> float | None:
+        """The ``metric``'s value at the kept evaluation (None before one was kept)."""
+        return metric.read(self.best_eval) if self.best_eval else None
+
+    def is_best(self, metric: Metric) -> bool:
+        """Takes in the last evaluation; True if it beat every earlier one on ``metric``
+        (and no confirmed evaluation has been kept: from the first on, only
+        confirmations count)."""
+        if self.best_confirmed is not None or not metric.better(
+            metric.read(self.last_eval), than=self.best(metric)
         ):
             return False
-        self.best_mean_return, self.best_at_frames = mean, self.frames
+        self.best_eval, self.best_at_frames = dict(self.last_eval), self.frames
         return True
 
-    def worth_confirming(self, threshold: float | None) -> bool:
-        """Whether the last evaluation could beat the best confirmed one: at or above
-        ``threshold`` (if any) and above the best confirmed score."""
-        mean = self.last_eval["eval/mean_return"]
-        return (threshold is None or mean >= threshold) and (
-            self.best_confirmed is None or mean > self.best_confirmed
+    def worth_confirming(self, metric: Metric, threshold: float | None) -> bool:
+        """Whether the last evaluation could beat the best confirmed one on ``metric``:
+        at ``threshold`` or better (if any) and better than the best confirmed score."""
+        value = metric.read(self.last_eval)
+        return (threshold is None or metric.reaches(value, threshold)) and metric.better(
+            value, than=self.best_confirmed
         )
 
-    def is_best_confirmed(self, score: float) -> bool:
-        """Takes in the last evaluation's confirmation ``score``; True if it beat every
-        earlier confirmation."""
-        if self.best_confirmed is not None and score <= self.best_confirmed:
+    def is_best_confirmed(self, metric: Metric, score: float) -> bool:
+        """Takes in the last evaluation's confirmation ``score`` (on ``metric``); True if
+        it beat every earlier confirmation."""
+        if not metric.better(score, than=self.best_confirmed):
             return False
         self.best_confirmed = score
-        self.best_mean_return, self.best_at_frames = self.last_eval["eval/mean_return"], self.frames
+        self.best_eval, self.best_at_frames = dict(self.last_eval), self.frames
         return True
 
 
@@ -130,7 +136,11 @@ def restore(saved: dict, loss, optimizer, path: Path) -> RunState:
         ) from err
     # Checkpoints of earlier versions also carried the curve, now read from the logs.
     fields = {f.name for f in dataclasses.fields(RunState)}
-    state = RunState(**{k: v for k, v in saved["state"].items() if k in fields})
+    stored = saved["state"]
+    state = RunState(**{k: v for k, v in stored.items() if k in fields})
+    if stored.get("best_mean_return") is not None and not state.best_eval:
+        # Written before runs chose a metric: they kept their best mean return.
+        state.best_eval = {"eval/mean_return": stored["best_mean_return"]}
     if not state.streams:  # checkpointed before the run kept them: the ones it played
         state.streams = run_streams(saved["config"]["seed"], stored_before_layout=True)
     return state
@@ -242,7 +252,8 @@ RUN_CHECKPOINT = {"recipe": "text", "recipe_module?": "text?", "config": "object
                   "loss": "object", "state?": "object"}  # fmt: skip
 """What every checkpoint and agent file of a run holds (the rest is checked by what reads
 it: the config by the recipe's config class, the weights by the models)."""
-CHECKPOINT_STATE = {"frames?": "count?", "updates?": "count?", "best_mean_return?": "number?"}
+CHECKPOINT_STATE = {"frames?": "count?", "updates?": "count?", "best_mean_return?": "number?",
+                    "best_eval?": "object"}  # fmt: skip
 
 
 def _first_line(err: BaseException) -> str:

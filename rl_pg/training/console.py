@@ -15,6 +15,8 @@ from typing import Any, TextIO
 
 from tqdm import tqdm
 
+from rl_pg.training.metric import Metric
+
 __all__ = ["Console", "format_comparison", "format_summary"]
 
 
@@ -132,6 +134,12 @@ def format_summary(summary: dict[str, Any]) -> str:
                 f"{summary['best_at_frames']:,} frames)"
             )
         lines.append(line)
+    metric = Metric.of_summary(summary)
+    if metric.key != "mean_return" and summary.get("best_eval_value") is not None:
+        lines.append(
+            f"  best checkpoint by {metric.key}: {metric.text(summary['best_eval_value'])} at "
+            f"{summary['best_at_frames']:,} frames"
+        )
     rates = {k: v for k, v in summary.items() if k.endswith("_rate")}
     if rates:
         lines.append("  " + ", ".join(f"{k}: {v:.0%}" for k, v in rates.items()))

@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EvaluationEnv
+from rl_pg.evaluation import EvaluationEnv, reported
 from rl_pg.training.callbacks import (
     Callback,
     Callbacks,
@@ -43,6 +43,7 @@ from rl_pg.training.callbacks import (
 from rl_pg.training.collection import segments_per_update
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.interrupt import InterruptRequest
+from rl_pg.training.metric import Metric
 from rl_pg.training.run import Run
 from rl_pg.training.run_dir import RunDirectory, link_latest, new_run_dir
 from rl_pg.training.selection import Confirmation, PolicyAverage
@@ -128,6 +129,7 @@ def train(
         "flags": check_names("eval_flags", eval_flags),
         "values": check_names("eval_values", eval_values),
     }
+    Metric.of(cfg).check(reported(**eval_entries))  # before any environment starts
     hooks = Callbacks([*from_config(cfg), *callbacks])
     run_dir = Path(cfg.run_dir) if cfg.run_dir is not None else new_run_dir(recipe, cfg.seed)
     # The directory is held until the run ends, however it ends; Ctrl-C ends the update
@@ -205,12 +207,14 @@ def from_config(cfg: TrainConfig) -> list[Callback]:
     ``confirm_episodes``, ``stop_when_solved`` with a ``threshold``, ``keep_every``,
     ``grad_stats``, ``lr_control``, ``entropy_target``)."""
     callbacks: list[Callback] = []
+    metric = Metric.of(cfg)
     if cfg.policy_ema > 0:
         callbacks.append(PolicyAverage(cfg.policy_ema))
     if cfg.confirm_episodes is not None:
-        callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold))
+        callbacks.append(Confirmation(cfg.confirm_episodes, cfg.threshold, metric))
     if cfg.stop_when_solved and cfg.threshold is not None:
-        callbacks.append(StopWhenSolved(cfg.threshold, confirmed=cfg.confirm_episodes is not None))
+        confirmed = cfg.confirm_episodes is not None
+        callbacks.append(StopWhenSolved(cfg.threshold, confirmed=confirmed, metric=metric))
     if cfg.keep_every is not None:
         callbacks.append(KeepCheckpoints(cfg.keep_every))
     if cfg.grad_stats is not None:

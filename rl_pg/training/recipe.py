@@ -31,11 +31,12 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from rl_pg._checks import check_names
-from rl_pg.evaluation import EvaluationEnv, evaluate
+from rl_pg.evaluation import EvaluationEnv, evaluate, reported
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import check_average, has_average, load_models
 from rl_pg.training.config import TrainConfig
 from rl_pg.training.loop import train
+from rl_pg.training.metric import Metric
 from rl_pg.training.seeds import fresh_seed
 from rl_pg.training.threads import torch_threads
 
@@ -107,6 +108,11 @@ class Recipe:
             )
         object.__setattr__(self, "eval_flags", check_names("eval_flags", self.eval_flags))
         object.__setattr__(self, "eval_values", check_names("eval_values", self.eval_values))
+        default = Metric.of(self.config)
+        try:
+            self.check_metric(default)
+        except ValueError as err:
+            raise ValueError(f"Recipe {self.name!r}, its config's default: {err}") from None
         names = {f.name for f in dataclasses.fields(self.config)}
         unknown = sorted(set(self.commands) - names)
         if unknown:
@@ -114,6 +120,12 @@ class Recipe:
                 f"Recipe {self.name!r}: commands {unknown} are not fields of "
                 f"{self.config.__name__}; each command is switched on by a bool field."
             )
+
+    def check_metric(self, metric: Metric) -> Metric:
+        """``metric`` if its evaluations report it (see
+        [`reported`][rl_pg.evaluation.reported]); else a ValueError naming the entries
+        they do."""
+        return metric.check(reported(self.eval_flags, self.eval_values))
 
     @property
     def module(self) -> str:

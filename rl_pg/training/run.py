@@ -17,6 +17,7 @@ from rl_pg.training.config import config_dict
 from rl_pg.training.console import Console
 from rl_pg.training.learning import LearningSettings
 from rl_pg.training.loggers import Loggers
+from rl_pg.training.metric import Metric
 from rl_pg.training.metrics import EpisodeReturns
 from rl_pg.training.optimisation import (
     entropy_coeff,
@@ -37,8 +38,9 @@ class Run:
     """The pieces of one run and the steps the loop calls them through.
 
     Callbacks read it: ``cfg``, ``state`` (a ``RunState``: ``frames``, ``updates``,
-    ``last_eval``, …), ``loss``, ``actor``, ``deployed``, ``optimizer``, ``device``,
-    ``eval_env``, ``logger``, ``path``, ``log`` and ``save``.
+    ``last_eval``, …), ``metric`` (what picks ``best.pt``), ``loss``, ``actor``,
+    ``deployed``, ``optimizer``, ``device``, ``eval_env``, ``logger``, ``path``,
+    ``log`` and ``save``.
     """
 
     def __init__(
@@ -57,6 +59,7 @@ class Run:
         self.actor, critic = _models(make_models, env)
         self.learning = LearningSettings.of(cfg)  # what the updates read of the config
         self.evaluation = EvaluationSettings.of(cfg)
+        self.metric = Metric.of(self.evaluation)  # what picks best.pt
         self.loss = make_loss(self.learning, self.actor, critic).to(device)
         warm_up(self.loss, env, device)
         self.optimizer = make_optimizer(self.learning, self.loss)
@@ -153,12 +156,15 @@ class Run:
             self.evaluation, self.device, self.deployed, self.eval_env, self.eval_entries,
             state, self.logger,
         )  # fmt: skip
+        metric = self.metric
         best = self.hooks.keeps_best(self, state.last_eval)
         if best is None:
-            best = state.is_best()
+            best = state.is_best(metric)
         if best:
             self.save(to="best")
-        solved = cfg.threshold is not None and state.last_eval["eval/mean_return"] >= cfg.threshold
+        solved = cfg.threshold is not None and metric.reaches(
+            metric.read(state.last_eval), cfg.threshold
+        )
         if solved and state.solved_at_frames is None:
             state.solved_at_frames = state.frames
         self._resume_clock()

@@ -28,6 +28,7 @@ from rl_pg.checkpoint import (
 from rl_pg.training.checkpoints import BEST, CHECKPOINT, LATEST, RunState, save
 from rl_pg.training.config import TrainConfig, config_dict
 from rl_pg.training.curves import CURVE, plot_run
+from rl_pg.training.metric import Metric
 from rl_pg.training.provenance import session_record
 from rl_pg.training.resuming import changed_on_resume, check_resumable
 
@@ -333,6 +334,7 @@ def _earlier_sessions(run_dir: Path) -> list[dict[str, Any]]:
 
 
 def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> dict[str, Any]:
+    metric = Metric.of(cfg)
     summary = {
         "recipe": recipe,
         "run_dir": str(run_dir),
@@ -344,8 +346,12 @@ def _summary(cfg: TrainConfig, recipe: str, state: RunState, run_dir: Path) -> d
         "eval_std_return": state.last_eval.get("eval/std_return"),
         "threshold": cfg.threshold,
         "solved_at_frames": state.solved_at_frames,
-        "best_eval_mean_return": state.best_mean_return,
+        "best_eval_mean_return": state.best_eval.get("eval/mean_return"),
         "best_at_frames": state.best_at_frames,
+        "select_by": metric.key,
+        "select_mode": metric.mode,
+        "eval_value": state.last_eval.get(metric.logged),
+        "best_eval_value": state.best(metric),
         "best_confirmed": state.best_confirmed,
     }
     for key, value in state.last_eval.items():

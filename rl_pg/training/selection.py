@@ -18,6 +18,7 @@ from rl_pg._checks import check_field
 from rl_pg.evaluation import evaluate
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import POLICY_AVERAGE, RunState
+from rl_pg.training.metric import Metric
 from rl_pg.training.settings import EvaluationSettings
 
 if TYPE_CHECKING:
@@ -27,21 +28,28 @@ __all__ = ["Confirmation", "PolicyAverage", "confirm", "evaluate_run"]
 
 
 def confirm(
-    device: torch.device, actor, eval_env, state: RunState, logger, *, episodes: int
-) -> float:
+    device: torch.device, actor, eval_env, state: RunState, logger, *, episodes: int,
+    metric: Metric | None = None, entries: dict[str, Any] | None = None,
+) -> float:  # fmt: skip
     """Replays ``actor`` (on ``device``) on ``episodes`` episodes greedily, then by
-    sampling, both from the confirmation seed; logs both means and returns the lower one. Training's
-    random stream is left as it was: confirming changes which checkpoint is kept, not
-    the run."""
+    sampling, both from the confirmation seed; logs both values of ``metric`` (the mean
+    return by default; ``entries``, the evaluation's ``flags`` and ``values``, report
+    the others) and returns the worse one. Training's random stream is left as
+    it was: confirming changes which checkpoint is kept, not the run."""
+    metric = metric or Metric()
     start = time.perf_counter()
-    means = {}
+    scores = {}
     for mode, greedy in (("greedy", True), ("sampled", False)):
         with _random_stream(device, state.streams["confirmation"]):
             eval_env.set_seed(state.streams["confirmation"])
-            result = evaluate(actor, eval_env, episodes=episodes, deterministic=greedy)
-        means[f"confirm/{mode}_mean_return"] = result["mean_return"]
-    score = min(means.values())
-    logged = {**means, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
+            result = evaluate(
+                actor, eval_env, episodes=episodes, deterministic=greedy, **(entries or {})
+            )
+        scores[f"confirm/{mode}_{metric.key}"] = metric.read(
+            {f"eval/{key}": value for key, value in result.items()}
+        )
+    score = metric.worst(scores.values())
+    logged = {**scores, "confirm/score": score, "time/confirm_s": time.perf_counter() - start}
     for name, value in logged.items():
         logger.log_scalar(name, value, step=state.frames)
     return score
@@ -112,33 +120,38 @@ class PolicyAverage(Callback):
 
 class Confirmation(Callback):
     """Replays each evaluation that could become ``best.pt`` on ``episodes`` more
-    episodes, greedily and by sampling, and keeps the policy whose lower mean of the
-    two is highest (``--confirm-episodes``).
+    episodes, greedily and by sampling, and keeps the policy whose worse score of the
+    two is best (``--confirm-episodes``), scored on ``metric``.
 
-    Replayed are the evaluations at or above ``threshold`` (when given) whose mean is
-    above the best confirmed score; they play the run's confirmation seed, with random
-    numbers of their own, so confirming changes which checkpoint is kept, not the run.
-    Once one evaluation was confirmed, only confirmations decide. Each replay logs
-    ``confirm/greedy_mean_return``, ``confirm/sampled_mean_return``, ``confirm/score``
-    and its cost ``time/confirm_s``.
+    Replayed are the evaluations at ``threshold`` or better (when given) that are
+    better than the best confirmed score; they play the run's confirmation seed, with
+    random numbers of their own, so confirming changes which checkpoint is kept, not
+    the run. Once one evaluation was confirmed, only confirmations decide. Each replay
+    logs ``confirm/greedy_<key>``, ``confirm/sampled_<key>`` (``confirm/greedy_mean_return``
+    for the return), ``confirm/score`` and its cost ``time/confirm_s``.
 
     Args:
         episodes (int): episodes of each replay, in each mode.
-        threshold (float, optional): only evaluations at or above it are replayed.
+        threshold (float, optional): only evaluations at it or better are replayed.
+        metric (Metric, optional): what is scored. Defaults to the mean return.
     """
 
-    def __init__(self, episodes: int, threshold: float | None = None) -> None:
+    def __init__(
+        self, episodes: int, threshold: float | None = None, metric: Metric | None = None
+    ) -> None:
         self.episodes = check_field(EvaluationSettings, "confirm_episodes", episodes, "episodes")
         self.threshold = check_field(EvaluationSettings, "threshold", threshold, optional=True)
+        self.metric = metric or Metric()
 
     def keeps_best(self, run: Run, result: dict[str, float]) -> bool | None:
         state = run.state
-        if not state.worth_confirming(self.threshold):
+        if not state.worth_confirming(self.metric, self.threshold):
             return None  # the run's own rule, which keeps nothing once a replay decided
         score = confirm(
-            run.device, run.deployed, run.eval_env, state, run.logger, episodes=self.episodes
-        )
-        return state.is_best_confirmed(score)
+            run.device, run.deployed, run.eval_env, state, run.logger,
+            episodes=self.episodes, metric=self.metric, entries=run.eval_entries,
+        )  # fmt: skip
+        return state.is_best_confirmed(self.metric, score)
 
 
 @contextlib.contextmanager

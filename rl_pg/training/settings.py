@@ -192,12 +192,19 @@ class EvaluationSettings(Settings, group="evaluation"):
     confirm_episodes: Count | None = None
     """Episodes that confirm a new best, greedily and by sampling. Each evaluation that
     could become best.pt is replayed on this many more episodes both ways, and best.pt
-    is the checkpoint whose lower mean of the two is highest: the best of many short
+    is the checkpoint whose worse select_by of the two is best: the best of many short
     evaluations is partly the luckiest, and a policy can act well greedily and badly by
-    sampling. Evaluations at or above threshold (when set) and above the best confirmed
-    score are replayed. None: best.pt is the evaluation with the highest mean return."""
+    sampling. Evaluations at or above threshold (when set) and better than the best
+    confirmed score are replayed. None: best.pt is the best evaluation."""
+    select_by: str = "mean_return"
+    """Evaluation entry that picks best.pt. Confirmations score it and threshold is
+    compared with it too: mean_return, or a rate or mean the recipe's evaluations report
+    (arrive_dest_rate, mean_route_completion, crashed_rate)."""
+    select_mode: Literal["max", "min"] = "max"
+    """Which select_by is best: the highest (max) or the lowest (min, a crash rate)."""
     threshold: float | None = None
-    """Evaluation mean return that counts as solved."""
+    """Value of select_by that counts as solved. Reached at or above it (select_mode max),
+    at or below it (min)."""
     stop_when_solved: bool = True
     """Stop at the first evaluation that reaches the threshold."""
 

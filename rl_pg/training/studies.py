@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from rl_pg.training.config import config_dict
+from rl_pg.training.metric import Metric
 from rl_pg.training.run_dir import locked
 
 __all__ = [
@@ -56,17 +57,20 @@ def study_settings(
     }
 
 
-def open_study(name: str, path: Path):
-    """The study stored in ``path`` (created if absent), or a ValueError naming the file
-    when it is not one this Optuna can open (another file, a damaged one, a newer
-    Optuna's)."""
+def open_study(name: str, path: Path, metric: Metric | None = None):
+    """The study stored in ``path`` (created if absent) that maximises ``metric`` (the
+    mean return by default; minimises one whose lowest value is best), or a
+    ValueError naming the file when it is not one this Optuna can open (another file,
+    a damaged one, a newer Optuna's, one that scores the other way)."""
     import optuna
     from sqlalchemy.exc import SQLAlchemyError
 
+    metric = metric or Metric()
+    direction = "maximize" if metric.mode == "max" else "minimize"
     try:
-        return optuna.create_study(
+        study = optuna.create_study(
             study_name=name, storage=f"sqlite:///{path}", load_if_exists=True,
-            direction="maximize",
+            direction=direction,
         )  # fmt: skip
     except (SQLAlchemyError, RuntimeError) as err:  # RuntimeError: another schema version
         reason = str(getattr(err, "orig", None) or err).splitlines()[0]
@@ -74,6 +78,13 @@ def open_study(name: str, path: Path):
             f"{path} is not a study this Optuna can open ({reason}). Move it away to start "
             f"a new study there, or pass another --study-dir."
         ) from err
+    if study.direction.name.lower() != direction:  # a stored study keeps its own
+        raise ValueError(
+            f"{path} holds a study that {study.direction.name.lower()}s its score, and "
+            f"--select-by {metric} asks to {direction} it. Select as its trials were "
+            f"scored, or pass another --study-dir."
+        )
+    return study
 
 
 def trial_line(study, trial, trials: int) -> str:

@@ -27,6 +27,7 @@ from rl_pg.checkpoint import write_atomically
 from rl_pg.training.callbacks import Callback
 from rl_pg.training.checkpoints import read_run
 from rl_pg.training.config import Count, TrainConfig
+from rl_pg.training.metric import Metric
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import locked
 from rl_pg.training.seeds import replay_seed
@@ -84,7 +85,8 @@ class TuneArgs:
     objective: Literal["final", "best", "held_out"] = "final"
     """Score a run by its last evaluation, its best, or held out. 'held_out': its best
     checkpoint replayed on held_out_episodes fresh episodes, greedily and by sampling
-    (the lower of the two means: a checkpoint that holds both ways)."""
+    (the worse of the two: a checkpoint that holds both ways). Scored on the runs'
+    select_by (the mean return unless the recipe selects by another entry)."""
     held_out_episodes: Count = 100
     """Episodes of each replay (objective held_out)."""
     seed_score: Literal["mean", "worst"] = "mean"
@@ -126,8 +128,10 @@ def tune(
         objective (str): ``"final"`` (each run's last evaluation, which rewards settings
             that stay good), ``"best"`` (its best evaluation) or ``"held_out"`` (its best
             checkpoint replayed on ``held_out_episodes`` fresh episodes, greedily and by
-            sampling, as ``Recipe.evaluate_checkpoint`` plays it; the lower of the two
-            means). Defaults to ``"final"``.
+            sampling, as ``Recipe.evaluate_checkpoint`` plays it; the worse of the
+            two). Every score is of ``base.select_by`` (the mean return by default), and
+            a study maximises it (minimises it for ``select_mode="min"``). Defaults to
+            ``"final"``.
         held_out_episodes (int): episodes of each replay (``"held_out"``). Defaults
             to ``100``.
         seed_score (str): ``"mean"`` or ``"worst"`` of the runs' scores. Defaults to
@@ -181,13 +185,15 @@ def tune(
     if pruner not in ("median", "none"):
         raise ValueError(f"pruner must be 'median' or 'none', got {pruner!r}.")
 
+    metric = Metric.of(base)
+    recipe.check_metric(metric)
     study_dir = Path(study_dir)
     study_dir.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     # One search at a time opens the study: two creating the SQLite tables at once
     # collide, and two would both fail a killed search's trial.
     with locked(study_dir / STUDY_LOCK, wait=True):
-        study = open_study(recipe.name, study_dir / "study.db")
+        study = open_study(recipe.name, study_dir / "study.db", metric)
         # Each search on the study (a second one beside it, or the same command run
         # again after a kill) draws its own settings: with one seed, its random first
         # trials would repeat the other's.
@@ -218,18 +224,18 @@ def tune(
 
     def score(summary: dict[str, Any], run_dir: Path) -> dict[str, float]:
         if objective == "final":
-            return {"score": float(summary["eval_mean_return"])}
+            return {"score": float(summary["eval_value"])}
         if objective == "best":
-            return {"score": float(summary["best_eval_mean_return"])}
+            return {"score": float(summary["best_eval_value"])}
         saved = read_run(run_dir, which="best")
         replays = {
             mode: recipe.evaluate_checkpoint(
                 saved, episodes=held_out_episodes, sample=mode == "sampled",
                 seed=replay_seed(saved["config"]["seed"]),
-            )["mean_return"]
+            )[metric.key]
             for mode in ("greedy", "sampled")
         }  # fmt: skip
-        return {"score": min(replays.values()), **replays}
+        return {"score": metric.worst(replays.values()), **replays}
 
     def run_trial(trial) -> float:
         trial_dir = study_dir / f"trial{trial.number}"
@@ -336,7 +342,7 @@ class _Pruning(Callback):
         self.evaluations, self.pruned = 0, False
 
     def on_evaluation(self, run, result: dict[str, float]) -> None:
-        self.trial.report(float(result["eval/mean_return"]), self.offset + self.evaluations)
+        self.trial.report(float(run.metric.read(result)), self.offset + self.evaluations)
         self.evaluations += 1
         if self.evaluations > WARMUP_EVALUATIONS:
             self.pruned = self.trial.should_prune()
