@@ -177,7 +177,7 @@ def test_pong_evaluation_games_differ_only_with_sticky_actions(sticky):
         assert same == (sticky == 0.0)
     finally:
         env.close()
-    # rl-pg play deploys in the same game, recorded or not (the training game never sticks)
+    # rl-pg play deploys in the same game, recorded or not
     for render in (False, True):
         game = pong.make_play_env(pong.config(eval_sticky=sticky), render=render)
         try:
@@ -185,11 +185,36 @@ def test_pong_evaluation_games_differ_only_with_sticky_actions(sticky):
             assert ale.getFloat("repeat_action_probability") == pytest.approx(sticky)
         finally:
             game.close()
-    training = pong.make_env(pong.config(num_envs=1, eval_sticky=sticky))
+    # the training games stick by their own flag, one game or a batch
+    for num_envs in (1, 2):
+        training = pong.make_env(pong.config(num_envs=num_envs, train_sticky=sticky / 2))
+        try:
+            games = training.base_env._env
+            ales = [games.unwrapped.ale] if num_envs == 1 else [e.unwrapped.ale for e in games.envs]
+            for ale in ales:
+                assert ale.getFloat("repeat_action_probability") == pytest.approx(sticky / 2)
+        finally:
+            training.close()
+
+
+@pytest.mark.parametrize("frame", [False, True])
+def test_pong_sees_the_current_frame_only_when_asked(frame):
+    """A difference shows nothing of a paddle that stands still: --frame feeds the current
+    frame (FrameDifference's previous_frame, the next step's previous one) beside it."""
+    pytest.importorskip("ale_py")
+    cfg = pong.config(num_envs=2, frame=frame)
+    env = pong.make_env(cfg)
     try:
-        assert training.base_env._env.unwrapped.ale.getFloat("repeat_action_probability") == 0
+        actor, _ = pong.make_models(env, cfg)
+        td = env.rollout(3, actor)[:, -1]
     finally:
-        training.close()
+        env.close()
+    assert actor.module[0].module[0].in_features == (12_800 if frame else 6_400)
+    moved = td.clone()
+    moved["previous_frame"] = torch.zeros_like(td["previous_frame"])
+    assert td["previous_frame"].sum() > 0  # the paddles and the score are drawn
+    logits = [actor(x.clone())["logits"] for x in (td, moved)]
+    assert torch.equal(*logits) != frame
 
 
 def test_cartpole_reaches_475(tmp_path):

@@ -53,11 +53,18 @@ class Config(
 
     hidden: Count = 200
     """Width of the shared trunk."""
+    frame: bool = False
+    """Also feed the current frame beside the difference (12 800 inputs). A difference
+    shows nothing of a paddle that stands still; with sticky actions where it stands
+    matters."""
+    train_sticky: Annotated[float, Range(0, 1, high_open=True)] = 0.0
+    """Sticky-action probability of the training games. At 0 the policy can learn one
+    line of play that a repeated action breaks (see eval_sticky)."""
     eval_sticky: Annotated[float, Range(0, 1, high_open=True)] = 0.25
     """Sticky-action probability of evaluated and played games. Each step the game
     repeats the previous action instead of the agent's with this probability (ALE's
-    sticky actions; 0.25 as Machado et al. 2018 evaluate); training never repeats. At
-    0, Pong and a greedy policy are deterministic: every greedy game replays one game."""
+    sticky actions; 0.25 as Machado et al. 2018 evaluate). At 0, Pong and a greedy
+    policy are deterministic: every greedy game replays one game."""
 
 
 def _register_atari() -> None:
@@ -96,7 +103,7 @@ def make_games(num_envs: int, *, sticky: float = 0.0) -> EnvBase:
 def make_env(cfg: Config, *, render: bool = False) -> EnvBase:
     if render:
         return make_game(render=True)
-    return make_games(max(1, cfg.num_envs // max(1, cfg.workers)))
+    return make_games(max(1, cfg.num_envs // max(1, cfg.workers)), sticky=cfg.train_sticky)
 
 
 def make_play_env(cfg: Config, *, render: bool = False) -> EnvBase:
@@ -104,10 +111,20 @@ def make_play_env(cfg: Config, *, render: bool = False) -> EnvBase:
     return make_game(sticky=cfg.eval_sticky, render=render)
 
 
+class _WithFrame(nn.Sequential):
+    """The trunk's layers over the difference and the current 80x80 frame, side by side."""
+
+    def forward(self, difference: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+        return super().forward(torch.cat([difference, frame.flatten(-2)], dim=-1))
+
+
 def make_models(env: EnvBase, cfg: Config):
-    trunk = TensorDictModule(
-        nn.Sequential(nn.Linear(6400, cfg.hidden), nn.ReLU()), ["observation"], ["hidden"]
-    )
+    if cfg.frame:  # FrameDifference keeps the current frame as the next step's previous one
+        layers = _WithFrame(nn.Linear(2 * 6400, cfg.hidden), nn.ReLU())
+        trunk = TensorDictModule(layers, ["observation", "previous_frame"], ["hidden"])
+    else:
+        layers = nn.Sequential(nn.Linear(6400, cfg.hidden), nn.ReLU())
+        trunk = TensorDictModule(layers, ["observation"], ["hidden"])
     policy = ProbabilisticActor(
         TensorDictModule(nn.Linear(cfg.hidden, env.action_spec.space.n), ["hidden"], ["logits"]),
         in_keys=["logits"],
