@@ -24,6 +24,8 @@ One file per concern, imports pointing down (config first, loop and cli last):
 * [`interrupt`][rl_pg.training.interrupt]: Ctrl-C;
 * [`callbacks`][rl_pg.training.callbacks]: behaviours plugged into the loop (yours;
   early stop, kept checkpoints and the gradient-noise measurement);
+* [`metric`][rl_pg.training.metric]: the evaluation entry a run is judged by
+  (``--select-by``) and which way is better;
 * [`selection`][rl_pg.training.selection]: which policy is evaluated and kept as
   ``best.pt`` (evaluations, the policy average, confirmation replays);
 * [`run`][rl_pg.training.run]: the pieces of one run, which callbacks receive;
@@ -47,6 +49,7 @@ from rl_pg.training.checkpoints import load_models, read_run
 from rl_pg.training.config import Count, NonNegative, Positive, Range, TrainConfig
 from rl_pg.training.loggers import scalar_log_rows
 from rl_pg.training.loop import train
+from rl_pg.training.metric import Metric
 from rl_pg.training.optimisation import TrainingDiverged
 from rl_pg.training.recipe import Recipe
 from rl_pg.training.run_dir import RunDirBusy, RunDirectory, RunDirUnusable
@@ -54,6 +57,7 @@ from rl_pg.training.run_dir import RunDirBusy, RunDirectory, RunDirUnusable
 __all__ = [
     "Callback",
     "Count",
+    "Metric",
     "NonNegative",
     "Positive",
     "Range",
