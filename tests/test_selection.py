@@ -18,6 +18,7 @@ from rl_pg.checkpoint import CheckpointError
 from rl_pg.evaluation import evaluate
 from rl_pg.models import mlp_actor
 from rl_pg.training import load_models, read_run, train
+from rl_pg.training.console import format_summary
 from rl_pg.training.curves import read_curve
 from rl_pg.training.seeds import confirmation_seed, evaluation_seed
 
@@ -208,6 +209,16 @@ class TestSelectionMetric:
         assert summary["best_eval_value"] == lengths[kept]
         assert summary["best_eval_mean_return"] == returns[kept]  # the return it was kept at
         assert summary["eval_value"] == lengths[-1]
+        # the printed summary names the metric once, in words
+        printed = format_summary(summary)
+        line = (
+            f"best checkpoint by mean_length: {lengths[kept]:.3f} at {int(frames[kept]):,} "
+            f"frames (return {returns[kept]:.2f})"
+        )
+        assert line in printed and "select" not in printed and "eval value" not in printed
+        assert "(best " not in printed  # the return's best is not what was kept
+        plain = format_summary(_train(_cfg(tmp_path, run_dir=tmp_path / "plain")))
+        assert "best checkpoint by" not in plain and "select" not in plain
 
     def test_the_lowest_is_best_when_the_mode_says_so(self, tmp_path):
         cfg = _cfg(tmp_path, total_updates=12, eval_interval=200, select_mode="min")

@@ -126,19 +126,19 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"{summary['updates']:,} updates, {summary['train_wall_s']:.1f} s of training"
         + (" (interrupted)" if summary.get("interrupted") else "")
     ]
+    metric = Metric.of_summary(summary)
     if summary.get("eval_mean_return") is not None:
         line = f"  evaluation: {summary['eval_mean_return']:.2f} ± {summary['eval_std_return']:.2f}"
-        if summary.get("best_eval_mean_return") is not None:
+        if summary.get("best_eval_mean_return") is not None and metric.key == "mean_return":
             line += (
                 f" (best {summary['best_eval_mean_return']:.2f} at "
                 f"{summary['best_at_frames']:,} frames)"
             )
         lines.append(line)
-    metric = Metric.of_summary(summary)
     if metric.key != "mean_return" and summary.get("best_eval_value") is not None:
         lines.append(
             f"  best checkpoint by {metric.key}: {metric.text(summary['best_eval_value'])} at "
-            f"{summary['best_at_frames']:,} frames"
+            f"{summary['best_at_frames']:,} frames (return {summary['best_eval_mean_return']:.2f})"
         )
     rates = {k: v for k, v in summary.items() if k.endswith("_rate")}
     if rates:
@@ -152,7 +152,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         )
     if summary.get("best_confirmed") is not None:
         lines.append(
-            f"  best confirmed (lower of greedy and sampled): {summary['best_confirmed']:.2f}"
+            f"  best confirmed (worse of greedy and sampled): {summary['best_confirmed']:.2f}"
         )
     sessions = summary.get("sessions", [])
     if len(sessions) > 1:
@@ -207,6 +207,10 @@ _SUMMARY_FIELDS = frozenset(
         "best_eval_mean_return",
         "best_at_frames",
         "best_confirmed",
+        "select_by",
+        "select_mode",
+        "eval_value",
+        "best_eval_value",
         "sessions",
         "interrupted",
     }
