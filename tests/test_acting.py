@@ -23,9 +23,10 @@ def cartpole():
     return Agent.load("cartpole", pretrained=True)
 
 
-def _greedy_index(agent: Agent, observation: torch.Tensor, batch=()) -> torch.Tensor:
-    """The policy's own greedy action on an observation entry (the TorchRL way)."""
-    data = TensorDict({"observation": observation}, batch_size=batch)
+def _greedy_index(agent: Agent, observation: torch.Tensor, batch=(), **entries) -> torch.Tensor:
+    """The policy's own greedy action on an observation entry, and any other entries it
+    reads (the TorchRL way)."""
+    data = TensorDict({"observation": observation, **entries}, batch_size=batch)
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         return agent.policy(data)["action"]
 
@@ -77,10 +78,12 @@ def test_a_frame_difference_agent_remembers_the_frame_before_until_reset():
     frames = [rng.choice([144, 236], size=(210, 160, 3)).astype(np.uint8) for _ in range(3)]
     processed = [FrameDifference.process(torch.as_tensor(f)) for f in frames]
     expected = [torch.zeros(6400)] + [(b - a).flatten() for a, b in itertools.pairwise(processed)]
-    for frame, difference in zip(frames, expected, strict=True):
-        assert agent.act(frame) == _greedy_index(agent, difference).item()
+    # the shipped policy also sees the frame itself (--frame), kept as previous_frame
+    for frame, now, difference in zip(frames, processed, expected, strict=True):
+        assert agent.act(frame) == _greedy_index(agent, difference, previous_frame=now).item()
     agent.reset()  # a new episode: its first frame has no frame before it
-    assert agent.act(frames[2]) == _greedy_index(agent, torch.zeros(6400)).item()
+    first = _greedy_index(agent, torch.zeros(6400), previous_frame=processed[2]).item()
+    assert agent.act(frames[2]) == first
 
 
 def test_loading_nothing_says_what_to_give(tmp_path):

@@ -114,8 +114,9 @@ def test_the_agents_are_shipped_in_the_package():
         "metadrive",
         "pong",
     } <= shipped
-    # what the wheel carries for them stays small beside torch itself
-    assert sum(p.stat().st_size for p in SHIPPED.glob("*.pt")) < 6_000_000
+    # what the wheel carries for them stays small beside torch itself (its CPU wheel is
+    # about 200 MB); Pong's policy reads 12 800 inputs, 10 MB of its 11
+    assert sum(p.stat().st_size for p in SHIPPED.glob("*.pt")) < 12_000_000
     pyproject = (SHIPPED.parents[2] / "pyproject.toml").read_text()
     assert '"recipes/agents/*.pt"' in pyproject  # package data of a built wheel
 
