@@ -54,9 +54,11 @@ _ = torch.manual_seed(0)
 # `FrameDifference`: each 210×160 colour frame is cropped to the court, every second row
 # and column of one channel is kept (80×80), the background becomes 0 and everything
 # else 1; the network gets the difference between this frame and the previous one, so a
-# single input shows which way the ball and the paddles move. We load the agent shipped
-# with rl_pg (`rl-pg play pong --pretrained` plays it: 2M agent steps of the recipe) and
-# let it play a few seconds of a game, keeping the raw frames.
+# single input shows which way the ball and the paddles move. A paddle that waits shows
+# in no difference, so the agent shipped with rl_pg, trained with `--frame`, also gets
+# the processed frame itself. We load it (`rl-pg play pong --pretrained` plays it: 2M
+# agent steps of the recipe with `--frame`) and let it play a few seconds of a game,
+# keeping the raw frames.
 
 # %%
 pong = load("pong")
@@ -76,7 +78,7 @@ fig, axes = plt.subplots(1, 3, figsize=(10, 3.6))
 axes[0].imshow(opening["pixels"][step])
 axes[0].set_title("the game's frame (210×160×3)")
 axes[1].imshow(opening["next", "previous_frame"][step - 1], cmap="gray")
-axes[1].set_title("processed (80×80, 0 or 1)")
+axes[1].set_title("processed (80×80, 0 or 1): with --frame, an input")
 axes[2].imshow(opening["observation"][step].reshape(80, 80), cmap="bwr", vmin=-1, vmax=1)
 axes[2].set_title("the input: this minus the last")
 for ax in axes:
@@ -86,7 +88,8 @@ fig.tight_layout()
 # %% [markdown]
 # ## The critic follows the return
 #
-# One model with two heads: a shared Linear(6400, 200)–ReLU trunk, 6 action logits and
+# One model with two heads: a shared Linear–ReLU trunk of 200 units (over the 6 400
+# inputs of the difference, and the frame's 6 400 with `--frame`), 6 action logits and
 # one value. Now 6 000 steps of play by sampling (as in training), without the raw
 # frames. The environment resets itself when a game ends: the done flags mark where,
 # and `reward_to_go` keeps each game's rewards to itself. The last game is cut by the
@@ -98,8 +101,8 @@ env = pong.make_play_env(cfg)
 env.set_seed(1)
 with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
     steps = env.rollout(6_000, actor, break_when_any_done=False)
-    value = critic(steps.select("observation").clone())["state_value"]
-    next_value = critic(steps["next"].select("observation").clone())["state_value"]
+    value = critic(steps.select(*critic.in_keys).clone())["state_value"]
+    next_value = critic(steps["next"].select(*critic.in_keys).clone())["state_value"]
 env.close()
 
 reward, done = steps["next", "reward"], steps["next", "done"]
