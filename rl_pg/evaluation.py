@@ -172,12 +172,8 @@ def evaluate(
         "std_return": stats["return"].std(unbiased=False).item(),
         "mean_length": stats["length"].mean().item(),
     }
-    for flag in flags:
-        if flag in stats:
-            out[f"{flag}_rate"] = stats[flag].mean().item()
-    for key in values:
-        if key in stats:
-            out[f"mean_{key}"] = stats[key].mean().item()
+    averaged = _averaged(flags, values)
+    out.update({name: stats[key].mean().item() for name, key in averaged.items() if key in stats})
     if action_stats and "action_counts" in stats:
         out.update(describe_actions(stats))
     return out
@@ -193,10 +189,13 @@ def reported(flags: Sequence[str] = (), values: Sequence[str] = ()) -> tuple[str
         ('mean_return', 'std_return', 'mean_length', 'crashed_rate', 'mean_route_completion')
     """
     flags, values = check_names("flags", flags), check_names("values", values)
-    return (
-        "mean_return", "std_return", "mean_length",
-        *(f"{flag}_rate" for flag in flags), *(f"mean_{key}" for key in values),
-    )  # fmt: skip
+    return ("mean_return", "std_return", "mean_length", *_averaged(flags, values))
+
+
+def _averaged(flags: Sequence[str], values: Sequence[str]) -> dict[str, str]:
+    """Each entry that averages a ``flag`` (``<flag>_rate``) or a ``value``
+    (``mean_<value>``) over the episodes, with the per-episode statistic it averages."""
+    return {**{f"{flag}_rate": flag for flag in flags}, **{f"mean_{key}": key for key in values}}
 
 
 def episode_shares(episodes: int, n: int) -> list[int]:
