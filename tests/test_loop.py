@@ -1765,6 +1765,28 @@ class TestInterruptedRun:
         for sig, handler in before.items():
             assert signal.getsignal(sig) is handler  # restored
 
+    def test_the_command_exits_holding_nothing_the_interrupted_run_built(self):
+        # What a stopped run's frames hold (its environments) must be freed before the
+        # process freezes its heap and exits: a simulator's bindings report what is
+        # still alive then as leaked (Pong's 16 games did, after a SIGTERM).
+        import weakref
+
+        from rl_pg.training.interrupt import exit_quietly_on_interrupt
+
+        class Environment:
+            pass
+
+        def interrupted_run():
+            env = Environment()
+            held.append(weakref.ref(env))
+            raise KeyboardInterrupt
+
+        held = []
+        with pytest.raises(SystemExit) as stop, exit_quietly_on_interrupt():
+            interrupted_run()
+        assert stop.value.code == 130
+        assert held[0]() is None, "the interrupted run's frame still holds its environment"
+
 
 class TestConsole:
     def test_lines_when_not_on_a_terminal(self, tmp_path):

@@ -22,6 +22,7 @@ import multiprocessing
 import signal
 import sys
 import threading
+import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -106,8 +107,13 @@ class MainProcessInterrupts:
 
 @contextmanager
 def exit_quietly_on_interrupt() -> Iterator[None]:
-    """Exits with status 130 (the shell's code for Ctrl-C) on ``KeyboardInterrupt``."""
+    """Exits with status 130 (the shell's code for Ctrl-C) on ``KeyboardInterrupt``.
+
+    The frames the interruption left (a stopped run's among them) are cleared first:
+    its traceback would keep their variables, the run's environments with them, alive
+    as the process exits (a simulator's bindings then report them leaked)."""
     try:
         yield
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interruption:
+        traceback.clear_frames(interruption.__traceback__)
         sys.exit(130)
