@@ -197,19 +197,32 @@ def test_pong_evaluation_games_differ_only_with_sticky_actions(sticky):
             training.close()
 
 
+@pytest.mark.parametrize("trunk", ["dense", "conv"])
 @pytest.mark.parametrize("frame", [False, True])
-def test_pong_sees_the_current_frame_only_when_asked(frame):
+def test_pong_sees_the_current_frame_only_when_asked(frame, trunk):
     """A difference shows nothing of a paddle that stands still: --frame feeds the current
-    frame (FrameDifference's previous_frame, the next step's previous one) beside it."""
+    frame (FrameDifference's previous_frame, the next step's previous one) beside it, to
+    either trunk."""
     pytest.importorskip("ale_py")
-    cfg = pong.config(num_envs=2, frame=frame)
+    cfg = pong.config(num_envs=2, frame=frame, trunk=trunk)
     env = pong.make_env(cfg)
     try:
-        actor, _ = pong.make_models(env, cfg)
+        actor, value = pong.make_models(env, cfg)
         td = env.rollout(3, actor)[:, -1]
     finally:
         env.close()
-    assert actor.module[0].module[0].in_features == (12_800 if frame else 6_400)
+    first = actor.module[0].module[0]
+    if trunk == "dense":
+        assert first.in_features == (12_800 if frame else 6_400)
+    else:  # the images as channels, from orthogonal weights and a near-uniform policy
+        assert first[0].in_channels == (2 if frame else 1)
+        (head,) = (
+            m.weight
+            for m in actor.modules()
+            if isinstance(m, torch.nn.Linear) and m.out_features == 6
+        )
+        assert torch.allclose(head @ head.T, 1e-4 * torch.eye(6), atol=1e-7)
+    assert value(td.clone())["state_value"].shape == (2, 1)
     moved = td.clone()
     moved["previous_frame"] = torch.zeros_like(td["previous_frame"])
     assert td["previous_frame"].sum() > 0  # the paddles and the score are drawn

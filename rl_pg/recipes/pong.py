@@ -13,14 +13,15 @@ entropy 0.01, value-loss weight 2, Adam 1e-3, gradient clip 1. Needs the atari e
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
-from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
+from torchrl.modules import ActorValueOperator, ConvNet, ProbabilisticActor, ValueOperator
 
 from rl_pg._checks import require_extra
 from rl_pg.envs import gym_env
@@ -53,6 +54,13 @@ class Config(
 
     hidden: Count = 200
     """Width of the shared trunk."""
+    trunk: Literal["dense", "conv"] = "dense"
+    """The shared trunk: one dense layer over the flattened inputs, or two convolutions
+    (16 8x8 filters with stride 4, 32 4x4 with stride 2) over the 80x80 images, then a
+    dense layer of ``hidden`` units, with orthogonal weights (gain sqrt 2; the policy
+    head's 0.01, the value head's 1). The convolutions see the same filters at every
+    place of the court, with a sixth of the dense layer's weights, but they learn only
+    with many updates: pair them with short segments (``--segment-length 10``)."""
     frame: bool = False
     """Also feed the current frame beside the difference (12 800 inputs). A difference
     shows nothing of a paddle that stands still; with sticky actions where it stands
@@ -111,20 +119,36 @@ def make_play_env(cfg: Config, *, render: bool = False) -> EnvBase:
     return make_game(sticky=cfg.eval_sticky, render=render)
 
 
-class _WithFrame(nn.Sequential):
-    """The trunk's layers over the difference and the current 80x80 frame, side by side."""
+class _Images(nn.Sequential):
+    """The trunk's layers over the difference (and the current frame) as 80x80 images:
+    flattened side by side for a dense layer, as channels for convolutions."""
 
-    def forward(self, difference: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-        return super().forward(torch.cat([difference, frame.flatten(-2)], dim=-1))
+    def __init__(self, *layers: nn.Module, channels: bool) -> None:
+        super().__init__(*layers)
+        self.channels = channels
+
+    def forward(self, difference: torch.Tensor, *frame: torch.Tensor) -> torch.Tensor:
+        if self.channels:
+            images = [difference.unflatten(-1, (80, 80)), *frame]
+            return super().forward(torch.stack(images, dim=-3))
+        return super().forward(torch.cat([difference, *(f.flatten(-2) for f in frame)], -1))
 
 
 def make_models(env: EnvBase, cfg: Config):
-    if cfg.frame:  # FrameDifference keeps the current frame as the next step's previous one
-        layers = _WithFrame(nn.Linear(2 * 6400, cfg.hidden), nn.ReLU())
-        trunk = TensorDictModule(layers, ["observation", "previous_frame"], ["hidden"])
+    # FrameDifference keeps the current frame as the next step's previous one.
+    in_keys = ["observation", "previous_frame"] if cfg.frame else ["observation"]
+    if cfg.trunk == "conv":
+        convolutions = ConvNet(
+            in_features=len(in_keys),
+            num_cells=[16, 32],
+            kernel_sizes=[8, 4],
+            strides=[4, 2],
+            activation_class=nn.ReLU,
+        )  # 80x80 -> 16x19x19 -> 32x8x8, flattened
+        layers = _Images(convolutions, nn.Linear(32 * 8 * 8, cfg.hidden), nn.ReLU(), channels=True)
     else:
-        layers = nn.Sequential(nn.Linear(6400, cfg.hidden), nn.ReLU())
-        trunk = TensorDictModule(layers, ["observation"], ["hidden"])
+        layers = _Images(nn.Linear(len(in_keys) * 6400, cfg.hidden), nn.ReLU(), channels=False)
+    trunk = TensorDictModule(layers, in_keys, ["hidden"])
     policy = ProbabilisticActor(
         TensorDictModule(nn.Linear(cfg.hidden, env.action_spec.space.n), ["hidden"], ["logits"]),
         in_keys=["logits"],
@@ -132,8 +156,23 @@ def make_models(env: EnvBase, cfg: Config):
         distribution_class=torch.distributions.Categorical,
     )
     value = ValueOperator(nn.Linear(cfg.hidden, 1), in_keys=["hidden"])
+    if cfg.trunk == "conv":
+        _orthogonal(layers, policy.module[0].module, value.module)
     model = ActorValueOperator(trunk, policy, value)
     return model.get_policy_operator(), model.get_value_operator()
+
+
+def _orthogonal(trunk: nn.Module, policy_head: nn.Linear, value_head: nn.Linear) -> None:
+    """Orthogonal weights and zero biases, as Atari's actor-critic networks start: gain
+    sqrt 2 in the ReLU trunk, 0.01 for the policy head (a near-uniform first policy), 1
+    for the value head."""
+    for layer in trunk.modules():
+        if isinstance(layer, (nn.Conv2d, nn.Linear)):
+            nn.init.orthogonal_(layer.weight, math.sqrt(2))
+            nn.init.zeros_(layer.bias)
+    for head, gain in ((policy_head, 0.01), (value_head, 1.0)):
+        nn.init.orthogonal_(head.weight, gain)
+        nn.init.zeros_(head.bias)
 
 
 def make_eval_env(cfg: Config) -> EnvBase:
