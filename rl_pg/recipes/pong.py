@@ -55,13 +55,13 @@ class Config(
     hidden: Count = 200
     """Width of the shared trunk."""
     trunk: Literal["dense", "conv"] = "dense"
-    """The shared trunk: one dense layer over the flattened inputs, or two convolutions
-    (16 8x8 filters with stride 4, 32 4x4 with stride 2) over the 80x80 images, then a
-    dense layer of ``hidden`` units; that trunk and the heads start from orthogonal
-    weights (gain sqrt 2; the policy head's 0.01, the value head's 1). The convolutions
-    see the same filters at every place of the court, with a sixth of the dense
-    layer's weights, but they learn only with many updates: pair them with short
-    segments (``--segment-length 10``)."""
+    """Shared trunk: a dense layer, or convolutions over the 80x80 images. 'dense' is
+    one layer over the flattened inputs. 'conv' is two convolutions (16 8x8 filters
+    with stride 4, 32 4x4 with stride 2) then a dense layer of ``hidden`` units; that
+    trunk and the heads start from orthogonal weights (gain sqrt 2; the policy head's
+    0.01, the value head's 1). The convolutions see the same filters at every place of
+    the court, with a sixth of the dense layer's weights, but they learn only with
+    many updates: pair them with short segments (``--segment-length 10``)."""
     frame: bool = False
     """Also feed the current frame beside the difference (12 800 inputs). A difference
     shows nothing of a paddle that stands still; with sticky actions where it stands
